@@ -1,0 +1,1 @@
+"""Particle location from decoded light fields."""
