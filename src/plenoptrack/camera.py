@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import tomllib
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import MISSING, asdict, dataclass, fields, replace
 from pathlib import Path
 from typing import Literal
 
@@ -170,8 +170,7 @@ class CameraSpec:
         unknown = sorted(set(data) - known)
         if unknown:
             raise CameraSpecError(f"{source}: unknown key(s) {unknown}; allowed: {sorted(known)}")
-        required = {f.name for f in fields(cls) if f.default is f.default_factory is None} - {
-            "grid_type", "bit_depth", "name"}
+        required = {f.name for f in fields(cls) if f.default is MISSING}
         missing = sorted(k for k in required if k not in data)
         if missing:
             raise CameraSpecError(f"{source}: missing key(s) {missing}")

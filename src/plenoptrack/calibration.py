@@ -1,0 +1,174 @@
+"""The calibration file: everything measured once per camera set-up.
+
+A calibration file is JSON with a format tag and a version, the nominal camera it was
+made for, the lenslet grid measured from a white image and, once fitted, the volumetric
+(DLFC) calibration. It is validated on load: a corrupt file, a file of another format
+version, or a file made for another camera is refused with a message that says what to do.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .camera import CameraSpec
+from .errors import CalibrationError, CameraSpecError
+from .io import atomic_write_text
+from .lightfield.lattice import LensletGrid
+
+__all__ = ["Calibration", "load_calibration", "save_calibration", "FORMAT", "VERSION"]
+
+FORMAT = "plenoptrack-calibration"
+VERSION = 1
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """Calibration of one camera set-up.
+
+    Parameters
+    ----------
+    camera : CameraSpec
+        Nominal camera the calibration was made with.
+    grid : LensletGrid
+        Microlens-image centres measured from a white image.
+    vignetting : (n_v, n_u) float ndarray or None
+        Relative brightness of each angular sample in the white image (1 = unvignetted),
+        used to flag vignetted views.
+    extra : dict
+        Further sections (e.g. the volumetric calibration), stored as JSON.
+    """
+
+    camera: CameraSpec
+    grid: LensletGrid
+    vignetting: np.ndarray | None = None
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def check_camera(self, camera: CameraSpec, *, source: str = "calibration") -> None:
+        """Raise :class:`CalibrationError` if ``camera`` is not the camera calibrated."""
+        mine, theirs = self.camera.to_dict(), camera.to_dict()
+        mine.pop("name", None)
+        theirs.pop("name", None)
+        diff = sorted(k for k in mine if mine[k] != theirs.get(k))
+        if diff:
+            raise CalibrationError(
+                f"{source}: calibration was made for another camera (differs in {', '.join(diff)}); "
+                "calibrate this camera with `plenoptrack calibrate-grid`")
+
+    def check_image(self, image: np.ndarray, *, source: str = "image") -> None:
+        """Raise :class:`CalibrationError` if ``image`` is not the calibrated sensor size."""
+        if tuple(image.shape[-2:]) != tuple(self.grid.sensor_shape_px):
+            r, c = self.grid.sensor_shape_px
+            raise CalibrationError(
+                f"{source}: image is {image.shape[-2]} x {image.shape[-1]} pixels but the "
+                f"calibration is for a {r} x {c} sensor; use the calibration of this camera")
+
+    def to_dict(self) -> dict:
+        return {
+            "format": FORMAT,
+            "version": VERSION,
+            "camera": self.camera.to_dict(),
+            "lenslet_grid": self.grid.to_dict(),
+            "vignetting": None if self.vignetting is None else np.asarray(self.vignetting).tolist(),
+            **self.extra,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict, *, source: str = "calibration") -> "Calibration":
+        if not isinstance(data, dict) or data.get("format") != FORMAT:
+            raise CalibrationError(f"{source}: not a plenoptrack calibration file "
+                                   "(missing format tag); make one with `plenoptrack calibrate-grid`")
+        version = data.get("version")
+        if version != VERSION:
+            raise CalibrationError(f"{source}: calibration format version {version!r} is not "
+                                   f"supported (this plenoptrack reads version {VERSION}); "
+                                   "re-run the calibration")
+        for key in ("camera", "lenslet_grid"):
+            if key not in data:
+                raise CalibrationError(f"{source}: calibration file has no '{key}' section; "
+                                       "re-run the calibration")
+        try:
+            camera = CameraSpec.from_dict(data["camera"], source=f"{source} [camera]")
+        except CameraSpecError as exc:
+            raise CalibrationError(str(exc)) from None
+        grid = LensletGrid.from_dict(data["lenslet_grid"], source=source)
+        if tuple(grid.sensor_shape_px) != tuple(camera.sensor_shape_px):
+            raise CalibrationError(f"{source}: lenslet grid was measured on a "
+                                   f"{grid.sensor_shape_px} sensor but the camera has "
+                                   f"{camera.sensor_shape_px}; re-run the calibration")
+        vignetting = data.get("vignetting")
+        if vignetting is not None:
+            vignetting = np.asarray(vignetting, dtype=float)
+            if vignetting.ndim != 2 or not np.all(np.isfinite(vignetting)):
+                raise CalibrationError(f"{source}: corrupt vignetting table; re-run the calibration")
+        known = {"format", "version", "camera", "lenslet_grid", "vignetting"}
+        extra = {k: v for k, v in data.items() if k not in known}
+        return cls(camera=camera, grid=grid, vignetting=vignetting, extra=extra)
+
+
+def save_calibration(calibration: Calibration, path: str | Path) -> Path:
+    """Write ``calibration`` as JSON, atomically; return the path."""
+    return atomic_write_text(path, json.dumps(calibration.to_dict(), indent=1) + "\n")
+
+
+def load_calibration(path: str | Path, *, camera: CameraSpec | None = None) -> Calibration:
+    """Read and validate a calibration file.
+
+    Parameters
+    ----------
+    path : str or Path
+        JSON file written by :func:`save_calibration`.
+    camera : CameraSpec, optional
+        If given, refuse a calibration made for a different camera.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationError(f"{path}: calibration file not found; make one with "
+                               "`plenoptrack calibrate-grid`")
+    try:
+        data = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise CalibrationError(f"{path}: calibration file is corrupt (not valid JSON: {exc}); "
+                               "re-run the calibration") from None
+    calibration = Calibration.from_dict(data, source=str(path))
+    if camera is not None:
+        calibration.check_camera(camera, source=str(path))
+    return calibration
+
+
+def calibrate_from_white(white, camera: CameraSpec, *, progress: bool = False):
+    """Measure the lenslet grid and vignetting of ``camera`` from a white image.
+
+    Parameters
+    ----------
+    white : str, Path or (rows, cols) ndarray
+        White (flat-field) image taken through the microlens array, or its TIFF file.
+    camera : CameraSpec
+        Nominal camera; its grid type and sensor size are checked against the image.
+
+    Returns
+    -------
+    calibration : Calibration
+        Camera, lenslet grid and per-view vignetting.
+    measurement : GridMeasurement
+        Detected centres and fit residuals, for reporting.
+    """
+    from .io import check_image_shape, read_raw
+    from .lightfield.decode import decode
+    from .lightfield.grid import measure_grid
+
+    source = "white image"
+    if isinstance(white, (str, Path)):
+        source = str(white)
+        white = read_raw(white)
+    white = np.asarray(white)
+    check_image_shape(white, camera.sensor_shape_px, source=source)
+    measurement = measure_grid(white, grid_type=camera.grid_type,
+                               pitch_px=camera.pixels_per_lenslet, progress=progress)
+    lf = decode(white, measurement.grid)
+    vignetting = lf.valid_fraction
+    return Calibration(camera=camera, grid=measurement.grid, vignetting=vignetting), measurement

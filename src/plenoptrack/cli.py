@@ -1,0 +1,204 @@
+"""The ``plenoptrack`` command: parses arguments, calls the library, reports.
+
+Every command is a thin shell over public library functions; anything done here can be
+done from Python. Library errors (:class:`plenoptrack.errors.PlenoptrackError`) are
+printed as one line on stderr with exit code 1.
+"""
+
+from __future__ import annotations
+
+import functools
+import sys
+import time
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import typer
+from rich.console import Console
+from rich.table import Table
+
+from .errors import PlenoptrackError
+
+app = typer.Typer(
+    name="plenoptrack",
+    help="3D particle location from plenoptic (light-field) camera images.",
+    no_args_is_help=True,
+    add_completion=False,
+    pretty_exceptions_enable=False,
+)
+console = Console(stderr=True)
+out = Console()
+
+
+def _reports_errors(func):
+    """Turn library errors into one readable line and exit code 1."""
+
+    @functools.wraps(func)
+    def wrapper(*args, **kwargs):
+        try:
+            return func(*args, **kwargs)
+        except PlenoptrackError as exc:
+            console.print(f"[bold red]error:[/] {exc}", highlight=False)
+            raise typer.Exit(code=1) from None
+        except KeyboardInterrupt:
+            console.print("[bold red]interrupted[/]; nothing half-written was kept")
+            raise typer.Exit(code=130) from None
+
+    return wrapper
+
+
+def _camera_from_options(preset_name: str, camera_file: Optional[Path]):
+    from .camera import load_camera, preset
+
+    return load_camera(camera_file) if camera_file is not None else preset(preset_name)
+
+
+@app.command()
+@_reports_errors
+def simulate(
+    out_dir: Path = typer.Option(Path("sim"), "--out", "-o", help="Output folder."),
+    preset_name: str = typer.Option("small", "--preset", help="Camera preset: small, small-rect, hall2019."),
+    seed: int = typer.Option(0, "--seed", help="Random seed; the same seed gives the same bytes."),
+    particles: int = typer.Option(20, "--particles", min=0, help="Number of particles (random scene)."),
+    diameter: float = typer.Option(1.0, "--diameter", help="Particle diameter, mm."),
+    magnification: Optional[float] = typer.Option(None, "--magnification", help="Override the preset magnification (negative, e.g. -0.5)."),
+    frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
+    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file (overrides the random-scene options)."),
+    samples: int = typer.Option(16, "--samples", min=1, help="Ray samples per pixel."),
+) -> None:
+    """Simulate a plenoptic data set: raw frames, white image, dot cards and ground truth."""
+    from .camera import preset
+    from .simulate import load_scene, simulate_dataset
+
+    camera = preset(preset_name)
+    scene_obj = load_scene(scene) if scene is not None else None
+    t0 = time.perf_counter()
+    result = simulate_dataset(camera, out_dir, seed=seed, n_particles=particles,
+                              diameter_mm=diameter, magnification=magnification, frames=frames,
+                              scene=scene_obj, samples_per_pixel=samples, progress=True)
+    console.print(f"wrote {result.out_dir} ({time.perf_counter() - t0:.1f} s)")
+
+
+@app.command("calibrate-grid")
+@_reports_errors
+def calibrate_grid_cmd(
+    white: Path = typer.Argument(..., help="White (flat-field) image, uint16 TIFF."),
+    camera_file: Path = typer.Option(..., "--camera", "-c", help="Nominal camera description (camera.toml)."),
+    out_file: Path = typer.Option(Path("calib.json"), "--out", "-o", help="Calibration file to write."),
+) -> None:
+    """Measure the lenslet grid from a white image and write a calibration file."""
+    from .camera import load_camera
+    from .calibration import calibrate_from_white, save_calibration
+
+    camera = load_camera(camera_file)
+    t0 = time.perf_counter()
+    calib, report = calibrate_from_white(white, camera)
+    save_calibration(calib, out_file)
+    g = calib.grid
+    table = Table(title=f"lenslet grid ({time.perf_counter() - t0:.2f} s)")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    table.add_row("grid type", g.grid_type)
+    table.add_row("lenslets (rows x cols)", f"{g.shape[0]} x {g.shape[1]}")
+    table.add_row("pitch, px", f"{g.pitch_px:.4f}")
+    table.add_row("rotation, deg", f"{g.rotation_deg:.4f}")
+    table.add_row("centres detected", f"{report.n_detected}")
+    table.add_row("fit residual RMS, px", f"{report.rms_residual_px:.4f}")
+    out.print(table)
+    console.print(f"wrote {out_file}")
+
+
+def _load_frame(raw: Path, frame: int, calib):
+    from .io import read_raw
+
+    image = read_raw(raw, frame=frame)
+    calib.check_image(image, source=str(raw))
+    return image
+
+
+@app.command()
+@_reports_errors
+def views(
+    raw: Path = typer.Argument(..., help="Raw plenoptic image (uint16 TIFF)."),
+    calib_file: Path = typer.Option(..., "--calib", help="Calibration file."),
+    out_file: Path = typer.Option(Path("views.tif"), "--out", "-o", help="Multi-page TIFF of all views, page = v * n_u + u."),
+    mosaic: Optional[Path] = typer.Option(None, "--mosaic", help="Also write a PNG mosaic of all views."),
+    frame: int = typer.Option(0, "--frame", help="Frame of a multi-page raw TIFF."),
+) -> None:
+    """Decode a raw image and write every perspective view."""
+    from .calibration import load_calibration
+    from .lightfield import decode, write_view_mosaic_png, write_views_tiff
+
+    calib = load_calibration(calib_file)
+    image = _load_frame(raw, frame, calib)
+    t0 = time.perf_counter()
+    lf = decode(image, calib.grid, progress=True)
+    write_views_tiff(lf, out_file)
+    console.print(f"decoded {lf.data.shape[0]} x {lf.data.shape[1]} views of "
+                  f"{lf.data.shape[2]} x {lf.data.shape[3]} samples in {time.perf_counter() - t0:.2f} s; "
+                  f"wrote {out_file}")
+    if mosaic is not None:
+        write_view_mosaic_png(lf, mosaic)
+        console.print(f"wrote {mosaic}")
+
+
+@app.command()
+@_reports_errors
+def refocus(
+    raw: Path = typer.Argument(..., help="Raw plenoptic image (uint16 TIFF)."),
+    calib_file: Path = typer.Option(..., "--calib", help="Calibration file."),
+    depth: list[float] = typer.Option([], "--depth", help="Depth z (mm, 0 = focal plane); repeat for several."),
+    alpha: list[float] = typer.Option([], "--alpha", help="Refocus parameter alpha = d / s_i; repeat for several."),
+    stack: int = typer.Option(0, "--stack", help="Focal stack of this many planes evenly over --zmin..--zmax."),
+    zmin: float = typer.Option(-25.0, "--zmin", help="Nearest depth of --stack, mm."),
+    zmax: float = typer.Option(25.0, "--zmax", help="Farthest depth of --stack, mm."),
+    out_file: Path = typer.Option(Path("refocused.tif"), "--out", "-o", help="Output TIFF (one page per plane)."),
+    frame: int = typer.Option(0, "--frame", help="Frame of a multi-page raw TIFF."),
+) -> None:
+    """Refocus a raw image (shift-and-add) at given depths or alphas, or make a focal stack."""
+    from .calibration import load_calibration
+    from .io import write_tiff
+    from .lightfield import decode, focal_stack
+
+    if not depth and not alpha and stack <= 0:
+        raise typer.BadParameter("give --depth, --alpha or --stack")
+    calib = load_calibration(calib_file)
+    camera = calib.camera
+    depths = list(depth) + [float(camera.depth_for_alpha(a)) for a in alpha]
+    if stack > 0:
+        depths += list(np.linspace(zmin, zmax, stack))
+    image = _load_frame(raw, frame, calib)
+    t0 = time.perf_counter()
+    lf = decode(image, calib.grid)
+    planes = focal_stack(lf, camera, np.asarray(depths), progress=True)
+    write_tiff(out_file, planes.astype(np.float32), compression=None)
+    console.print(f"{len(depths)} plane(s) in {time.perf_counter() - t0:.2f} s; wrote {out_file}")
+
+
+@app.command()
+@_reports_errors
+def demo(
+    out_dir: Path = typer.Option(Path("plenoptrack-demo"), "--out", "-o", help="Folder for the demo's files."),
+    seed: int = typer.Option(0, "--seed", help="Random seed of the simulated scene."),
+) -> None:
+    """Run the whole pipeline on a small simulated scene and print a summary."""
+    from .demo import run_demo
+
+    summary = run_demo(out_dir, seed=seed, progress=True)
+    table = Table(title="plenoptrack demo (simulated 'small' camera)")
+    table.add_column("step")
+    table.add_column("result", justify="right")
+    table.add_column("seconds", justify="right")
+    for step, result, seconds in summary.rows:
+        table.add_row(step, result, f"{seconds:.2f}")
+    out.print(table)
+    console.print(f"files in {out_dir}")
+
+
+def main() -> None:  # pragma: no cover - console entry point
+    app()
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())
