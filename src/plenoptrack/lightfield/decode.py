@@ -26,9 +26,12 @@ from .lattice import LensletGrid
 
 __all__ = ["LightField", "decode", "VIEW_MASK_THRESHOLD", "WHITE_FLOOR"]
 
-VIEW_MASK_THRESHOLD = 0.5
+VIEW_MASK_THRESHOLD = 0.6
 """A view is *valid* (:attr:`LightField.view_mask`) when at least this fraction of it is
-unvignetted (:attr:`LightField.valid_fraction`)."""
+unvignetted (:attr:`LightField.valid_fraction`). Views on the rim of the microlens image
+(e.g. ``u = +-R, v = 0`` when the pitch is just over ``2 R`` pixels) have about half of
+their pixel footprint outside the lens's own image and pick up light from the
+neighbouring lens; 0.6 excludes them."""
 
 WHITE_FLOOR = 0.1
 """Default for ``decode(..., white_floor=)``: flat-field division happens only where the
@@ -50,7 +53,9 @@ class LightField:
         integer grid ``-R ... R``.
     valid_fraction : (n_v, n_u) float64 ndarray
         Fraction of each view that is unvignetted, in [0, 1] (1 for the central views,
-        0 for views entirely outside the microlens image).
+        0 for views entirely outside the microlens image): the fraction of the view's
+        pixel footprint inside the microlens-image disc, or, with a white image, the
+        smaller of that and the view's mean white level relative to the brightest view.
     spatial_mask : (n_t, n_s) bool ndarray
         True where the sample stands for lenses whose whole image lies on the sensor.
     origin_px : (2,) float
@@ -145,7 +150,7 @@ class LightField:
 
     @property
     def view_mask(self) -> np.ndarray:
-        """``(n_v, n_u)`` bool: views with ``valid_fraction >= VIEW_MASK_THRESHOLD`` (0.5)."""
+        """``(n_v, n_u)`` bool: views with ``valid_fraction >= VIEW_MASK_THRESHOLD`` (0.6)."""
         return self.valid_fraction >= VIEW_MASK_THRESHOLD
 
     @property
@@ -371,10 +376,13 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: np.ndarray | None = Non
     white : (rows, cols) ndarray, optional
         White (flat-field) image of the same camera. When given, the light field is
         divided by the decoded white light field wherever the latter exceeds
-        ``white_floor`` times the mean level of its brightest view (zero elsewhere), and
-        ``valid_fraction`` is measured from it. Without it, ``valid_fraction`` is the
-        fraction of each view's pixel footprint inside the disc of radius
-        ``grid.pitch_px / 2`` (a microlens image of a matched main lens).
+        ``white_floor`` times the mean level of its brightest view (zero elsewhere).
+        ``valid_fraction`` is the fraction of each view's pixel footprint inside the disc
+        of radius ``grid.pitch_px / 2`` (the microlens image of a matched main lens); with
+        a white image it is further limited to the view's mean white level relative to
+        the brightest view (vignetting by a smaller aperture). The white level alone
+        would not do: rim views interpolate pixels of the neighbouring lens, which are
+        lit too.
     white_floor : float
         See ``white``; between 0 and 1.
     progress : bool
@@ -418,11 +426,11 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: np.ndarray | None = Non
     samp = _sampling(grid, rad)
     ang = np.arange(-rad, rad + 1, dtype=float)
     data = _decode_array(raw, grid, samp, rad, progress, "decoding")
-    if white is None:
-        valid = _disc_fraction(ang, ang, grid.pitch_px / 2.0)
-    else:
+    valid = _disc_fraction(ang, ang, grid.pitch_px / 2.0)
+    if white is not None:
         wdata = _decode_array(white, grid, samp, rad, progress, "decoding white")
-        valid = _flat_field(data, wdata, samp.mask, white_floor)
+        valid = np.minimum(valid, _flat_field(data, wdata, samp.mask, white_floor))
+        del wdata
     return LightField(data=data, u=ang, v=ang.copy(), valid_fraction=valid,
                       spatial_mask=samp.mask, origin_px=samp.origin_px,
                       s_step_px=samp.s_step_px, t_step_px=samp.t_step_px,
@@ -433,10 +441,9 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: np.ndarray | None = Non
 def _flat_field(data: np.ndarray, wdata: np.ndarray, mask: np.ndarray, floor: float) -> np.ndarray:
     """Divide ``data`` by ``wdata`` in place where bright enough; return valid fractions."""
     n_v, n_u = data.shape[:2]
-    if mask.any():
-        level = wdata[:, :, mask].mean(axis=2, dtype=np.float64)
-    else:
-        level = wdata.reshape(n_v, n_u, -1).mean(axis=2, dtype=np.float64)
+    weights = (mask if mask.any() else np.ones_like(mask)).ravel().astype(np.float32)
+    level = (wdata.reshape(n_v * n_u, -1) @ weights).astype(np.float64).reshape(n_v, n_u)
+    level /= float(weights.sum())
     ref = float(level.max())
     if not ref > 0:
         raise InputFileError("white image is dark everywhere under the lenslets; "
