@@ -1,0 +1,321 @@
+"""Rendering back-lit particle images by back-tracing rays through the plenoptic camera.
+
+Ray model (camera frame, mm; see :mod:`.optics`). Each pixel carries ``n`` samples from
+one fixed low-discrepancy pattern. Sample ``k`` pairs a point ``P`` inside the pixel
+with a point ``Q`` uniform inside the aperture cell (hexagon or square) of the microlens
+``C`` whose image centre is nearest to ``P``. (Choosing the lens per sample rather than
+per pixel keeps the light of pixels straddling two lens cells; with the pixel-centre rule
+the microlens-image centroids are biased by up to 0.08 px.) ``P`` lies in
+the focal plane of the thin microlens, so the ray leaves ``Q`` with slope
+``(C - P) / f_ml`` and crosses the main-lens plane at ``H = Q + (C - P) s_i / f_ml``;
+samples with ``|H| > D / 2`` are vignetted. In object space the ray joins ``H`` and the
+distorted conjugate of ``Q`` on the focal plane. A sample sees the back-light (radiance
+1) unless the ray meets an opaque particle; the pixel irradiance is the lit fraction.
+
+The empty (back-lit only) irradiance is computed once per optics and sample count and
+cached. A frame with particles re-traces only the pixels of lenses whose footprint can
+meet a particle: for each particle a conservative disc on the focal plane (defocus blur
+over the whole aperture plus the particle's projected size) is mapped back to the
+microlens plane through the inverse distortion, its bounding box is grown by a lens-cell
+radius and two pitches (a pixel's samples may use a lens next to the one owning the
+pixel centre), and the pixels of the lenses with centres inside are re-traced against
+the particles whose boxes contain them.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+
+import numpy as np
+import pandas as pd
+
+from .._columns import DIAMETER_COLUMN, POS_COLUMNS, T_COLUMN
+from . import _kernels
+from .optics import SimOptics
+from .sensor import SensorModel, expose
+
+__all__ = ["render_irradiance", "render_white", "render_frame", "background_irradiance",
+           "particle_lenses", "DEFAULT_SAMPLES_PER_PIXEL"]
+
+DEFAULT_SAMPLES_PER_PIXEL = 16
+_PATTERN_SEED = 20190601
+_NO_CARD = np.zeros(3)
+_KEY_OFFSET = 1 << 20
+
+
+def _check_optics(optics) -> None:
+    if not isinstance(optics, SimOptics):
+        raise TypeError(f"optics must be a SimOptics (see make_optics); got {type(optics).__name__}")
+
+
+def _check_samples(samples_per_pixel) -> int:
+    if not (isinstance(samples_per_pixel, (int, np.integer)) and 1 <= samples_per_pixel <= 4096):
+        raise ValueError(f"samples_per_pixel must be an integer in [1, 4096]; got {samples_per_pixel!r}")
+    return int(samples_per_pixel)
+
+
+@functools.lru_cache(maxsize=16)
+def sample_pattern(optics: SimOptics, n: int) -> np.ndarray:
+    """The fixed per-pixel sample pattern, ``(n, 4)`` float64, read-only.
+
+    Columns: offset (dX, dY) of ``P`` from the pixel centre and offset (dX, dY) of ``Q``
+    from the microlens centre, camera frame, mm. Half the samples come from a scrambled
+    Sobol sequence (Halton when ``n / 2`` is not a power of two) with a fixed seed, the
+    other half are their point reflections (``u -> 1 - u`` in all four dimensions), and an
+    odd ``n`` adds the centre sample; the pattern is therefore symmetric and the
+    microlens images have no centroid bias. The ``Q`` part, uniform on a lattice
+    parallelogram, is folded into the lens cell (hexagon or square).
+    """
+    from scipy.stats import qmc
+
+    half = n // 2
+    if half == 0:
+        u = np.zeros((0, 4))
+    elif half & (half - 1) == 0:
+        u = qmc.Sobol(d=4, scramble=True, seed=_PATTERN_SEED).random(half)
+    else:
+        u = qmc.Halton(d=4, scramble=True, seed=_PATTERN_SEED).random(half)
+    # Point-symmetric pairs (u, 1 - u): unbiased centroids of every microlens image.
+    u = np.concatenate([u, 1.0 - u, np.full((n % 2, 4), 0.5)])
+    pp = optics.pixel_pitch
+    e1, e2 = optics.lattice_vectors
+    e2s = e2 + optics.odd_row_shift * e1
+    v = u[:, 2:3] * e1 + u[:, 3:4] * e2s
+    # Fold onto the cell of the lattice point nearest v (cell of lens (0, 0) at the origin).
+    off = np.asarray(optics.offset_mm)
+    ia = optics.lattice_coords(v + off)
+    best = np.full(n, np.inf)
+    folded = np.empty_like(v)
+    for di in (-1, 0, 1):
+        i = np.floor(ia[:, 0] + 0.5).astype(np.int64) + di
+        j = np.floor(ia[:, 1] - optics.odd_row_shift * (i & 1) + 0.5).astype(np.int64)
+        d = v + off - optics.lens_centers_mm(i, j)
+        r2 = (d ** 2).sum(axis=1)
+        better = r2 < best
+        best[better] = r2[better]
+        folded[better] = d[better]
+    samples = np.column_stack([(u[:, 0] - 0.5) * pp, (u[:, 1] - 0.5) * pp, folded])
+    samples.setflags(write=False)
+    return samples
+
+
+@functools.lru_cache(maxsize=2)
+def background_irradiance(optics: SimOptics, samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL
+                          ) -> np.ndarray:
+    """Back-lit irradiance of the empty camera, ``(rows, cols)`` float32, read-only, cached.
+
+    Each pixel holds the fraction of its samples that pass the main-lens aperture: the
+    microlens images are discs (images of the aperture) centred on ``optics.true_grid``.
+    """
+    _check_optics(optics)
+    n = _check_samples(samples_per_pixel)
+    rows, cols = optics.camera.sensor_shape_px
+    out = _kernels.render_all(_kernels.pack_params(optics), sample_pattern(optics, n),
+                              np.zeros((0, 4)), _NO_CARD, 0, rows, 0, cols)
+    out.setflags(write=False)
+    return out
+
+
+def _particle_table(optics: SimOptics, particles) -> np.ndarray:
+    """Validate a particles table; return ``(m, 4)`` occluders (X, Y, Z, r^2), camera frame."""
+    if particles is None:
+        return np.zeros((0, 4))
+    if not isinstance(particles, pd.DataFrame):
+        raise TypeError(f"particles must be a pandas DataFrame; got {type(particles).__name__}")
+    needed = [*POS_COLUMNS, DIAMETER_COLUMN]
+    missing = [c for c in needed if c not in particles.columns]
+    if missing:
+        raise ValueError(f"particles table is missing column(s) {missing}; "
+                         f"expected {needed} (mm, world frame)")
+    if T_COLUMN in particles.columns and particles[T_COLUMN].nunique() > 1:
+        raise ValueError("particles table holds several frames "
+                         f"({sorted(particles[T_COLUMN].unique())[:5]}...); select one frame first")
+    values = particles[needed].to_numpy(dtype=np.float64)
+    if not np.isfinite(values).all():
+        raise ValueError("particles table contains NaN or infinite positions or diameters")
+    diam = values[:, 3]
+    if (diam <= 0).any():
+        raise ValueError(f"particle diameters must be positive (mm); got min {diam.min()}")
+    big_z = values[:, 2] + optics.s_o
+    radius = diam / 2
+    behind = big_z - radius <= 0.05 * optics.s_o
+    if behind.any():
+        raise ValueError(f"particle(s) at z = {values[behind, 2][:3]} mm reach the main lens "
+                         f"(the focal plane is {optics.s_o:.1f} mm in front of it); "
+                         f"keep z - diameter/2 > {-0.95 * optics.s_o:.1f} mm")
+    return np.column_stack([-values[:, 0], -values[:, 1], big_z, radius ** 2])
+
+
+def _footprint_boxes(optics: SimOptics, occluders: np.ndarray) -> np.ndarray:
+    """Conservative MLA-plane boxes ``(m, 4)`` [X0, X1, Y0, Y1] mm of the lenses a particle can shade."""
+    m = len(occluders)
+    if m == 0:
+        return np.zeros((0, 4))
+    s_o = optics.s_o
+    xy = occluders[:, :2]
+    big_z = occluders[:, 2]
+    r = np.sqrt(occluders[:, 3])
+    near = big_z - r
+    far = big_z + r
+    centre = xy * (s_o / big_z)[:, None]
+    blur = optics.aperture_radius * np.maximum(np.abs(1 - s_o / near), np.abs(1 - s_o / far))
+    radius = (r * s_o / near + np.hypot(xy[:, 0], xy[:, 1]) * s_o * r / (big_z * near) + blur)
+    ang = np.linspace(0, 2 * np.pi, 64, endpoint=False)
+    ring = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
+    pts = centre[:, None, :] + radius[:, None, None] * ring[None]
+    pts = np.concatenate([pts, centre[:, None, :]], axis=1)
+    mla = optics.focal_plane_to_mla(pts)
+    grow = optics.cell_radius + 2 * optics.pitch
+    return np.column_stack([mla[..., 0].min(1) - grow, mla[..., 0].max(1) + grow,
+                            mla[..., 1].min(1) - grow, mla[..., 1].max(1) + grow])
+
+
+def particle_lenses(optics: SimOptics, occluders: np.ndarray):
+    """Lenses to re-trace and the occluders to test for each.
+
+    Parameters
+    ----------
+    optics : SimOptics
+    occluders : (m, 4) float ndarray
+        Spheres (X, Y, Z, r^2) in the camera frame, mm.
+
+    Returns
+    -------
+    lenses : (L, 2) int64 ndarray
+        Lens indices (i, j), sorted.
+    ptr : (L + 1,) int64 ndarray
+        Lens ``k`` is tested against ``occluders[idx[ptr[k]:ptr[k + 1]]]``.
+    idx : int64 ndarray
+        Occluder indices.
+    """
+    boxes = _footprint_boxes(optics, occluders)
+    keys, owners = [], []
+    for p, (x0, x1, y0, y1) in enumerate(boxes):
+        corners = np.array([[x0, y0], [x0, y1], [x1, y0], [x1, y1]])
+        ia = optics.lattice_coords(corners)
+        i = np.arange(math.floor(ia[:, 0].min()) - 1, math.ceil(ia[:, 0].max()) + 2)
+        j = np.arange(math.floor(ia[:, 1].min()) - 2, math.ceil(ia[:, 1].max()) + 2)
+        ii, jj = np.meshgrid(i, j, indexing="ij")
+        c = optics.lens_centers_mm(ii, jj)
+        inside = (c[..., 0] >= x0) & (c[..., 0] <= x1) & (c[..., 1] >= y0) & (c[..., 1] <= y1)
+        keys.append((ii[inside] + _KEY_OFFSET) * (2 * _KEY_OFFSET) + (jj[inside] + _KEY_OFFSET))
+        owners.append(np.full(int(inside.sum()), p, dtype=np.int64))
+    if not keys:
+        return np.zeros((0, 2), np.int64), np.zeros(1, np.int64), np.zeros(0, np.int64)
+    keys = np.concatenate(keys)
+    owners = np.concatenate(owners)
+    order = np.lexsort((owners, keys))
+    keys, owners = keys[order], owners[order]
+    uniq, start = np.unique(keys, return_index=True)
+    lenses = np.column_stack([uniq // (2 * _KEY_OFFSET) - _KEY_OFFSET,
+                              uniq % (2 * _KEY_OFFSET) - _KEY_OFFSET]).astype(np.int64)
+    ptr = np.append(start, len(keys)).astype(np.int64)
+    return lenses, ptr, owners
+
+
+def render_irradiance(optics: SimOptics, particles: pd.DataFrame | None = None, *,
+                      samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
+                      cull: bool = True) -> np.ndarray:
+    """Noise-free irradiance of a back-lit frame with opaque spherical particles.
+
+    Parameters
+    ----------
+    optics : SimOptics
+        True camera optics.
+    particles : DataFrame or None
+        One frame of particles, columns ``x, y, z, diameter`` (world frame, mm).
+    samples_per_pixel : int
+        Rays per pixel.
+    cull : bool
+        True (default) re-traces only the lenses a particle can shade, starting from the
+        cached empty image; False traces every pixel against every particle (slow, for
+        checking). Both give identical results.
+
+    Returns
+    -------
+    (rows, cols) float32 ndarray
+        Fraction of the back-light reaching each sensor pixel, in [0, 1].
+    """
+    _check_optics(optics)
+    n = _check_samples(samples_per_pixel)
+    occ = _particle_table(optics, particles)
+    par = _kernels.pack_params(optics)
+    samples = sample_pattern(optics, n)
+    if not cull:
+        rows, cols = optics.camera.sensor_shape_px
+        return _kernels.render_all(par, samples, occ, _NO_CARD, 0, rows, 0, cols)
+    out = background_irradiance(optics, n).copy()
+    if len(occ):
+        lenses, ptr, idx = particle_lenses(optics, occ)
+        _kernels.render_lenses(out, lenses, ptr, idx, par, samples, occ, _NO_CARD)
+    return out
+
+
+def render_white(optics: SimOptics, *, seed: int | np.random.Generator | None = 0,
+                 noise: bool = True, samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
+                 sensor: SensorModel = SensorModel()) -> np.ndarray:
+    """Raw white (flat-field) image: the back-light only, exposed at ``sensor.white_level``.
+
+    Parameters
+    ----------
+    optics : SimOptics
+        True camera optics.
+    seed : int or numpy.random.Generator
+        Noise seed.
+    noise : bool
+        False gives the rounded expected counts.
+    samples_per_pixel : int
+        Rays per pixel.
+    sensor : SensorModel
+        Full well, read noise and exposure levels.
+
+    Returns
+    -------
+    (rows, cols) uint16 ndarray
+        Raw counts, ``camera.bit_depth`` significant bits.
+
+    Examples
+    --------
+    >>> from plenoptrack import preset
+    >>> from plenoptrack.simulate import make_optics
+    >>> white = render_white(make_optics(preset("small"), seed=0), seed=0)
+    >>> white.shape, white.dtype
+    ((600, 910), dtype('uint16'))
+    """
+    irr = background_irradiance(optics, _check_samples(samples_per_pixel))
+    return expose(irr, level=sensor.white_level, bit_depth=optics.camera.bit_depth,
+                  sensor=sensor, rng=np.random.default_rng(seed), noise=noise)
+
+
+def render_frame(optics: SimOptics, particles: pd.DataFrame | None, *,
+                 seed: int | np.random.Generator | None = 0, noise: bool = True,
+                 samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
+                 sensor: SensorModel = SensorModel()) -> np.ndarray:
+    """Raw image of one frame of opaque particles in front of the back-light.
+
+    Parameters
+    ----------
+    optics : SimOptics
+        True camera optics.
+    particles : DataFrame or None
+        Columns ``x, y, z, diameter`` (world frame, mm); a ``frame`` column, if present,
+        must hold a single value.
+    seed : int or numpy.random.Generator
+        Noise seed; the same inputs and seed give identical bytes.
+    noise : bool
+        False gives the rounded expected counts.
+    samples_per_pixel : int
+        Rays per pixel.
+    sensor : SensorModel
+        Full well, read noise and exposure (``background_level``).
+
+    Returns
+    -------
+    (rows, cols) uint16 ndarray
+        Raw counts.
+    """
+    irr = render_irradiance(optics, particles, samples_per_pixel=samples_per_pixel)
+    return expose(irr, level=sensor.background_level, bit_depth=optics.camera.bit_depth,
+                  sensor=sensor, rng=np.random.default_rng(seed), noise=noise)
+
