@@ -332,9 +332,11 @@ def _lattice_phase(crop: np.ndarray, col_step: np.ndarray, row_step: np.ndarray,
     """Position (row, col) in the crop of one lens centre near the crop centre.
 
     The crop pixels are folded onto one primitive lattice cell by their fractional
-    lattice coordinates. The folded cell, smoothed by a Gaussian a quarter-cell wide, is
-    brightest at the disc centre; a parabola through the brightest bin and its neighbours
-    places it to a fraction of a bin.
+    lattice coordinates, giving the mean cell image ``M``. A lattice of centrally
+    symmetric images is symmetric about its lens centres and about the midpoints between
+    them; the periodic self-convolution of ``M`` peaks at twice any of these symmetry
+    centres, which gives them to a fraction of a bin. Of the four candidates (a centre
+    plus half lattice vectors) the lens centre is the brightest.
     """
     primitive = np.array([col_step, row_step + shift * col_step])  # rows: two lattice vectors
     centre = (np.array(crop.shape) - 1) / 2.0
@@ -346,12 +348,20 @@ def _lattice_phase(crop: np.ndarray, col_step: np.ndarray, row_step: np.ndarray,
     sums = np.bincount(flat, weights=crop.ravel(), minlength=bins * bins)
     counts = np.bincount(flat, minlength=bins * bins)
     mean = (sums / np.maximum(counts, 1)).reshape(bins, bins)
-    mean = ndimage.gaussian_filter(mean, sigma=bins / 8.0, mode="wrap")
-    k0, k1 = np.unravel_index(np.argmax(mean), mean.shape)
-    f0 = mean[k0, k1]
-    d0 = _parabola_vertex(mean[k0 - 1, k1], f0, mean[(k0 + 1) % bins, k1])
-    d1 = _parabola_vertex(mean[k0, k1 - 1], f0, mean[k0, (k1 + 1) % bins])
-    phase = (np.array([k0 + d0, k1 + d1]) + 0.5) / bins
+    mean -= mean.mean()
+    spectrum = np.fft.fft2(mean)
+    self_conv = np.fft.ifft2(spectrum * spectrum).real
+    k0, k1 = np.unravel_index(np.argmax(self_conv), self_conv.shape)
+    f0 = self_conv[k0, k1]
+    d0 = _parabola_vertex(self_conv[k0 - 1, k1], f0, self_conv[(k0 + 1) % bins, k1])
+    d1 = _parabola_vertex(self_conv[k0, k1 - 1], f0, self_conv[k0, (k1 + 1) % bins])
+    # bin b covers fractional coordinates [b, b + 1) / bins: its centre is (b + 0.5) / bins,
+    # so a convolution index s stands for the sum of two coordinates (s + 1) / bins
+    doubled = (np.array([k0 + d0, k1 + d1]) + 1.0) / bins
+    candidates = (doubled / 2.0 + np.array([[0, 0], [0.5, 0], [0, 0.5], [0.5, 0.5]])) % 1.0
+    smooth = ndimage.gaussian_filter(mean, sigma=1.0, mode="wrap")
+    pick = np.minimum((candidates * bins).astype(np.int64), bins - 1)
+    phase = candidates[np.argmax(smooth[pick[:, 0], pick[:, 1]])]
     return centre + phase @ primitive
 
 
