@@ -1,0 +1,178 @@
+"""Tests of per-view particle segmentation."""
+
+import numpy as np
+import pandas as pd
+import pytest
+from scipy.spatial import cKDTree
+from skimage.measure import label, regionprops
+
+from plenoptrack.errors import NoParticlesWarning
+from plenoptrack.locate.segment import DETECTION_COLUMNS, segment_array, segment_view
+
+
+def _blobs(shape, positions, *, sigma=1.2, depth=0.7, background=1.0):
+    """View with dark Gaussian blobs at (row, col) ``positions`` on a flat background."""
+    img = np.full(shape, background, dtype=np.float64)
+    rows, cols = np.mgrid[:shape[0], :shape[1]]
+    for r, c in positions:
+        img -= depth * background * np.exp(-((rows - r) ** 2 + (cols - c) ** 2) / (2 * sigma ** 2))
+    return img
+
+
+def _random_positions(rng, n, shape, margin=10, min_sep=9.0):
+    pts = []
+    while len(pts) < n:
+        p = rng.uniform([margin, margin], [shape[0] - margin, shape[1] - margin])
+        if all(np.hypot(*(p - q)) > min_sep for q in pts):
+            pts.append(p)
+    return np.array(pts)
+
+
+def _match(det, truth_rc):
+    dist, idx = cKDTree(truth_rc[:, ::-1]).query(det[["s", "t"]].to_numpy())
+    return dist, idx
+
+
+def test_centroids_subpixel_with_noise():
+    rng = np.random.default_rng(0)
+    shape = (120, 160)
+    truth = _random_positions(rng, 40, shape)
+    img = _blobs(shape, truth) + rng.normal(0, 0.02, shape)
+    det = segment_view(img.astype(np.float32))
+    assert list(det.columns) == list(DETECTION_COLUMNS)
+    assert len(det) == len(truth)
+    dist, idx = _match(det, truth)
+    assert len(np.unique(idx)) == len(truth)
+    assert np.sqrt(np.mean(dist ** 2)) < 0.1
+    assert dist.max() < 0.25
+
+
+def test_noise_alone_gives_no_detections():
+    rng = np.random.default_rng(1)
+    img = 1.0 + rng.normal(0, 0.025, (200, 300))
+    with pytest.warns(NoParticlesWarning):
+        det = segment_view(img)
+    assert len(det) == 0
+    assert list(det.columns) == list(DETECTION_COLUMNS)
+
+
+def test_shape_properties_match_skimage():
+    shape = (80, 80)
+    rows, cols = np.mgrid[:80, :80]
+    img = np.ones(shape)
+    # tilted ellipse, semi-axes 9 and 4 px, 30 degrees from +s towards +t
+    th = np.deg2rad(30)
+    ds, dt = cols - 40.3, rows - 39.6
+    a = (ds * np.cos(th) + dt * np.sin(th)) / 9.0
+    b = (-ds * np.sin(th) + dt * np.cos(th)) / 4.0
+    inside = a ** 2 + b ** 2 <= 1
+    img[inside] = 0.3
+    det = segment_view(img, window=61)
+    assert len(det) == 1
+    rp = regionprops(label(inside))[0]
+    row = det.iloc[0]
+    assert row["area"] == rp.area
+    assert row["major_axis_px"] == pytest.approx(rp.axis_major_length, rel=1e-9)
+    assert row["minor_axis_px"] == pytest.approx(rp.axis_minor_length, rel=1e-9)
+    assert row["eccentricity"] == pytest.approx(rp.eccentricity, rel=1e-9)
+    assert row["diameter_px"] == pytest.approx(rp.equivalent_diameter_area, rel=1e-9)
+    assert row["orientation"] == pytest.approx(th, abs=0.03)
+    assert (row["s"], row["t"]) == pytest.approx((rp.centroid[1], rp.centroid[0]), abs=1e-9)
+    assert row["darkness"] == pytest.approx(0.7, abs=0.02)
+
+
+def test_area_and_eccentricity_limits():
+    img = np.ones((60, 120))
+    img[20:23, 10:13] = 0.2       # 9 px square
+    img[20:40, 40:60] = 0.2       # 400 px square
+    img[30:32, 80:100] = 0.2      # elongated bar
+    det = segment_view(img, window=41, area_range=(5, 100))
+    assert sorted(det["area"]) == [9, 40]
+    det = segment_view(img, window=41, area_range=(5, 100), max_eccentricity=0.9)
+    assert list(det["area"]) == [9]
+
+
+def test_edge_and_masked_regions_rejected():
+    img = _blobs((60, 80), [(30, 1.0), (30, 40), (30, 60)])
+    mask = np.ones((60, 80), bool)
+    mask[:, 62:] = False          # blob at column 60 touches the mask
+    det = segment_view(img, mask=mask)
+    assert len(det) == 1 and det["s"].iloc[0] == pytest.approx(40, abs=0.05)
+    assert len(segment_view(img, mask=mask, exclude_edge=False)) == 3
+
+
+def test_dense_particles_and_background_gradient():
+    # a lattice of dark dots every 7 px on a background with a strong gradient
+    shape = (100, 140)
+    pos = [(r, c) for r in np.arange(8, 93, 7.0) for c in np.arange(8, 133, 7.0)]
+    grad = np.linspace(0.5, 1.5, shape[1])[None, :]
+    img = _blobs(shape, pos, sigma=1.0, depth=0.6) * grad
+    det = segment_view(img, window=21)
+    assert len(det) == len(pos)
+    dist, _ = _match(det, np.array(pos))
+    assert dist.max() < 0.1
+
+
+def test_zero_invalid_masks_vignetted_samples():
+    img = _blobs((50, 50), [(25, 25)])
+    img[:, :5] = 0.0
+    assert len(segment_view(img, zero_invalid=True)) == 1
+    assert len(segment_view(img, zero_invalid=False, exclude_edge=False)) == 2
+
+
+def test_segment_array_views_and_columns():
+    rng = np.random.default_rng(2)
+    n_v, n_u, shape = 3, 5, (60, 90)
+    truth = _random_positions(rng, 8, shape)
+    data = np.empty((n_v, n_u, *shape), np.float32)
+    u = np.arange(n_u) - 2.0
+    v = np.arange(n_v) - 1.0
+    for iv in range(n_v):
+        for iu in range(n_u):
+            data[iv, iu] = _blobs(shape, truth + [0.5 * v[iv], 0.7 * u[iu]])
+    use = np.ones((n_v, n_u), bool)
+    use[0, 0] = False
+    det = segment_array(data, u, v, view_mask=use, frame=4)
+    assert len(det) == 8 * (n_v * n_u - 1)
+    assert (det["frame"] == 4).all()
+    assert not ((det["u"] == -2) & (det["v"] == -1)).any()
+    for (uu, vv), grp in det.groupby(["u", "v"]):
+        dist, idx = _match(grp, truth + [0.5 * vv, 0.7 * uu])
+        assert dist.max() < 0.05 and len(np.unique(idx)) == 8
+
+
+def test_many_regions_beyond_initial_capacity():
+    shape = (200, 400)
+    pos = [(r, c) for r in np.arange(4, 197, 6.0) for c in np.arange(4, 397, 6.0)]
+    img = _blobs(shape, pos, sigma=0.8)
+    det = segment_view(img, window=15)
+    assert len(det) == len(pos) > 512
+
+
+def test_deterministic_and_input_unchanged():
+    rng = np.random.default_rng(3)
+    img = _blobs((70, 70), _random_positions(rng, 5, (70, 70))) + rng.normal(0, 0.01, (70, 70))
+    before = img.copy()
+    a, b = segment_view(img), segment_view(img)
+    pd.testing.assert_frame_equal(a, b)
+    np.testing.assert_array_equal(img, before)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    (dict(window=2), "window must be an integer"),
+    (dict(contrast=1.5), "contrast must be between 0 and 1"),
+    (dict(area_range=(5, 1)), "area_range must satisfy"),
+    (dict(connectivity=3), "connectivity must be 1 or 2"),
+])
+def test_bad_parameters(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        segment_view(np.ones((10, 10)), **kwargs)
+
+
+def test_bad_shapes():
+    with pytest.raises(ValueError, match="must be 2-D"):
+        segment_view(np.ones((2, 10, 10)))
+    with pytest.raises(ValueError, match="must be 4-D"):
+        segment_array(np.ones((10, 10)), [0], [0])
+    with pytest.raises(ValueError, match="view_mask must be"):
+        segment_array(np.ones((1, 2, 10, 10)), [0, 1], [0], view_mask=np.ones((2, 2), bool))
