@@ -44,7 +44,7 @@ from .lattice import LensletGrid
 __all__ = ["GridMeasurement", "measure_grid", "calibrate_grid"]
 
 #: Side of the central crop used for the coarse lattice, pixels.
-_CROP_PX = 1024
+_CROP_PX = 512
 #: Smallest and largest pitch searched when no nominal pitch is given, pixels.
 _MIN_PITCH_PX = 4.0
 #: Normalised autocorrelation a lattice peak must reach to count as periodic structure.
@@ -54,12 +54,16 @@ _MIN_LENSES = 16
 #: Radius of the symmetry window in pitches, and its cosine taper in pixels.
 _WINDOW_RADIUS = 0.5
 _WINDOW_TAPER_PX = 1.0
+#: A symmetry step this small (pixels) leaves the window where it is.
+_SETTLED_PX = 0.3
+#: Interpolated refinement steps once a lens centre has settled.
+_REFINE_STEPS = 2
 #: Most symmetry steps per lens and pass.
-_MAX_STEPS = 4
+_MAX_STEPS = 6
 #: Radii (in pitches) of the successive fitting regions around the reference lens.
 _STAGE_RADII = (6.0, 40.0, math.inf)
 #: Centroid / fit passes per region.
-_PASSES = (3, 2, 4)
+_PASSES = (2, 1, 1)
 #: Outlier threshold in robust standard deviations.
 _REJECT_SIGMA = 3.0
 #: Lenses whose window is less bright (above the gaps) than this fraction of the median
@@ -367,90 +371,181 @@ def _lattice_phase(crop: np.ndarray, col_step: np.ndarray, row_step: np.ndarray,
 
 # --- centroids and lattice fit ---------------------------------------------------------
 
-@numba.njit(cache=True)
-def _symmetry_step(image, pr, pc, radius, taper):  # pragma: no cover - compiled
-    """Offset of the centre of point symmetry from ``(pr, pc)`` rounded to half pixels.
+def _window_tables(radius: float, taper: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Half-window offsets and weights of the symmetry window, for each half-pixel parity.
 
-    For a window centred on ``q`` (a half-pixel position, so that the point reflection
-    ``x -> 2q - x`` maps pixels onto pixels) the patch ``P(x)`` and its reflection
-    ``F(x) = P(2q - x)`` differ, to first order in the offset ``e`` of the symmetry
-    centre from ``q``, by ``P - F = -2 e . grad M`` with ``M = (P + F) / 2``. ``e`` is the
-    weighted least-squares solution of that relation: a Lucas-Kanade step between the
-    patch and its own reflection. The weight is 1 out to ``radius - taper`` pixels and
-    falls to 0 at ``radius`` as a raised cosine.
+    A window centred on ``q`` (integer or half-integer in each axis) covers pixels
+    ``x = q + d``; the point reflection pairs ``d`` with ``-d``, so only one of each pair
+    is listed (the centre pixel, its own reflection, carries no information). Offsets are
+    in doubled pixel units so that they are integers. The weight is 1 out to
+    ``radius - taper`` pixels and falls to 0 at ``radius`` as a raised cosine.
 
-    Returns (q_row, q_col, e_row, e_col, mean window intensity); NaN offsets when the
-    window leaves the image or holds no structure.
+    Returns
+    -------
+    offsets : (4, K, 2) int64 ndarray
+        Doubled offsets ``2 d`` (rows, cols) for parity index ``2 * (2 q_row % 2) +
+        (2 q_col % 2)``; rows beyond ``counts`` are unused.
+    weights : (4, K) float64 ndarray
+    counts : (4,) int64 ndarray
     """
-    rows, cols = image.shape
     half = int(math.ceil(radius)) + 1
     inner = radius - taper
-    q2r = int(round(2.0 * pr))
-    q2c = int(round(2.0 * pc))
-    qr = 0.5 * q2r
-    qc = 0.5 * q2c
-    r0 = q2r // 2 - half
-    c0 = q2c // 2 - half
-    r1 = q2r - r0
-    c1 = q2c - c0
-    if r0 < 1 or c0 < 1 or r1 > rows - 2 or c1 > cols - 2:
-        return qr, qc, np.nan, np.nan, np.nan
+    tables = []
+    for parity_r in (0, 1):
+        for parity_c in (0, 1):
+            # 2 d has the parity of 2 q, so that q + d is a pixel centre
+            d2r, d2c = np.meshgrid(np.arange(-2 * half - parity_r, 2 * half + parity_r + 1, 2),
+                                   np.arange(-2 * half - parity_c, 2 * half + parity_c + 1, 2),
+                                   indexing="ij")
+            d2r, d2c = d2r.ravel(), d2c.ravel()
+            dist = 0.5 * np.hypot(d2r, d2c)
+            first = (d2r > 0) | ((d2r == 0) & (d2c > 0))
+            keep = first & (dist < radius)
+            w = np.clip((radius - dist[keep]) / taper, 0.0, 1.0)
+            w = 0.5 - 0.5 * np.cos(np.pi * w)
+            tables.append((np.stack([d2r[keep], d2c[keep]], axis=1), w))
+    size = max(len(w) for _, w in tables)
+    offsets = np.zeros((4, size, 2), dtype=np.int64)
+    weights = np.zeros((4, size))
+    counts = np.zeros(4, dtype=np.int64)
+    for index, (off, w) in enumerate(tables):
+        offsets[index, :len(w)] = off
+        weights[index, :len(w)] = w
+        counts[index] = len(w)
+    return offsets, weights, counts
+
+
+@numba.njit(cache=True)
+def _symmetry_step(image, q2r, q2c, offsets, weights, counts):  # pragma: no cover - compiled
+    """Offset of the centre of point symmetry from the half-pixel position ``q``.
+
+    ``q = (q2r, q2c) / 2``. With the patch ``P(x)`` and its point reflection
+    ``F(x) = P(2q - x)``, to first order in the offset ``e`` of the symmetry centre from
+    ``q``, ``P - F = -2 e . grad M`` with ``M = (P + F) / 2``. ``e`` is the weighted
+    least-squares solution of that relation: a Lucas-Kanade step between the patch and
+    its own reflection.
+
+    Returns (e_row, e_col, mean window intensity), NaN when the window leaves the image
+    or holds no structure.
+    """
+    rows, cols = image.shape
+    table = 2 * (q2r & 1) + (q2c & 1)
     arr = arc = acc = br = bc = sw = sm = 0.0
-    for r in range(r0, r1 + 1):
-        dr = r - qr
-        rr = q2r - r
-        for c in range(c0, c1 + 1):
-            dc = c - qc
-            dist = math.sqrt(dr * dr + dc * dc)
-            if dist >= radius:
-                continue
-            w = 1.0
-            if dist > inner:
-                w = 0.5 + 0.5 * math.cos(math.pi * (dist - inner) / taper)
-            cc = q2c - c
-            p = float(image[r, c])
-            f = float(image[rr, cc])
-            gr = 0.25 * (float(image[r + 1, c]) - float(image[r - 1, c])
-                         + float(image[rr - 1, cc]) - float(image[rr + 1, cc]))
-            gc = 0.25 * (float(image[r, c + 1]) - float(image[r, c - 1])
-                         + float(image[rr, cc - 1]) - float(image[rr, cc + 1]))
-            d = p - f
-            arr += w * gr * gr
-            arc += w * gr * gc
-            acc += w * gc * gc
-            br += w * d * gr
-            bc += w * d * gc
-            sw += w
-            sm += w * 0.5 * (p + f)
+    for m in range(counts[table]):
+        d2r = offsets[table, m, 0]
+        d2c = offsets[table, m, 1]
+        r = (q2r + d2r) // 2
+        c = (q2c + d2c) // 2
+        rr = (q2r - d2r) // 2
+        cc = (q2c - d2c) // 2
+        if min(r, rr) < 1 or max(r, rr) > rows - 2 or min(c, cc) < 1 or max(c, cc) > cols - 2:
+            return np.nan, np.nan, np.nan
+        w = weights[table, m]
+        p = float(image[r, c])
+        f = float(image[rr, cc])
+        gr = 0.25 * (float(image[r + 1, c]) - float(image[r - 1, c])
+                     + float(image[rr - 1, cc]) - float(image[rr + 1, cc]))
+        gc = 0.25 * (float(image[r, c + 1]) - float(image[r, c - 1])
+                     + float(image[rr, cc - 1]) - float(image[rr, cc + 1]))
+        d = p - f
+        arr += w * gr * gr
+        arc += w * gr * gc
+        acc += w * gc * gc
+        br += w * d * gr
+        bc += w * d * gc
+        sw += w
+        sm += w * (p + f)
     det = arr * acc - arc * arc
     if sw == 0.0 or det <= 1e-12 * (arr + acc) * (arr + acc):
-        return qr, qc, np.nan, np.nan, np.nan
+        return np.nan, np.nan, np.nan
     er = -0.5 * (acc * br - arc * bc) / det
     ec = -0.5 * (arr * bc - arc * br) / det
-    return qr, qc, er, ec, sm / sw
+    return er, ec, 0.5 * sm / sw
+
+
+@numba.njit(cache=True)
+def _bilinear(image, r, c, fr, fc):  # pragma: no cover - compiled
+    """Image at (r + fr, c + fc), bilinear, for integer r, c and 0 <= fr, fc < 1."""
+    top = (1.0 - fc) * float(image[r, c]) + fc * float(image[r, c + 1])
+    bottom = (1.0 - fc) * float(image[r + 1, c]) + fc * float(image[r + 1, c + 1])
+    return (1.0 - fr) * top + fr * bottom
+
+
+@numba.njit(cache=True)
+def _reflected_step(image, q2r, q2c, er, ec, offsets, weights, counts):  # pragma: no cover
+    """Correction to a centre ``c = q + e`` found by :func:`_symmetry_step`.
+
+    Compares each window pixel with the image reflected about ``c`` itself (bilinear
+    interpolation), which removes the error of the first-order model when ``e`` is a
+    sizeable fraction of a pixel. Returns the (row, col) correction, NaN off the image.
+    """
+    rows, cols = image.shape
+    table = 2 * (q2r & 1) + (q2c & 1)
+    sr = 2.0 * er
+    sc = 2.0 * ec
+    ir = int(math.floor(sr))
+    ic = int(math.floor(sc))
+    fr = sr - ir
+    fc = sc - ic
+    arr = arc = acc = br = bc = 0.0
+    for m in range(counts[table]):
+        d2r = offsets[table, m, 0]
+        d2c = offsets[table, m, 1]
+        r = (q2r + d2r) // 2
+        c = (q2c + d2c) // 2
+        rr = (q2r - d2r) // 2
+        cc = (q2c - d2c) // 2
+        lo_r = min(r, rr) + min(ir, 0)
+        hi_r = max(r, rr) + max(ir + 1, 0)
+        lo_c = min(c, cc) + min(ic, 0)
+        hi_c = max(c, cc) + max(ic + 1, 0)
+        if lo_r < 1 or hi_r > rows - 2 or lo_c < 1 or hi_c > cols - 2:
+            return np.nan, np.nan
+        w = weights[table, m]
+        # the reflection about c of x = q + d is (q - d) + 2e, that of q - d is x + 2e
+        d1 = float(image[r, c]) - _bilinear(image, rr + ir, cc + ic, fr, fc)
+        d2 = float(image[rr, cc]) - _bilinear(image, r + ir, c + ic, fr, fc)
+        gr = 0.25 * (float(image[r + 1, c]) - float(image[r - 1, c])
+                     + float(image[rr - 1, cc]) - float(image[rr + 1, cc]))
+        gc = 0.25 * (float(image[r, c + 1]) - float(image[r, c - 1])
+                     + float(image[rr, cc - 1]) - float(image[rr, cc + 1]))
+        d = 0.5 * (d1 - d2)
+        arr += w * gr * gr
+        arc += w * gr * gc
+        acc += w * gc * gc
+        br += w * d * gr
+        bc += w * d * gc
+    det = arr * acc - arc * arc
+    if det <= 1e-12 * (arr + acc) * (arr + acc):
+        return np.nan, np.nan
+    return -0.5 * (acc * br - arc * bc) / det, -0.5 * (arr * bc - arc * br) / det
 
 
 @numba.njit(parallel=True, cache=True)
-def _symmetry_centres(image, predicted, radius, taper, max_steps):  # pragma: no cover - compiled
+def _symmetry_centres(image, predicted, offsets, weights, counts, reach, max_steps, refine
+                      ):  # pragma: no cover - compiled
     """Centre of point symmetry of the image near each predicted centre.
 
-    Repeats :func:`_symmetry_step` (at most ``max_steps`` times) until the window is on
-    the nearest half pixel to the centre found.
+    Repeats :func:`_symmetry_step`, moving the window to the half pixel nearest the
+    centre found, until the centre lies within ``_SETTLED_PX`` of the window centre (at
+    most ``max_steps`` times).
 
     Parameters
     ----------
     image : (rows, cols) ndarray
     predicted : (N, 2) float64 ndarray
         Starting positions (row, col), pixels.
-    radius, taper : float
-        Window radius and width of its tapered rim, pixels.
+    offsets, weights, counts : ndarray
+        Window tables from :func:`_window_tables`.
+    reach : float
+        Centres farther than this from their prediction (pixels) are dropped.
     max_steps : int
 
     Returns
     -------
     centres : (N, 2) float64 ndarray
         (row, col) pixels; NaN where the window left the image, the patch held no
-        structure or the centre wandered more than ``radius`` from the prediction.
+        structure, the steps did not settle or the centre wandered beyond ``reach``.
     level : (N,) float64 ndarray
         Mean intensity in the final window.
     """
@@ -458,20 +553,28 @@ def _symmetry_centres(image, predicted, radius, taper, max_steps):  # pragma: no
     out = np.full((n, 2), np.nan)
     level = np.full(n, np.nan)
     for k in numba.prange(n):
-        pr = predicted[k, 0]
-        pc = predicted[k, 1]
+        q2r = int(round(2.0 * predicted[k, 0]))
+        q2c = int(round(2.0 * predicted[k, 1]))
         for _ in range(max_steps):
-            qr, qc, er, ec, mean = _symmetry_step(image, pr, pc, radius, taper)
+            er, ec, mean = _symmetry_step(image, q2r, q2c, offsets, weights, counts)
             if not math.isfinite(er):
                 break
-            pr = qr + er
-            pc = qc + ec
-            if abs(er) <= 0.3 and abs(ec) <= 0.3:
-                if math.hypot(pr - predicted[k, 0], pc - predicted[k, 1]) < radius:
-                    out[k, 0] = pr
-                    out[k, 1] = pc
+            cr = 0.5 * q2r + er
+            cc = 0.5 * q2c + ec
+            if abs(er) <= _SETTLED_PX and abs(ec) <= _SETTLED_PX:
+                for _ in range(refine):
+                    dr, dc = _reflected_step(image, q2r, q2c, cr - 0.5 * q2r, cc - 0.5 * q2c,
+                                             offsets, weights, counts)
+                    if math.isfinite(dr) and abs(dr) < 0.5 and abs(dc) < 0.5:
+                        cr += dr
+                        cc += dc
+                if math.hypot(cr - predicted[k, 0], cc - predicted[k, 1]) < reach:
+                    out[k, 0] = cr
+                    out[k, 1] = cc
                     level[k] = mean
                 break
+            q2r = int(round(2.0 * cr))
+            q2c = int(round(2.0 * cc))
     return out, level
 
 
@@ -556,8 +659,9 @@ def _measure_and_fit(image: np.ndarray, lattice: np.ndarray, shift: float,
         raise CalibrationError(f"the white image shows only {len(n)} whole lenslets; at least "
                                f"{_MIN_LENSES} are needed to fit the grid")
     predicted = _lens_positions(lattice, shift, n, k)
-    centres, level = _symmetry_centres(image, predicted, window_radius, _WINDOW_TAPER_PX,
-                                      _MAX_STEPS)
+    tables = _window_tables(window_radius, _WINDOW_TAPER_PX)
+    centres, level = _symmetry_centres(image, predicted, *tables, window_radius, _MAX_STEPS,
+                                       _REFINE_STEPS)
     ok = np.isfinite(centres[:, 0])
     level = level - background
     ok[ok] = level[ok] > _MIN_LEVEL_FRACTION * np.median(level[ok])
