@@ -1,0 +1,604 @@
+"""Clustering of particle centroids across views on projected refocus planes.
+
+Each detection ``(u, v, s, t)`` is a ray: it crossed the main-lens aperture at ``U(u, v)``
+and the microlens plane at ``X(s, t)``. Projected to the plane ``alpha`` (distance
+``alpha * s_i`` from the main lens) it lands at ``X' = U + (X - U) * alpha``. The rays of
+one particle converge where the particle is imaged, so at a plane near that depth its
+detections from all views form a tight cluster. The clustering runs k-means at a set of
+planes, accepts clusters smaller than the size threshold ``T`` of that plane and removes
+their members before the next plane (section 2.2 of the reference).
+
+References
+----------
+E. M. Hall, D. R. Guildenbecher, B. S. Thurow, "Development and uncertainty
+characterization of 3D particle location from perspective shifted plenoptic images",
+Opt. Express 27 (2019), section 2.2.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+import pandas as pd
+
+from ..errors import NoParticlesWarning
+
+__all__ = ["ProjectionGeometry", "Clustering", "plane_alphas", "size_thresholds",
+           "project", "cluster_detections"]
+
+CLUSTER_COLUMNS = ("cluster", "alpha", "n", "size_mm", "threshold_mm", "plane_x_mm",
+                   "plane_y_mm", "s", "t")
+"""Columns of the per-cluster table (see :func:`cluster_detections`)."""
+
+
+@dataclass(frozen=True)
+class ProjectionGeometry:
+    """First-order conversion of light-field coordinates to physical ray positions.
+
+    Parameters
+    ----------
+    aperture_mm_per_u : float
+        Signed aperture position per unit of ``u`` (and of ``v``): the ray of view
+        ``(u, v)`` crosses the main-lens aperture at ``U = aperture_mm_per_u * (u, v)``,
+        mm, camera frame (``X`` along sensor columns). Negative for a plenoptic 1.0
+        camera: ``-pixel_pitch * s_i / f_ml`` (see ``docs/conventions.md``).
+    mm_per_sample : float
+        Spacing of the spatial samples ``(s, t)`` on the microlens-array plane, mm.
+    axis_st : (float, float)
+        Spatial coordinates ``(s, t)``, view pixels, where the optical axis meets the
+        microlens array.
+    aperture_diameter_mm : float
+        Diameter of the main-lens aperture, mm (``F / N``); sets the size threshold.
+
+    Notes
+    -----
+    The microlens-plane position of sample ``(s, t)`` is
+    ``X = (s - axis_s) * mm_per_sample``, ``Y = (t - axis_t) * mm_per_sample``; the
+    sample grid is taken as aligned with the sensor axes (a lattice rotation of a few
+    milliradians shifts projected positions by far less than a sample).
+    """
+
+    aperture_mm_per_u: float
+    mm_per_sample: float
+    axis_st: tuple[float, float]
+    aperture_diameter_mm: float
+
+    def __post_init__(self) -> None:
+        for name in ("mm_per_sample", "aperture_diameter_mm"):
+            value = float(getattr(self, name))
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{name} must be a positive number; got {value!r}")
+            object.__setattr__(self, name, value)
+        g = float(self.aperture_mm_per_u)
+        if not (math.isfinite(g) and g != 0):
+            raise ValueError(f"aperture_mm_per_u must be a non-zero number; got {g!r}")
+        object.__setattr__(self, "aperture_mm_per_u", g)
+        axis = tuple(float(x) for x in self.axis_st)
+        if len(axis) != 2:
+            raise ValueError(f"axis_st must be a pair (s, t); got {self.axis_st!r}")
+        object.__setattr__(self, "axis_st", axis)
+
+    @classmethod
+    def from_camera(cls, camera, *, sample_spacing_px: float,
+                    axis_st: tuple[float, float]) -> "ProjectionGeometry":
+        """Build the geometry from a :class:`~plenoptrack.camera.CameraSpec`.
+
+        Parameters
+        ----------
+        camera : CameraSpec
+            Nominal camera (pixel pitch, main-lens focal length and f-number,
+            magnification, microlens focal length).
+        sample_spacing_px : float
+            Spacing of the spatial samples measured on the sensor, pixels (the spacing of
+            microlens-image centres, e.g. ``LightField.sample_spacing_px``).
+        axis_st : (float, float)
+            ``(s, t)`` of the optical axis, view pixels (e.g. ``LightField.axis_st``).
+        """
+        pitch_mm = camera.pixel_pitch_um * 1e-3
+        f_ml_mm = camera.microlens_focal_length_um * 1e-3
+        s_i = camera.image_distance_mm
+        return cls(aperture_mm_per_u=-pitch_mm * s_i / f_ml_mm,
+                   mm_per_sample=sample_spacing_px * pitch_mm / (1.0 + f_ml_mm / s_i),
+                   axis_st=axis_st, aperture_diameter_mm=camera.aperture_diameter_mm)
+
+    @classmethod
+    def from_lightfield(cls, lf, camera) -> "ProjectionGeometry":
+        """Build the geometry from a decoded light field and its nominal camera."""
+        return cls.from_camera(camera, sample_spacing_px=lf.sample_spacing_px,
+                               axis_st=lf.axis_st)
+
+    def parallax_per_u(self, alpha) -> np.ndarray:
+        """Shift of a point imaged at plane ``alpha`` per unit ``u`` (or ``v``), samples.
+
+        From ``X = U + (X_p - U) / alpha_p`` at the microlens plane:
+        ``dX/du = aperture_mm_per_u * (1 - 1 / alpha)``. Positive (towards larger ``s``)
+        for a point behind the focal plane (``alpha < 1``) with the usual negative
+        ``aperture_mm_per_u``.
+        """
+        alpha = np.asarray(alpha, dtype=float)
+        return self.aperture_mm_per_u * (1.0 - 1.0 / alpha) / self.mm_per_sample
+
+
+def project(u, v, s, t, alpha: float, geometry: ProjectionGeometry) -> np.ndarray:
+    """Project detections to the refocus plane ``alpha``.
+
+    Parameters
+    ----------
+    u, v : (n,) float ndarray
+        View coordinates (sensor pixels from the microlens-image centre).
+    s, t : (n,) float ndarray
+        Centroids, view pixels (column, row).
+    alpha : float
+        Plane distance from the main lens in units of ``s_i`` (``alpha = 1`` is the
+        microlens plane).
+    geometry : ProjectionGeometry
+
+    Returns
+    -------
+    (n, 2) float64 ndarray
+        Positions ``(X', Y')`` on the plane, mm, camera frame:
+        ``X' = U + (X - U) * alpha``.
+    """
+    g = geometry
+    U = np.column_stack([np.asarray(u, float), np.asarray(v, float)]) * g.aperture_mm_per_u
+    X = (np.column_stack([np.asarray(s, float), np.asarray(t, float)])
+         - np.asarray(g.axis_st)) * g.mm_per_sample
+    return U + (X - U) * alpha
+
+
+def plane_alphas(camera, depth_range_mm: tuple[float, float], n_planes: int = 10) -> np.ndarray:
+    """Refocus planes evenly spaced in ``alpha`` over a depth range.
+
+    Parameters
+    ----------
+    camera : CameraSpec
+    depth_range_mm : (float, float)
+        Nearest and farthest object depth ``z`` of the measurement volume, mm.
+    n_planes : int
+        Number of planes (the reference uses 10).
+
+    Returns
+    -------
+    (n_planes,) float64 ndarray
+        ``alpha`` values, ascending, from the far end (small alpha) to the near end.
+    """
+    z0, z1 = (float(z) for z in depth_range_mm)
+    if not z1 > z0:
+        raise ValueError(f"depth_range_mm must be (near, far) with far > near; got {depth_range_mm!r}")
+    if n_planes < 1:
+        raise ValueError(f"n_planes must be at least 1; got {n_planes!r}")
+    a = camera.alpha_for_depth(np.array([z1, z0]))
+    return np.linspace(a[0], a[1], int(n_planes))
+
+
+def size_thresholds(alphas, aperture_diameter_mm: float, *, margin: float = 1.2,
+                    floor_mm: float = 0.0) -> np.ndarray:
+    """Cluster size threshold ``T`` at every plane, mm.
+
+    Parameters
+    ----------
+    alphas : (n,) float ndarray
+        Ascending plane positions.
+    aperture_diameter_mm : float
+        Main-lens aperture diameter ``D = F / N``, mm.
+    margin : float
+        Safety factor (1.2 in the reference).
+    floor_mm : float
+        Added to every threshold (centroid noise), mm.
+
+    Returns
+    -------
+    (n,) float64 ndarray
+
+    Notes
+    -----
+    A point imaged at ``alpha_p`` sends rays through every aperture point ``U`` (``|U|
+    <= D / 2``); at plane ``alpha`` they cross at ``U (1 - alpha / alpha_p) + X_p alpha /
+    alpha_p``, a disc of diameter ``D |alpha_p - alpha| / alpha_p``. A particle that is
+    closer to plane ``alpha_s`` than to a neighbouring plane has ``alpha_p`` between
+    ``alpha_s`` and the half-way value ``alpha_1/2``, so its cluster is at most
+    ``D |alpha_1/2 - alpha_s| / alpha_1/2`` wide, hence
+    ``T = margin * (F / N) * |alpha_1/2 - alpha_s| / alpha_1/2`` -- the reference's form
+    with ``alpha`` the geometric (``d / s_i``) plane parameter. Interior planes take the
+    larger of their two half-way gaps; a single plane gets ``floor_mm`` only.
+    """
+    a = np.asarray(alphas, dtype=float)
+    if a.ndim != 1 or len(a) == 0 or np.any(np.diff(a) <= 0):
+        raise ValueError("alphas must be a non-empty, strictly ascending 1-D array")
+    t = np.zeros(len(a))
+    if len(a) > 1:
+        half = 0.5 * (a[1:] + a[:-1])
+        lower = aperture_diameter_mm * np.abs(half - a[1:]) / half    # toward smaller alpha
+        upper = aperture_diameter_mm * np.abs(half - a[:-1]) / half   # toward larger alpha
+        t[1:] = lower
+        t[:-1] = np.maximum(t[:-1], upper)
+    return margin * t + floor_mm
+
+
+@dataclass(frozen=True)
+class Clustering:
+    """Result of :func:`cluster_detections`.
+
+    Attributes
+    ----------
+    detections : pandas.DataFrame
+        The input table plus ``cluster`` (int, -1 = unassigned) and ``cluster_alpha``
+        (float, plane where the cluster was accepted; NaN if unassigned).
+    clusters : pandas.DataFrame
+        One row per cluster, columns ``cluster`` (int), ``alpha`` (plane), ``n`` (members),
+        ``size_mm`` (largest member distance on the plane), ``threshold_mm`` (``T`` of
+        the plane), ``plane_x_mm, plane_y_mm`` (mean member position on the plane, mm,
+        camera frame), ``s, t`` (that position in view pixels of an image refocused to
+        ``alpha``: ``axis + X' / (alpha * mm_per_sample)``).
+    """
+
+    detections: pd.DataFrame
+    clusters: pd.DataFrame
+
+    @property
+    def n_clusters(self) -> int:
+        """Number of accepted clusters."""
+        return len(self.clusters)
+
+
+# --------------------------------------------------------------------------------------
+# compiled cores
+@numba.njit(cache=True)
+def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
+    """Lloyd iterations from ``centres`` (modified in place); return labels (n,)."""
+    n = points.shape[0]
+    k = centres.shape[0]
+    labels = np.full(n, -1, dtype=np.int64)
+    sums = np.empty((k, 2))
+    counts = np.empty(k)
+    for _ in range(max_iter):
+        changed = False
+        for i in range(n):
+            px = points[i, 0]
+            py = points[i, 1]
+            best = 0
+            bd = np.inf
+            for c in range(k):
+                dx = px - centres[c, 0]
+                dy = py - centres[c, 1]
+                d = dx * dx + dy * dy
+                if d < bd:
+                    bd = d
+                    best = c
+            if labels[i] != best:
+                labels[i] = best
+                changed = True
+        if not changed:
+            break
+        sums[:, :] = 0.0
+        counts[:] = 0.0
+        for i in range(n):
+            sums[labels[i], 0] += points[i, 0]
+            sums[labels[i], 1] += points[i, 1]
+            counts[labels[i]] += 1.0
+        for c in range(k):
+            if counts[c] > 0:  # an empty cluster keeps its centre
+                centres[c, 0] = sums[c, 0] / counts[c]
+                centres[c, 1] = sums[c, 1] / counts[c]
+    return labels
+
+
+@numba.njit(cache=True)
+def _evaluate(points, aperture, labels, centres, view, area, n_views, thresh, area_factor,
+              min_members, max_trim, line_tol):  # pragma: no cover - compiled
+    """Accept k-means clusters that pass the per-view, shape, outlier and size tests.
+
+    Returns ``accepted`` (n,) cluster index or -1, and ``size`` (k,) (NaN if rejected).
+    """
+    n = points.shape[0]
+    k = centres.shape[0]
+    accepted = np.full(n, -1, dtype=np.int64)
+    size = np.full(k, np.nan)
+    order = np.argsort(labels, kind="mergesort")
+    start = np.zeros(k + 1, dtype=np.int64)
+    for i in range(n):
+        start[labels[i] + 1] += 1
+    for c in range(k):
+        start[c + 1] += start[c]
+    stamp = np.zeros(n_views, dtype=np.int64)
+    for c in range(k):
+        m = start[c + 1] - start[c]
+        if m < min_members:
+            continue
+        idx = order[start[c]:start[c + 1]]
+        d = np.empty(m)
+        for a in range(m):
+            dx = points[idx[a], 0] - centres[c, 0]
+            dy = points[idx[a], 1] - centres[c, 1]
+            d[a] = dx * dx + dy * dy
+        by_d = idx[np.argsort(d, kind="mergesort")]
+        # at most one member per view: the one nearest the centre
+        kept = np.empty(m, dtype=np.int64)
+        nk = 0
+        for a in range(m):
+            i = by_d[a]
+            if stamp[view[i]] != c + 1:
+                stamp[view[i]] = c + 1
+                kept[nk] = i
+                nk += 1
+        if nk < min_members:
+            continue
+        # area within a factor of the cluster median
+        if area_factor > 0:
+            med = np.median(area[kept[:nk]])
+            nk2 = 0
+            for a in range(nk):
+                ar = area[kept[a]]
+                if ar * area_factor >= med and ar <= med * area_factor:
+                    kept[nk2] = kept[a]
+                    nk2 += 1
+            nk = nk2
+            if nk < min_members:
+                continue
+        # outliers beyond T/2 of the median centre, if they are few
+        mx = np.median(points[kept[:nk], 0])
+        my = np.median(points[kept[:nk], 1])
+        r2 = (0.5 * thresh) ** 2
+        n_out = 0
+        for a in range(nk):
+            dx = points[kept[a], 0] - mx
+            dy = points[kept[a], 1] - my
+            if dx * dx + dy * dy > r2:
+                n_out += 1
+        if n_out > max_trim * nk:
+            continue
+        if n_out > 0:
+            nk2 = 0
+            for a in range(nk):
+                dx = points[kept[a], 0] - mx
+                dy = points[kept[a], 1] - my
+                if dx * dx + dy * dy <= r2:
+                    kept[nk2] = kept[a]
+                    nk2 += 1
+            nk = nk2
+            if nk < min_members:
+                continue
+        # one point: X' = c + m U with a common slope m; release members off the line
+        if line_tol > 0:
+            mx = 0.0
+            my = 0.0
+            mux = 0.0
+            muy = 0.0
+            for a in range(nk):
+                mx += points[kept[a], 0]
+                my += points[kept[a], 1]
+                mux += aperture[kept[a], 0]
+                muy += aperture[kept[a], 1]
+            mx /= nk
+            my /= nk
+            mux /= nk
+            muy /= nk
+            num = 0.0
+            den = 0.0
+            for a in range(nk):
+                dux = aperture[kept[a], 0] - mux
+                duy = aperture[kept[a], 1] - muy
+                num += (points[kept[a], 0] - mx) * dux + (points[kept[a], 1] - my) * duy
+                den += dux * dux + duy * duy
+            slope = num / den if den > 0 else 0.0
+            tol2 = line_tol * line_tol
+            resid = np.empty(nk)
+            n_out = 0
+            for a in range(nk):
+                rx = points[kept[a], 0] - mx - slope * (aperture[kept[a], 0] - mux)
+                ry = points[kept[a], 1] - my - slope * (aperture[kept[a], 1] - muy)
+                resid[a] = rx * rx + ry * ry
+                if resid[a] > tol2:
+                    n_out += 1
+            if n_out > max_trim * nk:
+                continue
+            if n_out > 0:
+                nk2 = 0
+                for a in range(nk):
+                    if resid[a] <= tol2:
+                        kept[nk2] = kept[a]
+                        nk2 += 1
+                nk = nk2
+                if nk < min_members:
+                    continue
+        # size: largest distance between two members
+        big = 0.0
+        for a in range(nk):
+            ax = points[kept[a], 0]
+            ay = points[kept[a], 1]
+            for b in range(a + 1, nk):
+                dx = points[kept[b], 0] - ax
+                dy = points[kept[b], 1] - ay
+                dd = dx * dx + dy * dy
+                if dd > big:
+                    big = dd
+        big = math.sqrt(big)
+        if big <= thresh:
+            size[c] = big
+            for a in range(nk):
+                accepted[kept[a]] = c
+    return accepted, size
+
+
+# --------------------------------------------------------------------------------------
+def _max_per_view(view: np.ndarray, n_views: int) -> int:
+    return int(np.bincount(view, minlength=n_views).max(initial=0))
+
+
+def _initial_centres(points, view, view_r2, k, rng) -> np.ndarray:
+    """Projected detections of the fullest view (ties: the most central), topped up by
+    k-means++ draws from ``rng`` when ``k`` exceeds that view's count."""
+    counts = np.bincount(view)
+    best = np.flatnonzero(counts == counts.max())
+    seed_view = best[np.argmin(view_r2[best])]
+    centres = points[view == seed_view][:k]
+    if len(centres) < k:
+        extra = []
+        d2 = ((points[:, None, :] - centres[None, :, :]) ** 2).sum(-1).min(axis=1)
+        for _ in range(k - len(centres)):
+            total = d2.sum()
+            if not total > 0:
+                break
+            i = rng.choice(len(points), p=d2 / total)
+            extra.append(points[i])
+            d2 = np.minimum(d2, ((points - points[i]) ** 2).sum(-1))
+        if extra:
+            centres = np.vstack([centres, np.array(extra)])
+    return np.ascontiguousarray(centres, dtype=np.float64)
+
+
+def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, alphas, *,
+                       margin: float = 1.2, noise_floor_samples: float = 1.0,
+                       min_members: int = 5, min_fraction: float = 0.2,
+                       area_factor: float = 3.0, max_trim: float = 0.1,
+                       line_tol_samples: float = 1.0,
+                       max_rounds: int = 4, k_growth: float = 0.25, max_iter: int = 50,
+                       seed: int | np.random.Generator = 0) -> Clustering:
+    """Group the detections of the same particle across views (projected-plane k-means).
+
+    Parameters
+    ----------
+    detections : pandas.DataFrame
+        Detections with at least columns ``u, v, s, t`` (view coordinates; centroid,
+        view pixels) and, when ``area_factor > 0``, ``area`` (pixels). One frame.
+    geometry : ProjectionGeometry
+        Conversion of ``(u, v, s, t)`` to aperture and microlens-plane positions.
+    alphas : (n_planes,) float ndarray
+        Refocus planes to visit (see :func:`plane_alphas`), strictly ascending.
+    margin : float
+        Safety factor of the size threshold (1.2 in the reference).
+    noise_floor_samples : float
+        Added to the size threshold, in samples at the microlens plane scaled by the
+        plane's ``alpha``: the spread that centroid noise alone gives a cluster.
+    min_members : int
+        Smallest accepted cluster.
+    min_fraction : float
+        A cluster also needs at least this fraction of the views that have detections.
+    area_factor : float
+        Members whose area differs from the cluster median by more than this factor are
+        released before the size test (0 disables).
+    max_trim : float
+        Members farther than ``T / 2`` from the cluster's median position are released
+        when they are at most this fraction of the cluster; otherwise the cluster is
+        rejected.
+    line_tol_samples : float
+        Members of one particle lie on ``X' = c + m U`` (common slope ``m`` for both
+        axes, ``m = 1 - alpha / alpha_p``). Members farther than this many samples
+        (scaled by ``alpha``) from the least-squares line are released, under the same
+        ``max_trim`` rule; this splits apart particles whose rays merely cross near the
+        plane. 0 disables.
+    max_rounds : int
+        Passes over all planes. After the first, ``k`` grows by ``k_growth`` times its
+        initial value per pass while centroids remain unassigned.
+    k_growth : float
+        See ``max_rounds``.
+    max_iter : int
+        Lloyd iterations per plane.
+    seed : int or numpy.random.Generator
+        Seed of the k-means++ draws used when ``k`` exceeds the fullest view's count.
+
+    Returns
+    -------
+    Clustering
+        ``detections`` (input plus ``cluster``, ``cluster_alpha``) and the per-cluster
+        table ``clusters`` (see :class:`Clustering`).
+
+    Notes
+    -----
+    At every plane all unassigned detections are projected with
+    ``X' = U + (X - U) * alpha`` and clustered by k-means with ``k`` the largest number
+    of unassigned detections in one view, started from the projected detections of the
+    fullest view (a central view when several tie: in view ``U = 0`` a particle projects
+    to the middle of its cluster). A k-means cluster is accepted when, after keeping at
+    most one member per view (the one nearest the centre), releasing area outliers,
+    a few far outliers and a few members off the single-point line fit, it still has
+    enough members and its size (largest distance
+    between two members) is at most ``T`` (:func:`size_thresholds`, with ``D`` the
+    larger of ``geometry.aperture_diameter_mm`` and the aperture span of the views
+    present, which reach slightly past the nominal rim, plus the noise floor). Planes are visited
+    from the smallest to the largest ``T``; accepted members leave the pool.
+    """
+    needed = ["u", "v", "s", "t"] + (["area"] if area_factor > 0 else [])
+    missing = [c for c in needed if c not in detections.columns]
+    if missing:
+        raise ValueError(f"detections lacks column(s) {missing}; it needs {needed}")
+    if "frame" in detections.columns and detections["frame"].nunique() > 1:
+        raise ValueError("detections must hold one frame; cluster each frame separately")
+    alphas = np.asarray(alphas, dtype=float)
+    if min_members < 2:
+        raise ValueError(f"min_members must be at least 2; got {min_members!r}")
+    if not 0 <= max_trim < 1:
+        raise ValueError(f"max_trim must be in [0, 1); got {max_trim!r}")
+    rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
+    g = geometry
+    n = len(detections)
+    u = detections["u"].to_numpy(float)
+    v = detections["v"].to_numpy(float)
+    s = detections["s"].to_numpy(float)
+    t = detections["t"].to_numpy(float)
+    span = 2.0 * abs(g.aperture_mm_per_u) * float(np.sqrt(u * u + v * v).max(initial=0.0))
+    thresholds = size_thresholds(alphas, max(g.aperture_diameter_mm, span), margin=margin)
+    thresholds = thresholds + noise_floor_samples * g.mm_per_sample * alphas
+    plane_order = np.argsort(thresholds, kind="stable")
+    area = (detections["area"].to_numpy(float) if area_factor > 0 else np.ones(n))
+    uv, view_all = np.unique(np.column_stack([u, v]), axis=0, return_inverse=True)
+    view_all = view_all.ravel().astype(np.int64)
+    n_views = len(uv)
+    view_r2 = (uv ** 2).sum(axis=1)
+    aperture = np.column_stack([u, v]) * g.aperture_mm_per_u
+    need = max(int(min_members), int(math.ceil(min_fraction * n_views)))
+
+    cluster = np.full(n, -1, dtype=np.int64)
+    cluster_alpha = np.full(n, np.nan)
+    rows = []
+    remaining = np.arange(n)
+    k0 = _max_per_view(view_all, n_views) if n else 0
+    k_extra = 0
+    idle_rounds = 0
+    for rnd in range(max_rounds):
+        found = 0
+        for p in plane_order:
+            if len(remaining) < need:
+                break
+            a = alphas[p]
+            pts = project(u[remaining], v[remaining], s[remaining], t[remaining], a, g)
+            vw = view_all[remaining]
+            k = min(len(remaining), _max_per_view(vw, n_views) + k_extra)
+            centres = _initial_centres(pts, vw, view_r2, k, rng)
+            labels = _lloyd(pts, centres, max_iter)
+            acc, size = _evaluate(pts, aperture[remaining], labels, centres, vw,
+                                  area[remaining], n_views, thresholds[p],
+                                  float(area_factor), need, float(max_trim),
+                                  line_tol_samples * g.mm_per_sample * a)
+            for c in np.flatnonzero(np.isfinite(size)):
+                members = acc == c
+                cid = len(rows)
+                idx = remaining[members]
+                cluster[idx] = cid
+                cluster_alpha[idx] = a
+                cx, cy = pts[members].mean(axis=0)
+                rows.append((cid, a, int(members.sum()), size[c], thresholds[p], cx, cy,
+                             g.axis_st[0] + cx / (a * g.mm_per_sample),
+                             g.axis_st[1] + cy / (a * g.mm_per_sample)))
+                found += 1
+            remaining = remaining[acc < 0]
+        if len(remaining) < need:
+            break
+        idle_rounds = idle_rounds + 1 if found == 0 else 0
+        if idle_rounds >= 2:
+            break
+        k_extra += max(1, int(math.ceil(k_growth * k0)))
+
+    clusters = pd.DataFrame(rows, columns=list(CLUSTER_COLUMNS)).astype(
+        {"cluster": np.int64, "n": np.int64, "alpha": float, "size_mm": float,
+         "threshold_mm": float, "plane_x_mm": float, "plane_y_mm": float, "s": float,
+         "t": float})
+    if len(clusters) == 0:
+        warnings.warn("no cluster of detections passed the size threshold at any plane",
+                      NoParticlesWarning, stacklevel=2)
+    out = detections.assign(cluster=cluster, cluster_alpha=cluster_alpha)
+    return Clustering(detections=out, clusters=clusters)

@@ -1,0 +1,199 @@
+"""Tests of projected-plane k-means clustering."""
+
+import time
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from plenoptrack.camera import preset
+from plenoptrack.errors import NoParticlesWarning
+from plenoptrack.locate.cluster import (ProjectionGeometry, cluster_detections, plane_alphas,
+                                        project, size_thresholds)
+
+CAMERA = preset("hall2019")
+AXIS = (271.5, 180.5)
+GEOM = ProjectionGeometry.from_camera(CAMERA, sample_spacing_px=12.15, axis_st=AXIS)
+DEPTHS = (-25.0, 25.0)
+
+
+def _views(radius=7):
+    u, v = np.meshgrid(np.arange(-radius, radius + 1.0), np.arange(-radius, radius + 1.0))
+    inside = u ** 2 + v ** 2 <= (radius + 0.5) ** 2
+    return u[inside], v[inside]
+
+
+def _detections(rng, n_particles, *, noise_px=0.1, dropout=0.1, n_spurious=0,
+                shape=(362, 544), depths=DEPTHS):
+    """Thin-lens detections of random particles; returns table and true particle ids."""
+    z = rng.uniform(*depths, n_particles)
+    alpha_p = CAMERA.alpha_for_depth(z)
+    # image-space point at plane alpha_p, placed so that the central view sees it inside
+    s0 = rng.uniform(30, shape[1] - 30, n_particles)
+    t0 = rng.uniform(30, shape[0] - 30, n_particles)
+    uu, vv = _views()
+    rows = []
+    for pid in range(n_particles):
+        par = GEOM.parallax_per_u(alpha_p[pid])
+        keep = rng.random(len(uu)) >= dropout
+        s = s0[pid] + par * uu[keep] + rng.normal(0, noise_px, keep.sum())
+        t = t0[pid] + par * vv[keep] + rng.normal(0, noise_px, keep.sum())
+        area = rng.normal(20, 2, keep.sum())
+        rows.append(pd.DataFrame({"frame": 0, "u": uu[keep], "v": vv[keep], "s": s, "t": t,
+                                  "area": area, "truth": pid}))
+    if n_spurious:
+        idx = rng.integers(0, len(uu), n_spurious)
+        rows.append(pd.DataFrame({"frame": 0, "u": uu[idx], "v": vv[idx],
+                                  "s": rng.uniform(0, shape[1], n_spurious),
+                                  "t": rng.uniform(0, shape[0], n_spurious),
+                                  "area": rng.normal(20, 2, n_spurious), "truth": -1}))
+    det = pd.concat(rows, ignore_index=True)
+    return det.sample(frac=1.0, random_state=int(rng.integers(1 << 31))).reset_index(drop=True)
+
+
+def _purity_completeness(det):
+    """Fraction of clustered detections in their cluster's majority particle, and
+    fraction of particles with a cluster holding most of their detections."""
+    assigned = det[det["cluster"] >= 0]
+    majority = assigned.groupby("cluster")["truth"].agg(lambda x: x.value_counts().index[0])
+    purity = (assigned["truth"].to_numpy() == majority.loc[assigned["cluster"]].to_numpy()).mean()
+    real = det[det["truth"] >= 0]
+    best = real.groupby("truth")["cluster"].agg(
+        lambda x: (x[x >= 0].value_counts().max() if (x >= 0).any() else 0) / len(x))
+    completeness = (best > 0.5).mean()
+    return purity, completeness
+
+
+def test_projection_converges_at_particle_plane():
+    # rays of one point imaged at alpha_p meet at alpha_p
+    uu, vv = _views()
+    alpha_p = CAMERA.alpha_for_depth(12.0)
+    par = GEOM.parallax_per_u(alpha_p)
+    s = 300.0 + par * uu
+    t = 100.0 + par * vv
+    at_p = project(uu, vv, s, t, alpha_p, GEOM)
+    assert np.ptp(at_p, axis=0).max() < 1e-9
+    spread = np.ptp(project(uu, vv, s, t, 1.0, GEOM), axis=0)
+    assert spread.min() > 10 * GEOM.mm_per_sample
+
+
+def test_parallax_sign_behind_focal_plane():
+    # a particle behind the focal plane moves towards larger s as u grows
+    assert GEOM.aperture_mm_per_u < 0
+    assert GEOM.parallax_per_u(CAMERA.alpha_for_depth(10.0)) > 0
+    assert GEOM.parallax_per_u(CAMERA.alpha_for_depth(-10.0)) < 0
+    assert GEOM.parallax_per_u(1.0) == 0
+
+
+def test_threshold_bounds_spread_of_half_way_particle():
+    alphas = plane_alphas(CAMERA, DEPTHS, 10)
+    uu, vv = _views()
+    # the views reach a little beyond the nominal aperture rim (pixel centres up to
+    # radius 7.5 px); the threshold uses the wider of the two
+    r = np.hypot(uu, vv).max() * abs(GEOM.aperture_mm_per_u)
+    assert 2 * r > GEOM.aperture_diameter_mm
+    thr = size_thresholds(alphas, 2 * r, margin=1.0)
+    for i in range(len(alphas) - 1):
+        half = 0.5 * (alphas[i] + alphas[i + 1])
+        par = GEOM.parallax_per_u(half)
+        pts = project(uu, vv, 200 + par * uu, 150 + par * vv, alphas[i], GEOM)
+        diam = np.max(np.hypot(*(pts[:, None] - pts[None]).transpose(2, 0, 1)))
+        assert diam <= thr[i] + 1e-12
+        assert diam == pytest.approx(thr[i], rel=0.02)
+
+
+@pytest.mark.parametrize("n_particles", [10, 100])
+def test_clustering_recovers_particles(n_particles):
+    rng = np.random.default_rng(n_particles)
+    det = _detections(rng, n_particles)
+    res = cluster_detections(det, GEOM, plane_alphas(CAMERA, DEPTHS))
+    purity, completeness = _purity_completeness(res.detections)
+    # a stray ray of another particle can pass within a sample of a cluster's line in a
+    # view where the particle itself was missed; triangulation rejects those
+    assert purity > 0.995
+    assert completeness >= 0.97
+    assert res.n_clusters == pytest.approx(n_particles, abs=max(1, n_particles // 50))
+    assert (res.detections["cluster"] >= 0).mean() > 0.95
+    # at most one detection per view in a cluster
+    assert not res.detections[res.detections["cluster"] >= 0].duplicated(
+        ["cluster", "u", "v"]).any()
+
+
+def test_clustering_with_spurious_detections():
+    rng = np.random.default_rng(7)
+    det = _detections(rng, 60, n_spurious=300, noise_px=0.2)
+    res = cluster_detections(det, GEOM, plane_alphas(CAMERA, DEPTHS))
+    purity, completeness = _purity_completeness(res.detections)
+    assert purity > 0.99 and completeness >= 0.95
+    spurious = res.detections[res.detections["truth"] < 0]
+    assert (spurious["cluster"] >= 0).mean() < 0.1
+
+
+def test_cluster_alpha_near_true_depth():
+    rng = np.random.default_rng(3)
+    det = _detections(rng, 40, noise_px=0.05)
+    alphas = plane_alphas(CAMERA, DEPTHS, 10)
+    res = cluster_detections(det, GEOM, alphas)
+    d = res.detections[res.detections["cluster"] >= 0]
+    # the accepted plane is within two plane spacings of the truth
+    step = alphas[1] - alphas[0]
+    z = {}
+    for pid, grp in d.groupby("truth"):
+        par = np.polyfit(grp["u"], grp["s"], 1)[0]
+        # parallax -> alpha: par = g (1 - 1/alpha) / mm
+        a_true = 1.0 / (1.0 - par * GEOM.mm_per_sample / GEOM.aperture_mm_per_u)
+        z[pid] = abs(grp["cluster_alpha"].iloc[0] - a_true)
+    assert max(z.values()) < 2 * step
+
+
+def test_clusters_table_and_determinism():
+    rng = np.random.default_rng(11)
+    det = _detections(rng, 30)
+    alphas = plane_alphas(CAMERA, DEPTHS)
+    a = cluster_detections(det, GEOM, alphas, seed=5)
+    b = cluster_detections(det, GEOM, alphas, seed=5)
+    pd.testing.assert_frame_equal(a.detections, b.detections)
+    pd.testing.assert_frame_equal(a.clusters, b.clusters)
+    assert "cluster" not in det.columns  # input unchanged
+    c = a.clusters
+    assert list(c.columns) == ["cluster", "alpha", "n", "size_mm", "threshold_mm",
+                               "plane_x_mm", "plane_y_mm", "s", "t"]
+    assert (c["size_mm"] <= c["threshold_mm"]).all()
+    counts = a.detections[a.detections["cluster"] >= 0].groupby("cluster").size()
+    np.testing.assert_array_equal(counts.to_numpy(), c.set_index("cluster").loc[counts.index, "n"])
+    # the cluster position in refocused view pixels is the central-view position
+    for cid, grp in a.detections[a.detections["cluster"] >= 0].groupby("cluster"):
+        centre = grp[(grp["u"] == 0) & (grp["v"] == 0)]
+        if len(centre):
+            row = c.set_index("cluster").loc[cid]
+            assert row["s"] == pytest.approx(centre["s"].iloc[0], abs=1.0)
+            assert row["t"] == pytest.approx(centre["t"].iloc[0], abs=1.0)
+
+
+def test_speed_100_particles():
+    rng = np.random.default_rng(0)
+    det = _detections(rng, 100)
+    alphas = plane_alphas(CAMERA, DEPTHS)
+    cluster_detections(det.iloc[:2000], GEOM, alphas)  # compile
+    t0 = time.perf_counter()
+    cluster_detections(det, GEOM, alphas)
+    assert time.perf_counter() - t0 < 2.0  # typically ~0.1 s; loose for busy machines
+
+
+def test_no_clusters_warns():
+    det = pd.DataFrame({"u": [0.0, 1.0], "v": [0.0, 0.0], "s": [10.0, 50.0],
+                        "t": [10.0, 10.0], "area": [5.0, 5.0]})
+    with pytest.warns(NoParticlesWarning):
+        res = cluster_detections(det, GEOM, plane_alphas(CAMERA, DEPTHS))
+    assert res.n_clusters == 0 and (res.detections["cluster"] == -1).all()
+
+
+def test_bad_inputs():
+    with pytest.raises(ValueError, match="lacks column"):
+        cluster_detections(pd.DataFrame({"u": [0.0]}), GEOM, [1.0])
+    with pytest.raises(ValueError, match="strictly ascending"):
+        size_thresholds([1.0, 0.9], 10.0)
+    with pytest.raises(ValueError, match="mm_per_sample must be a positive"):
+        ProjectionGeometry(-1.0, 0.0, (0, 0), 10.0)
+    with pytest.raises(ValueError, match="depth_range_mm"):
+        plane_alphas(CAMERA, (5.0, -5.0))
