@@ -206,9 +206,22 @@ class LightField:
 # compiled gather
 
 
+@numba.njit(inline="always")
+def _corner(pos, hi):  # pragma: no cover - compiled
+    """Top-left tap index and weight of the second tap for bilinear sampling at ``pos``
+    on an axis of pixels ``0 ... hi + 1`` (positions outside replicate the edge)."""
+    pos = min(max(pos, 0.0), float(hi) + 1.0)
+    i = min(int(math.floor(pos)), hi)
+    return i, pos - i
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _gather(raw, pad, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - compiled
-    """out[v, u, t, s] = (1-w) * bilin(raw, c0 + (v, u)) + w * bilin(raw, c1 + (v, u))."""
+def _gather(raw, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - compiled
+    """out[v, u, t, s] = (1-w) * bilin(raw, c0 + (v, u)) + w * bilin(raw, c1 + (v, u)).
+
+    ``c0, c1`` are the centres of lenses ``j0`` and ``j0 + 1`` of lens row ``t``; taps
+    beyond the sensor edge replicate the edge pixels.
+    """
     n_ang = 2 * rad + 1
     n_s = out.shape[3]
     n_lens = cen.shape[1]
@@ -220,43 +233,52 @@ def _gather(raw, pad, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover -
             w1 = ws[t, s]
             w0 = 1.0 - w1
             j1 = j0 + 1 if (w1 > 0.0 and j0 + 1 < n_lens) else j0
-            # lens 0
-            pr = cen[t, j0, 0] + pad - rad
-            pc = cen[t, j0, 1] + pad - rad
-            pr = min(max(pr, 0.0), hi_r)
-            pc = min(max(pc, 0.0), hi_c)
-            r0 = int(math.floor(pr))
-            c0 = int(math.floor(pc))
-            fr0 = pr - r0
-            fc0 = pc - c0
-            # lens 1
-            qr = cen[t, j1, 0] + pad - rad
-            qc = cen[t, j1, 1] + pad - rad
-            qr = min(max(qr, 0.0), hi_r)
-            qc = min(max(qc, 0.0), hi_c)
-            r1 = int(math.floor(qr))
-            c1 = int(math.floor(qc))
-            fr1 = qr - r1
-            fc1 = qc - c1
-            a00 = w0 * (1.0 - fr0) * (1.0 - fc0)
-            a01 = w0 * (1.0 - fr0) * fc0
-            a10 = w0 * fr0 * (1.0 - fc0)
-            a11 = w0 * fr0 * fc0
-            b00 = w1 * (1.0 - fr1) * (1.0 - fc1)
-            b01 = w1 * (1.0 - fr1) * fc1
-            b10 = w1 * fr1 * (1.0 - fc1)
-            b11 = w1 * fr1 * fc1
-            for iv in range(n_ang):
-                ra = min(r0 + iv, hi_r)
-                rb = min(r1 + iv, hi_r)
-                for iu in range(n_ang):
-                    ca = min(c0 + iu, hi_c)
-                    cb = min(c1 + iu, hi_c)
-                    val = (a00 * raw[ra, ca] + a01 * raw[ra, ca + 1]
-                           + a10 * raw[ra + 1, ca] + a11 * raw[ra + 1, ca + 1]
-                           + b00 * raw[rb, cb] + b01 * raw[rb, cb + 1]
-                           + b10 * raw[rb + 1, cb] + b11 * raw[rb + 1, cb + 1])
-                    out[iv, iu, t, s] = val
+            pr0 = cen[t, j0, 0] - rad
+            pc0 = cen[t, j0, 1] - rad
+            pr1 = cen[t, j1, 0] - rad
+            pc1 = cen[t, j1, 1] - rad
+            inside = (min(pr0, pr1) >= 0.0 and max(pr0, pr1) + 2 * rad <= hi_r
+                      and min(pc0, pc1) >= 0.0 and max(pc0, pc1) + 2 * rad <= hi_c)
+            if inside:  # fast path: no clamping
+                r0 = int(math.floor(pr0))
+                c0 = int(math.floor(pc0))
+                r1 = int(math.floor(pr1))
+                c1 = int(math.floor(pc1))
+                fr0 = pr0 - r0
+                fc0 = pc0 - c0
+                fr1 = pr1 - r1
+                fc1 = pc1 - c1
+                a00 = w0 * (1.0 - fr0) * (1.0 - fc0)
+                a01 = w0 * (1.0 - fr0) * fc0
+                a10 = w0 * fr0 * (1.0 - fc0)
+                a11 = w0 * fr0 * fc0
+                b00 = w1 * (1.0 - fr1) * (1.0 - fc1)
+                b01 = w1 * (1.0 - fr1) * fc1
+                b10 = w1 * fr1 * (1.0 - fc1)
+                b11 = w1 * fr1 * fc1
+                for iv in range(n_ang):
+                    ra = r0 + iv
+                    rb = r1 + iv
+                    for iu in range(n_ang):
+                        ca = c0 + iu
+                        cb = c1 + iu
+                        out[iv, iu, t, s] = (
+                            a00 * raw[ra, ca] + a01 * raw[ra, ca + 1]
+                            + a10 * raw[ra + 1, ca] + a11 * raw[ra + 1, ca + 1]
+                            + b00 * raw[rb, cb] + b01 * raw[rb, cb + 1]
+                            + b10 * raw[rb + 1, cb] + b11 * raw[rb + 1, cb + 1])
+            else:  # lens image reaches past the sensor edge: clamp every tap
+                for iv in range(n_ang):
+                    ra, fra = _corner(pr0 + iv, hi_r)
+                    rb, frb = _corner(pr1 + iv, hi_r)
+                    for iu in range(n_ang):
+                        ca, fca = _corner(pc0 + iu, hi_c)
+                        cb, fcb = _corner(pc1 + iu, hi_c)
+                        va = ((1.0 - fra) * ((1.0 - fca) * raw[ra, ca] + fca * raw[ra, ca + 1])
+                              + fra * ((1.0 - fca) * raw[ra + 1, ca] + fca * raw[ra + 1, ca + 1]))
+                        vb = ((1.0 - frb) * ((1.0 - fcb) * raw[rb, cb] + fcb * raw[rb, cb + 1])
+                              + frb * ((1.0 - fcb) * raw[rb + 1, cb] + fcb * raw[rb + 1, cb + 1]))
+                        out[iv, iu, t, s] = w0 * va + w1 * vb
 
 
 # --------------------------------------------------------------------------------------
@@ -336,19 +358,17 @@ def _check_raw(image, grid: LensletGrid, name: str) -> np.ndarray:
     check_image_shape(image, grid.sensor_shape_px, source=name, what="the lenslet grid")
     if image.dtype not in (np.uint16, np.float32):
         image = image.astype(np.float32)
-    return image
+    return np.ascontiguousarray(image)
 
 
 def _decode_array(raw: np.ndarray, grid: LensletGrid, samp: _Sampling, rad: int,
                   progress: bool, label: str) -> np.ndarray:
-    pad = rad + 2
-    padded = np.pad(raw, pad, mode="edge")
     cen = grid.centers()
     n_ang = 2 * rad + 1
     n_t, n_s = samp.j0.shape
     out = np.empty((n_ang, n_ang, n_t, n_s), dtype=np.float32)
     if not progress:
-        _gather(padded, float(pad), cen, samp.j0, samp.w, rad, 0, n_t, out)
+        _gather(raw, cen, samp.j0, samp.w, rad, 0, n_t, out)
         return out
     from rich.progress import Progress
 
@@ -357,7 +377,7 @@ def _decode_array(raw: np.ndarray, grid: LensletGrid, samp: _Sampling, rad: int,
         task = bar.add_task(label, total=n_t)
         for lo in range(0, n_t, chunk):
             hi = min(n_t, lo + chunk)
-            _gather(padded, float(pad), cen, samp.j0, samp.w, rad, lo, hi, out)
+            _gather(raw, cen, samp.j0, samp.w, rad, lo, hi, out)
             bar.update(task, advance=hi - lo)
     return out
 
