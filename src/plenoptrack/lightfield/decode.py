@@ -431,6 +431,16 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: np.ndarray | None = Non
     ``centre_k + (v, u)`` (row, col). On a hexagonal lattice the sample ``(t, s)`` lies
     on lens row ``t`` between two neighbouring lenses and is their linear blend. The
     sensor position each sample stands for is ``LightField.to_sensor(s, t)``.
+
+    Examples
+    --------
+    >>> from plenoptrack import preset
+    >>> from plenoptrack.simulate import make_optics, render_white
+    >>> optics = make_optics(preset("small"), seed=0)
+    >>> white = render_white(optics, seed=0)
+    >>> lf = decode(white, optics.true_grid, white=white)
+    >>> lf.data.shape[:2], int(lf.view_mask.sum())
+    ((15, 15), 145)
     """
     if not isinstance(grid, LensletGrid):
         raise CalibrationError(f"grid must be a LensletGrid; got {type(grid).__name__}")

@@ -14,8 +14,9 @@ spatial samples with the light field's sample geometry.
 
 References
 ----------
-Ng, R. (2005), Fourier slice photography, ACM SIGGRAPH, eq. 2-3.
-Hall, E. M. et al. (2019), perspective-shift particle location (seed paper), eq. 1-2.
+"Development and uncertainty characterization of 3D particle location from perspective
+shifted plenoptic images" (``seeds/001``), eq. 1-2, and Ng, R. (2005), "Fourier slice
+photography", ACM Trans. Graph. 24(3).
 """
 
 from __future__ import annotations
@@ -187,6 +188,21 @@ def refocus(lf: LightField, camera: CameraSpec, *, alpha: float | None = None,
         (bilinearly interpolated, spatially masked) samples; 0 where no view contributes.
         Pixel ``(t, s)`` shows the plane point whose magnified (by ``1/alpha`` about the
         axis) position is sample ``(t, s)``.
+
+    Examples
+    --------
+    >>> import pandas as pd
+    >>> from plenoptrack import preset
+    >>> from plenoptrack.lightfield import decode
+    >>> from plenoptrack.simulate import make_optics, render_frame, render_white
+    >>> camera = preset("small")
+    >>> optics = make_optics(camera, seed=0)
+    >>> particle = pd.DataFrame({"x": [0.0], "y": [0.0], "z": [8.0], "diameter": [0.5]})
+    >>> lf = decode(render_frame(optics, particle, seed=1), optics.true_grid,
+    ...             white=render_white(optics, seed=2))
+    >>> image = refocus(lf, camera, depth_mm=8.0)
+    >>> image.shape == lf.view_shape
+    True
     """
     _check(lf, camera)
     alpha = _resolve_alpha(camera, alpha, depth_mm)
