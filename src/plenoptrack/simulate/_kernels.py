@@ -1,8 +1,9 @@
 """Numba ray-tracing kernels of the simulator (private).
 
-Every kernel traces the same per-pixel function, :func:`_trace_pixel`, so an image
-rendered pixel by pixel, lens by lens or over the whole sensor is bit-identical wherever
-the same occluders are tested. Geometry and symbols as in :mod:`.optics`.
+Every kernel counts lit samples with the same per-sample loop, :func:`_sample_loop`;
+the shortcuts of :func:`_trace_pixel` only skip work whose outcome is provably known,
+so an image rendered lens by lens, over the whole sensor with shortcuts, or by brute
+force is bit-identical. Geometry and symbols as in :mod:`.optics`.
 
 ``par`` is a float64 vector holding the optics (indices below). ``samples`` is an
 ``(n, 4)`` float64 array: the sub-pixel offset (dX, dY) of the sensor point P and the
@@ -20,7 +21,8 @@ from numba import njit, prange
 
 PP, ROWS, COLS, SCALE, F_ML, S_I, S_O, R_AP2, K1, K2, INV_RN2 = range(11)
 E1X, E1Y, E2X, E2Y, OFFX, OFFY, SHIFT, PITCH, ROW_STEP, CELL_PX = range(11, 21)
-N_PAR = 21
+CELL_R, HALF_DIAG, INRADIUS_IMG, INV_SCALE, INV_P2, INV_RS2, R_AP = range(21, 28)
+N_PAR = 28
 
 
 def pack_params(optics) -> np.ndarray:
@@ -46,6 +48,13 @@ def pack_params(optics) -> np.ndarray:
     par[PITCH] = optics.pitch
     par[ROW_STEP] = optics.row_step
     par[CELL_PX] = optics.cell_radius * optics.image_scale / optics.pixel_pitch
+    par[CELL_R] = optics.cell_radius
+    par[HALF_DIAG] = optics.pixel_pitch * math.sqrt(0.5)
+    par[INRADIUS_IMG] = 0.5 * optics.pitch * optics.image_scale
+    par[INV_SCALE] = 1.0 / optics.image_scale
+    par[INV_P2] = 1.0 / optics.pitch ** 2
+    par[INV_RS2] = 1.0 / optics.row_step ** 2
+    par[R_AP] = optics.aperture_radius
     return par
 
 
@@ -54,12 +63,12 @@ def _nearest_lens(x, y, par):
     """Lens (i, j) whose physical centre is nearest to MLA-plane point (x, y) mm."""
     px = x - par[OFFX]
     py = y - par[OFFY]
-    a = (px * par[E1X] + py * par[E1Y]) / (par[PITCH] * par[PITCH])
-    fi = (px * par[E2X] + py * par[E2Y]) / (par[ROW_STEP] * par[ROW_STEP])
+    a = (px * par[E1X] + py * par[E1Y]) * par[INV_P2]
+    fi = (px * par[E2X] + py * par[E2Y]) * par[INV_RS2]
     ic = int(math.floor(fi + 0.5))
     best_i = ic
     best_j = 0
-    best_d = np.inf
+    best_d = 1e300
     for i in range(ic - 1, ic + 2):
         sh = par[SHIFT] * (i & 1)
         j = int(math.floor(a - sh + 0.5))
@@ -85,28 +94,31 @@ def _pixel_lens(row, col, par):
     """Lens owning sensor pixel (row, col): nearest microlens-image centre."""
     x0 = (col - (par[COLS] - 1.0) * 0.5) * par[PP]
     y0 = (row - (par[ROWS] - 1.0) * 0.5) * par[PP]
-    return _nearest_lens(x0 / par[SCALE], y0 / par[SCALE], par)
+    return _nearest_lens(x0 * par[INV_SCALE], y0 * par[INV_SCALE], par)
 
 
 @njit(cache=True)
-def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card):
-    """Number of lit samples of pixel (row, col).
+def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, lens_i, lens_j):
+    """Lit samples of the pixel centred at sensor point (x0, y0) mm.
 
-    Each sample point P uses the microlens whose image centre is nearest to P.
-    Occluders tested are ``occluders[idx[p0:p1]]``. ``card`` is (Z, spacing, r^2) of a
-    dot card (Z > 0) or Z <= 0 for none.
+    ``lens_i`` < -2**40 means "find the lens of every sample"; otherwise every sample
+    uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]``.
     """
-    x0 = (col - (par[COLS] - 1.0) * 0.5) * par[PP]
-    y0 = (row - (par[ROWS] - 1.0) * 0.5) * par[PP]
     tan_s = par[S_I] / par[F_ML]
     s_o = par[S_O]
+    inv_so = 1.0 / s_o
     conj = -s_o / par[S_I]
+    per_sample = lens_i < -(1 << 40)
+    cx, cy = 0.0, 0.0
+    if not per_sample:
+        cx, cy = _lens_center(lens_i, lens_j, par)
     lit = 0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
         py = y0 + samples[k, 1]
-        i, j = _nearest_lens(px / par[SCALE], py / par[SCALE], par)
-        cx, cy = _lens_center(i, j, par)
+        if per_sample:
+            i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
+            cx, cy = _lens_center(i, j, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
         # Main-lens plane: thin microlens, P in its focal plane.
@@ -117,17 +129,18 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card):
         # Distorted conjugate of Q on the focal plane; ray H -> Q_obj, per unit Z.
         rho2 = (qx * qx + qy * qy) * par[INV_RN2]
         g = 1.0 + par[K1] * rho2 + par[K2] * rho2 * rho2
-        dx = (qx * conj * g - hx) / s_o
-        dy = (qy * conj * g - hy) / s_o
+        dx = (qx * conj * g - hx) * inv_so
+        dy = (qy * conj * g - hy) * inv_so
         dd = dx * dx + dy * dy + 1.0
         blocked = False
-        for m in range(p0, p1):
-            q = idx[m]
+        for m in range(nc):
+            q = cand[m]
             wx = occluders[q, 0] - hx
             wy = occluders[q, 1] - hy
             wz = occluders[q, 2]
             wd = wx * dx + wy * dy + wz
-            if wx * wx + wy * wy + wz * wz - wd * wd / dd < occluders[q, 3]:
+            # squared distance of the sphere centre from the ray, times dd
+            if (wx * wx + wy * wy + wz * wz - occluders[q, 3]) * dd < wd * wd:
                 blocked = True
                 break
         if blocked:
@@ -143,18 +156,136 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card):
     return lit
 
 
+_PER_SAMPLE = -(1 << 41)
+
+
+@njit(cache=True)
+def _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, nc):
+    """Append to ``cand[:nc]`` the occluders a pixel's rays through lens C may meet.
+
+    (ex, ey) is the pixel centre minus the lens-image centre, sensor mm; (cx, cy) the
+    lens centre, mm. Every ray of the pixel through this lens leaves the main lens within
+    ``r_h`` of ``h0`` and crosses the focal plane within ``r_q`` of ``qo0``, so at depth Z
+    it lies within ``r_h |1 - Z/s_o| + r_q Z/s_o`` of the interpolated centre; a sphere
+    further than that plus its radius (stretched by the largest ray slope) is never hit.
+    Returns the new count.
+    """
+    tan_s = par[S_I] / par[F_ML]
+    s_o = par[S_O]
+    conj = s_o / par[S_I]
+    r_h = par[HALF_DIAG] * tan_s + par[CELL_R]
+    h0x = -ex * tan_s
+    h0y = -ey * tan_s
+    rc2 = (cx * cx + cy * cy) * par[INV_RN2]
+    g0 = 1.0 + par[K1] * rc2 + par[K2] * rc2 * rc2
+    qo0x = -cx * conj * g0
+    qo0y = -cy * conj * g0
+    rm = math.sqrt(rc2) + par[CELL_R] * math.sqrt(par[INV_RN2])
+    rm2 = rm * rm
+    lip = 1.0 + 3.0 * abs(par[K1]) * rm2 + 5.0 * abs(par[K2]) * rm2 * rm2
+    r_q = par[CELL_R] * conj * lip
+    slope = (math.sqrt(qo0x * qo0x + qo0y * qo0y) + r_q + math.sqrt(h0x * h0x + h0y * h0y)
+             + r_h) / s_o
+    sec = math.sqrt(1.0 + slope * slope) * (1.0 + 1e-9)
+    for m in range(p0, p1):
+        q = idx[m]
+        t = occluders[q, 2] / s_o
+        bx = h0x + (qo0x - h0x) * t - occluders[q, 0]
+        by = h0y + (qo0y - h0y) * t - occluders[q, 1]
+        reach = r_h * abs(1.0 - t) + r_q * t + math.sqrt(occluders[q, 3]) * sec + 1e-9
+        if bx * bx + by * by <= reach * reach:
+            seen = False
+            for k in range(nc):
+                if cand[k] == q:
+                    seen = True
+                    break
+            if not seen:
+                cand[nc] = q
+                nc += 1
+    return nc
+
+
+KEEP = -1
+"""Returned by :func:`_trace_pixel` with ``keep``: no occluder can touch the pixel."""
+
+
+@njit(cache=True)
+def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, keep):
+    """Number of lit samples of pixel (row, col), with provably exact shortcuts.
+
+    Each sample point P uses the microlens whose image centre is nearest to P. Bounds
+    on the pixel's ray bundle (:func:`_bundle_candidates`) decide which occluders can be
+    met; a pixel inside one lens cell whose bundle misses the aperture is dark and one
+    whose bundle passes it entirely, meeting nothing, is fully lit. With ``keep`` True
+    and no card, a pixel no occluder can touch returns :data:`KEEP` (its unoccluded
+    value is unchanged). Candidates are ``occluders[idx[p0:p1]]``; ``cand`` is a scratch
+    buffer of at least ``p1 - p0`` entries. ``card`` is (Z, spacing, r^2) of a dot card
+    (Z > 0) or Z <= 0 for none.
+    """
+    n = samples.shape[0]
+    no_card = card[0] <= 0.0
+    x0 = (col - (par[COLS] - 1.0) * 0.5) * par[PP]
+    y0 = (row - (par[ROWS] - 1.0) * 0.5) * par[PP]
+    i, j = _nearest_lens(x0 * par[INV_SCALE], y0 * par[INV_SCALE], par)
+    cx, cy = _lens_center(i, j, par)
+    # Offset of the pixel centre from the lens-image centre, sensor mm.
+    ex = x0 - cx * par[SCALE]
+    ey = y0 - cy * par[SCALE]
+    e = math.sqrt(ex * ex + ey * ey)
+    if e + par[HALF_DIAG] > par[INRADIUS_IMG] * (1.0 - 1e-9):
+        # The pixel straddles lens cells: its samples may use any lens whose image
+        # centre is within e + 2 * half-diagonal of the pixel centre.
+        if p1 == p0:
+            return _sample_loop(x0, y0, par, samples, occluders, cand, 0, card, _PER_SAMPLE, 0)
+        nc = 0
+        lim = (e + 2.0 * par[HALF_DIAG]) * (1.0 + 1e-9)
+        for ni in range(i - 1, i + 2):
+            for nj in range(j - 1, j + 2):
+                lx, ly = _lens_center(ni, nj, par)
+                fx = x0 - lx * par[SCALE]
+                fy = y0 - ly * par[SCALE]
+                if fx * fx + fy * fy <= lim * lim:
+                    nc = _bundle_candidates(fx, fy, lx, ly, par, occluders, idx, p0, p1, cand, nc)
+        if nc == 0 and no_card and keep:
+            return KEEP
+        return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, _PER_SAMPLE, 0)
+    tan_s = par[S_I] / par[F_ML]
+    r_h = par[HALF_DIAG] * tan_s + par[CELL_R]          # spread of H about its centre
+    h_lo = e * tan_s - r_h
+    h_hi = e * tan_s + r_h
+    if h_lo > par[R_AP] * (1.0 + 1e-9):
+        return 0
+    nc = 0
+    if p1 > p0:
+        nc = _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, 0)
+        if nc == 0 and no_card and keep:
+            return KEEP
+    if nc == 0 and no_card and h_hi < par[R_AP] * (1.0 - 1e-9):
+        return n
+    return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, i, j)
+
+
 @njit(parallel=True, cache=True)
-def render_all(par, samples, occluders, card, r0, r1, c0, c1):
+def render_all(par, samples, occluders, card, r0, r1, c0, c1, exact):
     """Trace every pixel of the window rows [r0, r1), cols [c0, c1) against all occluders.
 
+    ``exact`` True traces every sample of every pixel against every occluder (the
+    brute-force reference); False uses the per-pixel shortcuts of :func:`_trace_pixel`.
     Returns a ``(r1 - r0, c1 - c0)`` float32 irradiance image in [0, 1].
     """
     out = np.empty((r1 - r0, c1 - c0), dtype=np.float32)
-    idx = np.arange(occluders.shape[0])
+    m = occluders.shape[0]
+    idx = np.arange(m)
     inv_n = 1.0 / samples.shape[0]
     for r in prange(r0, r1):
+        cand = np.empty(m, dtype=np.int64)
         for c in range(c0, c1):
-            lit = _trace_pixel(r, c, par, samples, occluders, idx, 0, idx.shape[0], card)
+            if exact:
+                x0 = (c - (par[COLS] - 1.0) * 0.5) * par[PP]
+                y0 = (r - (par[ROWS] - 1.0) * 0.5) * par[PP]
+                lit = _sample_loop(x0, y0, par, samples, occluders, idx, m, card, _PER_SAMPLE, 0)
+            else:
+                lit = _trace_pixel(r, c, par, samples, occluders, idx, 0, m, card, cand, False)
             out[r - r0, c - c0] = lit * inv_n
     return out
 
@@ -162,6 +293,8 @@ def render_all(par, samples, occluders, card, r0, r1, c0, c1):
 @njit(parallel=True, cache=True)
 def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card):
     """Re-trace, in place, every pixel of ``out`` owned by one of ``lenses``.
+
+    ``out`` must hold the unoccluded irradiance: pixels no occluder can touch keep it.
 
     A pixel is owned by the lens whose image centre is nearest to the pixel centre (its
     samples may still use a neighbouring lens). ``lenses`` is ``(L, 2)`` int64 (i, j);
@@ -176,6 +309,7 @@ def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card):
     for k in prange(lenses.shape[0]):
         i = lenses[k, 0]
         j = lenses[k, 1]
+        cand = np.empty(ptr[k + 1] - ptr[k], dtype=np.int64)
         cx, cy = _lens_center(i, j, par)
         crow = cy * par[SCALE] / par[PP] + half_r
         ccol = cx * par[SCALE] / par[PP] + half_c
@@ -188,5 +322,7 @@ def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card):
                 pi, pj = _pixel_lens(r, c, par)
                 if pi != i or pj != j:
                     continue
-                lit = _trace_pixel(r, c, par, samples, occluders, idx, ptr[k], ptr[k + 1], card)
-                out[r, c] = lit * inv_n
+                lit = _trace_pixel(r, c, par, samples, occluders, idx, ptr[k], ptr[k + 1],
+                                   card, cand, True)
+                if lit != KEEP:
+                    out[r, c] = lit * inv_n

@@ -6,10 +6,17 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, prange
 
 from ..errors import CameraSpecError
 
-__all__ = ["SensorModel", "expose"]
+__all__ = ["SensorModel", "expose", "POISSON_EXACT_BELOW_E"]
+
+POISSON_EXACT_BELOW_E = 1000.0
+"""Expected signals (electrons) below this get exact Poisson draws; above it the shot
+noise is drawn from its normal approximation N(mu, mu), whose skewness (1/sqrt(mu) <
+3 %) is far below what a 12-bit pixel resolves. This makes a 29-megapixel frame several
+times faster to expose."""
 
 
 @dataclass(frozen=True)
@@ -58,10 +65,17 @@ def expose(irradiance: np.ndarray, *, level: float, bit_depth: int, sensor: Sens
     sensor : SensorModel
         Full well and read noise.
     rng : numpy.random.Generator
-        Source of the noise draws (Poisson shot noise, then Gaussian read noise, both
-        over the whole image in row-major order). Unused when ``noise`` is False.
+        Source of the noise: one float32 standard normal per pixel (row-major), then
+        Poisson draws for the pixels below :data:`POISSON_EXACT_BELOW_E`. Shot noise is
+        Poisson (normal approximation above that threshold), read noise Gaussian.
+        Unused when ``noise`` is False.
     noise : bool
         False returns the rounded expected counts.
+
+    Notes
+    -----
+    Counts are ``floor(electrons * gain + 0.5)`` clipped to the raw range, with
+    ``gain = (2**bit_depth - 1) / full_well``.
 
     Returns
     -------
@@ -69,13 +83,41 @@ def expose(irradiance: np.ndarray, *, level: float, bit_depth: int, sensor: Sens
         Raw counts.
     """
     full_scale = (1 << bit_depth) - 1
-    electrons = np.asarray(irradiance, dtype=np.float64) * (level * sensor.full_well_e)
-    if noise:
-        if rng is None:
-            raise ValueError("rng is required when noise=True")
-        electrons = rng.poisson(electrons).astype(np.float64)
-        if sensor.read_noise_e > 0:
-            electrons += rng.normal(0.0, sensor.read_noise_e, size=electrons.shape)
-    counts = np.rint(electrons * (full_scale / sensor.full_well_e))
-    np.clip(counts, 0, full_scale, out=counts)
-    return counts.astype(np.uint16)
+    irr = np.ascontiguousarray(irradiance, dtype=np.float32)
+    to_e = level * sensor.full_well_e
+    gain = full_scale / sensor.full_well_e
+    if not noise:
+        return _quantise(irr, to_e, gain, full_scale)
+    if rng is None:
+        raise ValueError("rng is required when noise=True")
+    z = rng.standard_normal(size=irr.shape, dtype=np.float32)
+    out = _expose_bright(irr, z, to_e, sensor.read_noise_e, gain, full_scale,
+                         POISSON_EXACT_BELOW_E)
+    mu = irr.ravel().astype(np.float64) * to_e  # same float64 products as the kernel
+    low = np.flatnonzero(mu < POISSON_EXACT_BELOW_E)
+    electrons = rng.poisson(mu[low]) + sensor.read_noise_e * z.ravel()[low].astype(np.float64)
+    out.ravel()[low] = np.clip(np.floor(electrons * gain + 0.5), 0, full_scale)
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _quantise(irr, to_e, gain, full_scale):
+    out = np.empty(irr.shape, dtype=np.uint16)
+    for r in prange(irr.shape[0]):
+        for c in range(irr.shape[1]):
+            out[r, c] = min(max(math.floor(irr[r, c] * to_e * gain + 0.5), 0.0), full_scale)
+    return out
+
+
+@njit(parallel=True, cache=True)
+def _expose_bright(irr, z, to_e, read_e, gain, full_scale, threshold):
+    """Counts of pixels at or above ``threshold`` electrons (others are filled later)."""
+    out = np.zeros(irr.shape, dtype=np.uint16)
+    read2 = read_e * read_e
+    for r in prange(irr.shape[0]):
+        for c in range(irr.shape[1]):
+            mu = irr[r, c] * to_e
+            if mu >= threshold:
+                e = mu + math.sqrt(mu + read2) * z[r, c]
+                out[r, c] = min(max(math.floor(e * gain + 0.5), 0.0), full_scale)
+    return out
