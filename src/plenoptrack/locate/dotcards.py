@@ -15,13 +15,14 @@ with the row ``t``, so dot ``(i, j)`` sits at ``x = i * spacing``, ``y = j * spa
 
 from __future__ import annotations
 
+import warnings
 from collections import deque
 
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from ..errors import CalibrationError
+from ..errors import CalibrationError, NoParticlesWarning
 from .segment import segment_array
 
 __all__ = ["DOTCARD_COLUMNS", "index_lattice", "index_dotcard", "dotcard_points"]
@@ -257,11 +258,13 @@ def dotcard_points(lf, *, spacing_mm: float, z_mm: float, camera=None,
             parallax_per_u = float(geom.parallax_per_u(camera.alpha_for_depth(z_mm)))
         else:
             parallax_per_u = 0.0
-    det = segment_array(lf.data, lf.u, lf.v, view_mask=lf.view_mask,
-                        spatial_mask=lf.spatial_mask, window=window, contrast=contrast,
-                        area_range=area_range, max_eccentricity=max_eccentricity,
-                        exclude_edge=True,
-                        zero_invalid=bool(getattr(lf, "flat_fielded", False)))
+    with warnings.catch_warnings():  # an empty result is an error here, not a warning
+        warnings.simplefilter("ignore", NoParticlesWarning)
+        det = segment_array(lf.data, lf.u, lf.v, view_mask=lf.view_mask,
+                            spatial_mask=lf.spatial_mask, window=window, contrast=contrast,
+                            area_range=area_range, max_eccentricity=max_eccentricity,
+                            exclude_edge=True,
+                            zero_invalid=bool(getattr(lf, "flat_fielded", False)))
     if len(det) == 0:
         raise CalibrationError(f"no dots found in the dot card at z = {z_mm} mm; check "
                                "the image and the segmentation settings")
