@@ -128,18 +128,18 @@ def views(
 ) -> None:
     """Decode a raw image and write every perspective view."""
     from .calibration import load_calibration
-    from .lightfield import decode, write_view_mosaic_png, write_views_tiff
+    from .lightfield import decode, write_mosaic_png, write_views_tiff
 
     calib = load_calibration(calib_file)
     image = _load_frame(raw, frame, calib)
     t0 = time.perf_counter()
     lf = decode(image, calib.grid, progress=True)
-    write_views_tiff(lf, out_file)
+    write_views_tiff(out_file, lf)
     console.print(f"decoded {lf.data.shape[0]} x {lf.data.shape[1]} views of "
                   f"{lf.data.shape[2]} x {lf.data.shape[3]} samples in {time.perf_counter() - t0:.2f} s; "
                   f"wrote {out_file}")
     if mosaic is not None:
-        write_view_mosaic_png(lf, mosaic)
+        write_mosaic_png(mosaic, lf)
         console.print(f"wrote {mosaic}")
 
 
