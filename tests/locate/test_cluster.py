@@ -200,3 +200,30 @@ def test_bad_inputs():
         ProjectionGeometry(-1.0, 0.0, (0, 0), 10.0)
     with pytest.raises(ValueError, match="depth_range_mm"):
         plane_alphas(CAMERA, (5.0, -5.0))
+
+
+def test_end_to_end_simulated_small_frame():
+    from plenoptrack.lightfield.decode import decode
+    from plenoptrack.locate.segment import segment_views
+    from plenoptrack.simulate import make_optics, render_frame, render_white
+
+    cam = preset("small")
+    optics = make_optics(cam, seed=1)
+    rng = np.random.default_rng(0)
+    n = 12
+    parts = pd.DataFrame({"x": rng.uniform(-3.5, 3.5, n), "y": rng.uniform(-2.2, 2.2, n),
+                          "z": rng.uniform(-10, 10, n), "diameter": 0.35})
+    lf = decode(render_frame(optics, parts, seed=0), optics.true_grid,
+                white=render_white(optics, seed=1))
+    det = segment_views(lf, window=15, contrast=0.2)
+    res = cluster_detections(det, ProjectionGeometry.from_lightfield(lf, cam),
+                             plane_alphas(cam, (-12.0, 12.0)))
+    full = res.clusters["n"] > 0.6 * lf.view_mask.sum()
+    # particles seen whole in every view give one full cluster each; particles cut by
+    # the field edge may split into partial clusters
+    assert n - 2 <= full.sum() <= n
+    assert n - 2 <= res.n_clusters <= n + 4
+    true_alpha = np.sort(cam.alpha_for_depth(parts["z"].to_numpy()))
+    step = np.diff(plane_alphas(cam, (-12.0, 12.0)))[0]
+    for a in res.clusters.loc[full, "alpha"]:
+        assert np.min(np.abs(true_alpha - a)) < 1.5 * step
