@@ -40,7 +40,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cached_property, lru_cache
 from typing import Any
 
 import numba
@@ -365,6 +365,33 @@ class DLFC:
     def bounds(self) -> np.ndarray:
         """(2, 5) lower and upper limits of ``(x, y, z, u, v)`` in the fit data."""
         return np.stack([self.centre - self.scale, self.centre + self.scale])
+
+    @cached_property
+    def view_factorisation(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The polynomials regrouped as polynomials in ``(u, v)`` with xyz-dependent terms.
+
+        ``P_c(x, y, z, u, v) = sum_{a, b} G[a, b, c] X_a(x, y, z) V_b(u, v)`` with ``X_a``
+        and ``V_b`` the monomials of the normalised variables. A particle seen in many
+        views then costs one evaluation of the ``X_a`` (and their derivatives) plus a
+        small product per view, instead of the full basis per view.
+
+        Returns
+        -------
+        xyz_exponents : (A, 3) int ndarray
+            Exponents of (x, y, z) in ``X_a``.
+        uv_exponents : (B, 2) int ndarray
+            Exponents of (u, v) in ``V_b``; row 0 is the constant (0, 0).
+        tensor : (A, B, 2) float ndarray
+            Coefficients ``G``, view pixels.
+        """
+        exps = self.exponents
+        xyz_e, xyz_idx = np.unique(exps[:, :3], axis=0, return_inverse=True)
+        uv_e, uv_idx = np.unique(exps[:, 3:], axis=0, return_inverse=True)
+        tensor = np.zeros((len(xyz_e), len(uv_e), 2))
+        tensor[xyz_idx.ravel(), uv_idx.ravel()] = self.coefficients.T
+        for arr in (xyz_e, uv_e, tensor):
+            arr.setflags(write=False)
+        return xyz_e, uv_e, tensor
 
     # --- evaluation ---------------------------------------------------------------
     def _normalised(self, x, y, z, u, v) -> tuple[np.ndarray, tuple[int, ...]]:
