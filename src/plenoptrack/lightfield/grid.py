@@ -47,6 +47,8 @@ __all__ = ["GridMeasurement", "measure_grid", "calibrate_grid"]
 _CROP_PX = 512
 #: Smallest and largest pitch searched when no nominal pitch is given, pixels.
 _MIN_PITCH_PX = 4.0
+#: Largest relative difference between the measured and the nominal pitch.
+_PITCH_TOLERANCE = 0.25
 #: Normalised autocorrelation a lattice peak must reach to count as periodic structure.
 _MIN_PEAK_CORRELATION = 0.15
 #: Fewest lenses a white image must show for a meaningful lattice fit.
@@ -55,7 +57,7 @@ _MIN_LENSES = 16
 _WINDOW_RADIUS = 0.5
 _WINDOW_TAPER_PX = 1.0
 #: A symmetry step this small (pixels) leaves the window where it is.
-_SETTLED_PX = 0.3
+_SETTLED_PX = 0.27
 #: Interpolated refinement steps once a lens centre has settled.
 _REFINE_STEPS = 2
 #: Most symmetry steps per lens and pass.
@@ -63,7 +65,7 @@ _MAX_STEPS = 6
 #: Radii (in pitches) of the successive fitting regions around the reference lens.
 _STAGE_RADII = (6.0, 40.0, math.inf)
 #: Centroid / fit passes per region.
-_PASSES = (2, 1, 1)
+_PASSES = (2, 2, 1)
 #: Outlier threshold in robust standard deviations.
 _REJECT_SIGMA = 3.0
 #: Lenses whose window is less bright (above the gaps) than this fraction of the median
@@ -129,7 +131,7 @@ def measure_grid(white, *, grid_type: str | None = None, pitch_px: float | None 
         it must agree with the image.
     pitch_px : float, optional
         Nominal lens pitch in sensor pixels (e.g. ``CameraSpec.pixels_per_lenslet``). The
-        lattice search is then restricted to within 25 % of it. Detected when omitted.
+        measured pitch must then lie within 25 % of it. Measured in any case.
     progress : bool
         Show a progress bar on stderr.
 
@@ -156,11 +158,11 @@ def measure_grid(white, *, grid_type: str | None = None, pitch_px: float | None 
     the sensor, including partially visible edge lenses; lenses in the bounding index
     range whose centre falls off the sensor are included too (decoding masks them).
     """
-    image = _validate_white(white)
     if grid_type is not None and grid_type not in ("hex", "rect"):
         raise CalibrationError(f"grid_type must be 'hex', 'rect' or None; got {grid_type!r}")
     if pitch_px is not None and not (math.isfinite(pitch_px) and pitch_px >= _MIN_PITCH_PX):
         raise CalibrationError(f"pitch_px must be a number >= {_MIN_PITCH_PX} pixels; got {pitch_px!r}")
+    image = _validate_white(white)
 
     with _progress_bar(progress, total=1 + sum(_PASSES)) as advance:
         crop, crop_origin = _central_crop(image, _CROP_PX)
@@ -219,11 +221,16 @@ def _validate_white(white) -> np.ndarray:
 
 
 def _central_crop(image: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """Central ``size`` x ``size`` crop (or smaller) as float64, and its (row, col) offset."""
+    """Central ``size`` x ``size`` crop (or smaller) as float64, and its (row, col) offset.
+
+    The crop is clipped to its 1st-99th percentile range so that a few hot pixels or
+    specks cannot dominate the coarse lattice estimate.
+    """
     rows, cols = image.shape
     h, w = min(size, rows), min(size, cols)
     r0, c0 = (rows - h) // 2, (cols - w) // 2
-    return image[r0:r0 + h, c0:c0 + w].astype(np.float64), np.array([r0, c0], dtype=float)
+    crop = image[r0:r0 + h, c0:c0 + w].astype(np.float64)
+    return np.clip(crop, *np.percentile(crop, [1.0, 99.0])), np.array([r0, c0], dtype=float)
 
 
 def _background_level(crop: np.ndarray) -> float:
@@ -283,6 +290,9 @@ def _coarse_lattice(crop: np.ndarray, *, pitch_px: float | None
                     ) -> tuple[np.ndarray, np.ndarray, str]:
     """Estimate the lattice steps and packing from the crop's autocorrelation.
 
+    The nearest of the strongest peaks is a lattice vector; with a nominal ``pitch_px``
+    it must lie within ``_PITCH_TOLERANCE`` of it.
+
     Returns
     -------
     col_step, row_step : (2,) float ndarray
@@ -290,10 +300,9 @@ def _coarse_lattice(crop: np.ndarray, *, pitch_px: float | None
         shift of +0.5 for a hexagonal grid).
     grid_type : {"hex", "rect"}
     """
-    if pitch_px is None:
-        min_lag, max_lag = _MIN_PITCH_PX, min(crop.shape) / 4.0
-    else:
-        min_lag, max_lag = 0.75 * pitch_px, 1.25 * pitch_px
+    min_lag, max_lag = _MIN_PITCH_PX, min(crop.shape) / 4.0
+    if pitch_px is not None:
+        max_lag = max(max_lag, 1.5 * pitch_px)
     if max_lag < min_lag:
         raise CalibrationError(f"white image is {crop.shape[0]} x {crop.shape[1]} pixels, too "
                                "small to show several lenslets")
@@ -307,6 +316,9 @@ def _coarse_lattice(crop: np.ndarray, *, pitch_px: float | None
     if len(nearest) < 4:
         raise CalibrationError(_NO_GRID)
     pitch = nearest[0]
+    if pitch_px is not None and abs(pitch / pitch_px - 1.0) > _PITCH_TOLERANCE:
+        raise CalibrationError(f"the white image shows lenslets {pitch:.2f} px apart but "
+                               f"pitch_px={pitch_px:g} was given; check the camera description")
     # first step: the nearest peak closest to the sensor row direction, pointing right
     candidates = lags[lengths < 1.1 * pitch]
     col_step = candidates[np.argmax(np.abs(candidates[:, 1]) / np.hypot(*candidates.T))]
@@ -425,8 +437,9 @@ def _symmetry_step(image, q2r, q2c, offsets, weights, counts):  # pragma: no cov
     least-squares solution of that relation: a Lucas-Kanade step between the patch and
     its own reflection.
 
-    Returns (e_row, e_col, mean window intensity), NaN when the window leaves the image
-    or holds no structure.
+    Returns (e_row, e_col, mean window intensity, A_rr, A_rc, A_cc), NaN offsets when the
+    window leaves the image or holds no structure; ``A`` is the normal matrix (weighted
+    sums of gradient products), which :func:`_reflected_step` reuses.
     """
     rows, cols = image.shape
     table = 2 * (q2r & 1) + (q2c & 1)
@@ -439,7 +452,7 @@ def _symmetry_step(image, q2r, q2c, offsets, weights, counts):  # pragma: no cov
         rr = (q2r - d2r) // 2
         cc = (q2c - d2c) // 2
         if min(r, rr) < 1 or max(r, rr) > rows - 2 or min(c, cc) < 1 or max(c, cc) > cols - 2:
-            return np.nan, np.nan, np.nan
+            return np.nan, np.nan, np.nan, 0.0, 0.0, 0.0
         w = weights[table, m]
         p = float(image[r, c])
         f = float(image[rr, cc])
@@ -457,10 +470,10 @@ def _symmetry_step(image, q2r, q2c, offsets, weights, counts):  # pragma: no cov
         sm += w * (p + f)
     det = arr * acc - arc * arc
     if sw == 0.0 or det <= 1e-12 * (arr + acc) * (arr + acc):
-        return np.nan, np.nan, np.nan
+        return np.nan, np.nan, np.nan, 0.0, 0.0, 0.0
     er = -0.5 * (acc * br - arc * bc) / det
     ec = -0.5 * (arr * bc - arc * br) / det
-    return er, ec, 0.5 * sm / sw
+    return er, ec, 0.5 * sm / sw, arr, arc, acc
 
 
 @numba.njit(cache=True)
@@ -472,12 +485,14 @@ def _bilinear(image, r, c, fr, fc):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _reflected_step(image, q2r, q2c, er, ec, offsets, weights, counts):  # pragma: no cover
+def _reflected_step(image, q2r, q2c, er, ec, offsets, weights, counts, arr, arc, acc
+                    ):  # pragma: no cover - compiled
     """Correction to a centre ``c = q + e`` found by :func:`_symmetry_step`.
 
     Compares each window pixel with the image reflected about ``c`` itself (bilinear
     interpolation), which removes the error of the first-order model when ``e`` is a
-    sizeable fraction of a pixel. Returns the (row, col) correction, NaN off the image.
+    sizeable fraction of a pixel. The normal matrix ``A`` of that step is reused.
+    Returns the (row, col) correction, NaN off the image.
     """
     rows, cols = image.shape
     table = 2 * (q2r & 1) + (q2c & 1)
@@ -487,7 +502,7 @@ def _reflected_step(image, q2r, q2c, er, ec, offsets, weights, counts):  # pragm
     ic = int(math.floor(sc))
     fr = sr - ir
     fc = sc - ic
-    arr = arc = acc = br = bc = 0.0
+    br = bc = 0.0
     for m in range(counts[table]):
         d2r = offsets[table, m, 0]
         d2c = offsets[table, m, 1]
@@ -510,14 +525,9 @@ def _reflected_step(image, q2r, q2c, er, ec, offsets, weights, counts):  # pragm
         gc = 0.25 * (float(image[r, c + 1]) - float(image[r, c - 1])
                      + float(image[rr, cc - 1]) - float(image[rr, cc + 1]))
         d = 0.5 * (d1 - d2)
-        arr += w * gr * gr
-        arc += w * gr * gc
-        acc += w * gc * gc
         br += w * d * gr
         bc += w * d * gc
     det = arr * acc - arc * arc
-    if det <= 1e-12 * (arr + acc) * (arr + acc):
-        return np.nan, np.nan
     return -0.5 * (acc * br - arc * bc) / det, -0.5 * (arr * bc - arc * br) / det
 
 
@@ -556,7 +566,8 @@ def _symmetry_centres(image, predicted, offsets, weights, counts, reach, max_ste
         q2r = int(round(2.0 * predicted[k, 0]))
         q2c = int(round(2.0 * predicted[k, 1]))
         for _ in range(max_steps):
-            er, ec, mean = _symmetry_step(image, q2r, q2c, offsets, weights, counts)
+            er, ec, mean, arr, arc, acc = _symmetry_step(image, q2r, q2c, offsets, weights,
+                                                         counts)
             if not math.isfinite(er):
                 break
             cr = 0.5 * q2r + er
@@ -564,7 +575,7 @@ def _symmetry_centres(image, predicted, offsets, weights, counts, reach, max_ste
             if abs(er) <= _SETTLED_PX and abs(ec) <= _SETTLED_PX:
                 for _ in range(refine):
                     dr, dc = _reflected_step(image, q2r, q2c, cr - 0.5 * q2r, cc - 0.5 * q2c,
-                                             offsets, weights, counts)
+                                             offsets, weights, counts, arr, arc, acc)
                     if math.isfinite(dr) and abs(dr) < 0.5 and abs(dc) < 0.5:
                         cr += dr
                         cc += dc
