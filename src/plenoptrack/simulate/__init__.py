@@ -2,13 +2,37 @@
 
 Renders what a back-lit particle experiment with a plenoptic camera records: raw frames,
 a white (flat-field) image and dot-card calibration images, by back-tracing rays through
-a thin main lens with radial distortion, a perturbed microlens array and a noisy sensor.
-Nothing on the locating path imports this package.
+a thin main lens with radial distortion, a perturbed microlens array and a noisy sensor
+(:mod:`.optics`, :mod:`.render`, :mod:`.sensor`, :mod:`.dotcard`); builds ground-truth
+scenes (:mod:`.scene`) and writes whole data sets (:mod:`.dataset`). Nothing on the
+locating path imports this package.
+
+Examples
+--------
+>>> from plenoptrack import preset
+>>> from plenoptrack.simulate import make_optics, random_particles, default_volume, render_frame
+>>> camera = preset("small")
+>>> optics = make_optics(camera, seed=0)
+>>> particles = random_particles(5, volume=default_volume(camera), diameter_mm=0.5, seed=0)
+>>> render_frame(optics, particles, seed=0).shape
+(600, 910)
 """
 
+from .dataset import SimulationResult, simulate_dataset
+from .dotcard import (DotCard, default_dotcard, default_dotcard_depths, dot_grid,
+                      dotcard_irradiance, render_dotcard)
 from .optics import SimOptics, make_optics
 from .render import render_frame, render_irradiance, render_white
+from .scene import (Scene, SceneError, Volume, default_volume, load_scene, make_scene,
+                    moving_particles, random_particles)
 from .sensor import SensorModel
 
-__all__ = ["SimOptics", "make_optics", "render_white", "render_frame", "render_irradiance",
-           "SensorModel"]
+__all__ = [
+    "SimOptics", "make_optics",
+    "render_white", "render_frame", "render_irradiance",
+    "DotCard", "default_dotcard", "default_dotcard_depths", "dot_grid", "render_dotcard",
+    "dotcard_irradiance",
+    "Scene", "SceneError", "Volume", "default_volume", "random_particles", "moving_particles",
+    "make_scene", "load_scene",
+    "SensorModel", "simulate_dataset", "SimulationResult",
+]

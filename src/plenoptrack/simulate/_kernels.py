@@ -98,11 +98,12 @@ def _pixel_lens(row, col, par):
 
 
 @njit(cache=True)
-def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, lens_i, lens_j):
+def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, use_card, lens_i, lens_j):
     """Lit samples of the pixel centred at sensor point (x0, y0) mm.
 
     ``lens_i`` < -2**40 means "find the lens of every sample"; otherwise every sample
-    uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]``.
+    uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]``; the dot
+    card ``card`` only if ``use_card``.
     """
     tan_s = par[S_I] / par[F_ML]
     s_o = par[S_O]
@@ -145,7 +146,7 @@ def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, lens_i, lens_j
                 break
         if blocked:
             continue
-        if card[0] > 0.0:
+        if use_card:
             xw = -(hx + dx * card[0])
             yw = -(hy + dy * card[0])
             mx = xw - card[1] * math.floor(xw / card[1] + 0.5)
@@ -160,19 +161,17 @@ _PER_SAMPLE = -(1 << 41)
 
 
 @njit(cache=True)
-def _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, nc):
-    """Append to ``cand[:nc]`` the occluders a pixel's rays through lens C may meet.
+def _bundle(ex, ey, cx, cy, par):
+    """Bounds on the rays of one pixel through lens C.
 
     (ex, ey) is the pixel centre minus the lens-image centre, sensor mm; (cx, cy) the
-    lens centre, mm. Every ray of the pixel through this lens leaves the main lens within
-    ``r_h`` of ``h0`` and crosses the focal plane within ``r_q`` of ``qo0``, so at depth Z
-    it lies within ``r_h |1 - Z/s_o| + r_q Z/s_o`` of the interpolated centre; a sphere
-    further than that plus its radius (stretched by the largest ray slope) is never hit.
-    Returns the new count.
+    lens centre, mm. Every such ray leaves the main lens within ``r_h`` of ``h0`` and
+    crosses the focal plane within ``r_q`` of ``qo0``, so at depth Z (t = Z / s_o) it
+    lies within ``r_h |1 - t| + r_q t`` of ``h0 + (qo0 - h0) t``; ``sec`` bounds
+    1 / cos of the ray angle to the axis. Returns (h0x, h0y, qo0x, qo0y, r_h, r_q, sec).
     """
     tan_s = par[S_I] / par[F_ML]
-    s_o = par[S_O]
-    conj = s_o / par[S_I]
+    conj = par[S_O] / par[S_I]
     r_h = par[HALF_DIAG] * tan_s + par[CELL_R]
     h0x = -ex * tan_s
     h0y = -ey * tan_s
@@ -185,8 +184,20 @@ def _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, nc):
     lip = 1.0 + 3.0 * abs(par[K1]) * rm2 + 5.0 * abs(par[K2]) * rm2 * rm2
     r_q = par[CELL_R] * conj * lip
     slope = (math.sqrt(qo0x * qo0x + qo0y * qo0y) + r_q + math.sqrt(h0x * h0x + h0y * h0y)
-             + r_h) / s_o
+             + r_h) / par[S_O]
     sec = math.sqrt(1.0 + slope * slope) * (1.0 + 1e-9)
+    return h0x, h0y, qo0x, qo0y, r_h, r_q, sec
+
+
+@njit(cache=True)
+def _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, nc):
+    """Append to ``cand[:nc]`` the occluders the pixel's rays through lens C may meet.
+
+    A sphere further from the bundle (:func:`_bundle`) than its radius, stretched by
+    ``sec``, is never hit. Returns the new count.
+    """
+    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(ex, ey, cx, cy, par)
+    s_o = par[S_O]
     for m in range(p0, p1):
         q = idx[m]
         t = occluders[q, 2] / s_o
@@ -203,6 +214,19 @@ def _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, nc):
                 cand[nc] = q
                 nc += 1
     return nc
+
+
+@njit(cache=True)
+def _card_missed(ex, ey, cx, cy, par, card):
+    """True if no ray of the pixel through lens C can land on a dot of the card."""
+    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(ex, ey, cx, cy, par)
+    t = card[0] / par[S_O]
+    xw = -(h0x + (qo0x - h0x) * t)
+    yw = -(h0y + (qo0y - h0y) * t)
+    mx = xw - card[1] * math.floor(xw / card[1] + 0.5)
+    my = yw - card[1] * math.floor(yw / card[1] + 0.5)
+    reach = r_h * abs(1.0 - t) + r_q * t + math.sqrt(card[2]) + 1e-9
+    return mx * mx + my * my > reach * reach
 
 
 KEEP = -1
@@ -236,7 +260,7 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, kee
         # The pixel straddles lens cells: its samples may use any lens whose image
         # centre is within e + 2 * half-diagonal of the pixel centre.
         if p1 == p0:
-            return _sample_loop(x0, y0, par, samples, occluders, cand, 0, card, _PER_SAMPLE, 0)
+            return _sample_loop(x0, y0, par, samples, occluders, cand, 0, card, not no_card, _PER_SAMPLE, 0)
         nc = 0
         lim = (e + 2.0 * par[HALF_DIAG]) * (1.0 + 1e-9)
         for ni in range(i - 1, i + 2):
@@ -248,13 +272,15 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, kee
                     nc = _bundle_candidates(fx, fy, lx, ly, par, occluders, idx, p0, p1, cand, nc)
         if nc == 0 and no_card and keep:
             return KEEP
-        return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, _PER_SAMPLE, 0)
+        return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card, _PER_SAMPLE, 0)
     tan_s = par[S_I] / par[F_ML]
     r_h = par[HALF_DIAG] * tan_s + par[CELL_R]          # spread of H about its centre
     h_lo = e * tan_s - r_h
     h_hi = e * tan_s + r_h
     if h_lo > par[R_AP] * (1.0 + 1e-9):
         return 0
+    if not no_card and _card_missed(ex, ey, cx, cy, par, card):
+        no_card = True
     nc = 0
     if p1 > p0:
         nc = _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, 0)
@@ -262,7 +288,7 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, kee
             return KEEP
     if nc == 0 and no_card and h_hi < par[R_AP] * (1.0 - 1e-9):
         return n
-    return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, i, j)
+    return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card, i, j)
 
 
 @njit(parallel=True, cache=True)
@@ -283,7 +309,8 @@ def render_all(par, samples, occluders, card, r0, r1, c0, c1, exact):
             if exact:
                 x0 = (c - (par[COLS] - 1.0) * 0.5) * par[PP]
                 y0 = (r - (par[ROWS] - 1.0) * 0.5) * par[PP]
-                lit = _sample_loop(x0, y0, par, samples, occluders, idx, m, card, _PER_SAMPLE, 0)
+                lit = _sample_loop(x0, y0, par, samples, occluders, idx, m, card, card[0] > 0.0,
+                                   _PER_SAMPLE, 0)
             else:
                 lit = _trace_pixel(r, c, par, samples, occluders, idx, 0, m, card, cand, False)
             out[r - r0, c - c0] = lit * inv_n

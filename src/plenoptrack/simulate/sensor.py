@@ -91,11 +91,11 @@ def expose(irradiance: np.ndarray, *, level: float, bit_depth: int, sensor: Sens
     if rng is None:
         raise ValueError("rng is required when noise=True")
     z = rng.standard_normal(size=irr.shape, dtype=np.float32)
-    out = _expose_bright(irr, z, to_e, sensor.read_noise_e, gain, full_scale,
-                         POISSON_EXACT_BELOW_E)
-    mu = irr.ravel().astype(np.float64) * to_e  # same float64 products as the kernel
-    low = np.flatnonzero(mu < POISSON_EXACT_BELOW_E)
-    electrons = rng.poisson(mu[low]) + sensor.read_noise_e * z.ravel()[low].astype(np.float64)
+    out, is_low = _expose_bright(irr, z, to_e, sensor.read_noise_e, gain, full_scale,
+                                 POISSON_EXACT_BELOW_E)
+    low = np.flatnonzero(is_low)
+    mu = irr.ravel()[low].astype(np.float64) * to_e  # the kernel's float64 products
+    electrons = rng.poisson(mu) + sensor.read_noise_e * z.ravel()[low].astype(np.float64)
     out.ravel()[low] = np.clip(np.floor(electrons * gain + 0.5), 0, full_scale)
     return out
 
@@ -111,8 +111,9 @@ def _quantise(irr, to_e, gain, full_scale):
 
 @njit(parallel=True, cache=True)
 def _expose_bright(irr, z, to_e, read_e, gain, full_scale, threshold):
-    """Counts of pixels at or above ``threshold`` electrons (others are filled later)."""
+    """Counts of pixels at or above ``threshold`` electrons, and a mask of the others."""
     out = np.zeros(irr.shape, dtype=np.uint16)
+    is_low = np.zeros(irr.shape, dtype=np.bool_)
     read2 = read_e * read_e
     for r in prange(irr.shape[0]):
         for c in range(irr.shape[1]):
@@ -120,4 +121,6 @@ def _expose_bright(irr, z, to_e, read_e, gain, full_scale, threshold):
             if mu >= threshold:
                 e = mu + math.sqrt(mu + read2) * z[r, c]
                 out[r, c] = min(max(math.floor(e * gain + 0.5), 0.0), full_scale)
-    return out
+            else:
+                is_low[r, c] = True
+    return out, is_low

@@ -1,0 +1,344 @@
+"""Ground-truth scenes: particle positions and sizes over frames.
+
+A scene is a truth table (columns :data:`plenoptrack._columns.TRUTH_COLUMNS`: ``frame,
+particle, x, y, z, diameter``, world frame, mm) for a camera. Random scenes place
+non-overlapping spheres uniformly in a measurement volume; multi-frame scenes move every
+particle with a constant velocity so that tracking has ground truth.
+
+Scene files (TOML)
+------------------
+::
+
+    camera = "small"                    # preset name, or a [camera] table (CameraSpec fields)
+    magnification = -0.5                # optional override of the camera's magnification
+    seed = 7                            # optional, default 0
+    frames = 3                          # optional, default 1
+    velocity_mm_per_frame = [0.1, 0.0, 0.2]   # optional, default [0, 0, 0]
+
+    [volume]                            # optional: defaults from the camera (see default_volume)
+    depth_mm = 20.0
+
+    [random]                            # either a random set ...
+    n = 20
+    diameter_mm = 1.0
+
+    [[particles]]                       # ... or explicit particles at frame 0
+    x = 0.0
+    y = 0.0
+    z = 0.0
+    diameter = 1.0
+    velocity_mm_per_frame = [0.0, 0.0, 0.5]   # optional, replaces the scene velocity
+
+Positions and diameters are in mm, world frame (see ``docs/conventions.md``).
+"""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from .._columns import DIAMETER_COLUMN, ID_COLUMN, POS_COLUMNS, T_COLUMN, TRUTH_COLUMNS
+from ..camera import CameraSpec, preset
+from ..errors import InputFileError, PlenoptrackError
+
+__all__ = ["SceneError", "Volume", "Scene", "VOLUME_DEPTH_MM", "volume_depth_mm",
+           "default_volume", "random_particles", "moving_particles", "make_scene", "load_scene"]
+
+VOLUME_DEPTH_MM = {"hall2019": 50.0, "small": 20.0, "small-rect": 20.0}
+"""Default measurement-volume depth per camera preset, mm."""
+
+
+class SceneError(PlenoptrackError, ValueError):
+    """A scene is invalid: particles outside the volume, overlapping, or bad sizes."""
+
+
+def volume_depth_mm(camera: CameraSpec) -> float:
+    """Default volume depth for ``camera``: the preset table, else 15 % of s_o."""
+    return VOLUME_DEPTH_MM.get(camera.name, round(0.15 * camera.object_distance_mm, 1))
+
+
+@dataclass(frozen=True)
+class Volume:
+    """Axis-aligned measurement volume, world frame, mm.
+
+    Parameters
+    ----------
+    x_mm, y_mm, z_mm : (float, float)
+        (min, max) along each axis, mm.
+    """
+
+    x_mm: tuple[float, float]
+    y_mm: tuple[float, float]
+    z_mm: tuple[float, float]
+
+    def __post_init__(self) -> None:
+        for name in ("x_mm", "y_mm", "z_mm"):
+            lo, hi = (float(v) for v in getattr(self, name))
+            if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+                raise SceneError(f"volume {name} must be (min, max) with min < max; got {(lo, hi)}")
+            object.__setattr__(self, name, (lo, hi))
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(3, 2) array of (min, max) for x, y, z, mm."""
+        return np.array([self.x_mm, self.y_mm, self.z_mm])
+
+    def contains(self, xyz: np.ndarray) -> np.ndarray:
+        """Boolean mask of the points ``(n, 3)`` (x, y, z mm) inside the volume."""
+        xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+        b = self.bounds
+        return ((xyz >= b[:, 0]) & (xyz <= b[:, 1])).all(axis=1)
+
+
+def default_volume(camera: CameraSpec, *, depth_mm: float | None = None,
+                   diameter_mm: float = 1.0) -> Volume:
+    """Volume in which a particle is fully seen by every part of the aperture.
+
+    Depth ``depth_mm`` (default :func:`volume_depth_mm`) centred on the focal plane.
+    Laterally: the field of view at the near face (the focal-plane field scaled by
+    ``(s_o + z_near) / s_o``) minus, on each side, the largest defocus blur radius in the
+    volume projected to the focal plane (``D/2 |1 - s_o / (s_o + z)|``) and one diameter.
+    """
+    depth = volume_depth_mm(camera) if depth_mm is None else float(depth_mm)
+    s_o = camera.object_distance_mm
+    if not (math.isfinite(depth) and 0 < depth < 1.8 * s_o):
+        raise SceneError(f"volume depth_mm must be positive and below {1.8 * s_o:.0f} mm; got {depth_mm!r}")
+    half_z = depth / 2
+    h, w = camera.sensor_size_mm
+    m = abs(camera.magnification)
+    near = (s_o - half_z) / s_o
+    blur = camera.aperture_diameter_mm / 2 * max(abs(1 - s_o / (s_o - half_z)),
+                                                 abs(1 - s_o / (s_o + half_z)))
+    half_x = w / m / 2 * near - blur - diameter_mm
+    half_y = h / m / 2 * near - blur - diameter_mm
+    if half_x <= 0 or half_y <= 0:
+        raise SceneError(f"a {depth:g} mm deep volume leaves no lateral room on camera "
+                         f"{camera.name!r}; choose a smaller depth_mm or diameter")
+    return Volume((-half_x, half_x), (-half_y, half_y), (-half_z, half_z))
+
+
+def _empty_truth() -> pd.DataFrame:
+    return pd.DataFrame({T_COLUMN: pd.Series(dtype=np.int64), ID_COLUMN: pd.Series(dtype=np.int64),
+                         **{c: pd.Series(dtype=float) for c in (*POS_COLUMNS, DIAMETER_COLUMN)}})
+
+
+def random_particles(n: int, *, volume: Volume, diameter_mm: float = 1.0,
+                     seed: int | np.random.Generator | None = 0) -> pd.DataFrame:
+    """Non-overlapping spheres placed uniformly at random in a volume (frame 0).
+
+    Parameters
+    ----------
+    n : int
+        Number of particles.
+    volume : Volume
+        Region for the particle centres, mm.
+    diameter_mm : float
+        Particle diameter, mm.
+    seed : int or numpy.random.Generator
+        Position seed.
+
+    Returns
+    -------
+    DataFrame
+        Columns ``frame`` (0), ``particle`` (0..n-1), ``x, y, z`` (mm), ``diameter`` (mm).
+    """
+    if not (isinstance(n, (int, np.integer)) and n >= 0):
+        raise SceneError(f"n must be a non-negative integer; got {n!r}")
+    if not (math.isfinite(diameter_mm) and diameter_mm > 0):
+        raise SceneError(f"diameter_mm must be positive; got {diameter_mm!r}")
+    rng = np.random.default_rng(seed)
+    b = volume.bounds
+    placed = np.zeros((0, 3))
+    attempts = 0
+    while len(placed) < n:
+        attempts += 1
+        if attempts > 200 * (n + 10):
+            raise SceneError(f"could not place {n} non-overlapping {diameter_mm} mm particles "
+                             f"in the volume (placed {len(placed)}); lower n or the diameter")
+        p = rng.uniform(b[:, 0], b[:, 1])
+        if len(placed) and (((placed - p) ** 2).sum(axis=1) < diameter_mm ** 2).any():
+            continue
+        placed = np.vstack([placed, p])
+    if n == 0:
+        return _empty_truth()
+    return pd.DataFrame({T_COLUMN: np.zeros(n, np.int64), ID_COLUMN: np.arange(n, dtype=np.int64),
+                         "x": placed[:, 0], "y": placed[:, 1], "z": placed[:, 2],
+                         DIAMETER_COLUMN: np.full(n, float(diameter_mm))})
+
+
+def moving_particles(particles: pd.DataFrame, *, frames: int,
+                     velocity_mm_per_frame=(0.0, 0.0, 0.0)) -> pd.DataFrame:
+    """Repeat frame-0 particles over ``frames`` frames with constant velocities.
+
+    Parameters
+    ----------
+    particles : DataFrame
+        Frame-0 truth (``particle, x, y, z, diameter``).
+    frames : int
+        Number of frames (>= 1).
+    velocity_mm_per_frame : (3,) or (n, 3) array-like
+        Displacement (dx, dy, dz) per frame, mm, for all particles or per particle.
+
+    Returns
+    -------
+    DataFrame
+        Truth table with :data:`~plenoptrack._columns.TRUTH_COLUMNS`, sorted by frame then
+        particle.
+    """
+    if not (isinstance(frames, (int, np.integer)) and frames >= 1):
+        raise SceneError(f"frames must be a positive integer; got {frames!r}")
+    v = np.asarray(velocity_mm_per_frame, dtype=float)
+    if v.shape not in ((3,), (len(particles), 3)) or not np.isfinite(v).all():
+        raise SceneError(f"velocity_mm_per_frame must be 3 finite numbers or one row per particle; "
+                         f"got shape {v.shape}")
+    v = np.broadcast_to(v, (len(particles), 3))
+    base = particles[list(POS_COLUMNS)].to_numpy(dtype=float)
+    parts = []
+    for f in range(frames):
+        pos = base + f * v
+        parts.append(pd.DataFrame({T_COLUMN: np.full(len(particles), f, np.int64),
+                                   ID_COLUMN: particles[ID_COLUMN].to_numpy(np.int64),
+                                   "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2],
+                                   DIAMETER_COLUMN: particles[DIAMETER_COLUMN].to_numpy(float)}))
+    out = pd.concat(parts, ignore_index=True) if parts else _empty_truth()
+    return out[list(TRUTH_COLUMNS)]
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A camera, a volume and the ground truth of every frame.
+
+    Attributes
+    ----------
+    camera : CameraSpec
+        Nominal camera the scene is meant for.
+    volume : Volume
+        Measurement volume, mm.
+    truth : DataFrame
+        ``frame, particle, x, y, z, diameter`` (mm) for every frame.
+    seed : int
+        Seed of the scene (also the default simulation seed).
+    """
+
+    camera: CameraSpec
+    volume: Volume
+    truth: pd.DataFrame
+    seed: int = 0
+
+    @property
+    def frames(self) -> int:
+        """Number of frames."""
+        return int(self.truth[T_COLUMN].max()) + 1 if len(self.truth) else 1
+
+
+def check_particles(particles: pd.DataFrame, volume: Volume, *, where: str = "scene") -> None:
+    """Raise :class:`SceneError` for bad diameters, overlaps or centres outside ``volume``."""
+    missing = [c for c in TRUTH_COLUMNS if c not in particles.columns]
+    if missing:
+        raise SceneError(f"{where}: particles are missing column(s) {missing}")
+    values = particles[[*POS_COLUMNS, DIAMETER_COLUMN]].to_numpy(dtype=float)
+    if not np.isfinite(values).all():
+        raise SceneError(f"{where}: particle positions and diameters must be finite")
+    bad = values[:, 3] <= 0
+    if bad.any():
+        raise SceneError(f"{where}: particle diameters must be positive (mm); "
+                         f"got {values[bad, 3][:3].tolist()}")
+    outside = ~volume.contains(values[:, :3])
+    if outside.any():
+        first = values[outside][0]
+        raise SceneError(f"{where}: {int(outside.sum())} particle(s) outside the volume, e.g. "
+                         f"(x, y, z) = ({first[0]:.3g}, {first[1]:.3g}, {first[2]:.3g}) mm; volume "
+                         f"x {volume.x_mm}, y {volume.y_mm}, z {volume.z_mm} mm")
+    for _, grp in particles.groupby(T_COLUMN):
+        xyz = grp[list(POS_COLUMNS)].to_numpy(dtype=float)
+        d = grp[DIAMETER_COLUMN].to_numpy(dtype=float)
+        if len(xyz) > 1:
+            from scipy.spatial import cKDTree
+
+            pairs = cKDTree(xyz).query_pairs(float(d.max()), output_type="ndarray")
+            if len(pairs):
+                gap = np.linalg.norm(xyz[pairs[:, 0]] - xyz[pairs[:, 1]], axis=1)
+                overlap = gap < (d[pairs[:, 0]] + d[pairs[:, 1]]) / 2
+                if overlap.any():
+                    a, b = pairs[overlap][0]
+                    raise SceneError(f"{where}: particles {int(grp[ID_COLUMN].iloc[a])} and "
+                                     f"{int(grp[ID_COLUMN].iloc[b])} overlap")
+
+
+def make_scene(camera: CameraSpec, *, n_particles: int = 20, diameter_mm: float = 1.0,
+               frames: int = 1, velocity_mm_per_frame=(0.0, 0.0, 0.0),
+               volume: Volume | None = None, seed: int = 0) -> Scene:
+    """Random scene: ``n_particles`` spheres in the volume, moving at constant velocity.
+
+    The volume (default :func:`default_volume`) bounds the frame-0 positions; later
+    frames may leave it.
+    """
+    volume = default_volume(camera, diameter_mm=diameter_mm) if volume is None else volume
+    first = random_particles(n_particles, volume=volume, diameter_mm=diameter_mm,
+                             seed=np.random.default_rng([seed, 1]))
+    truth = moving_particles(first, frames=frames, velocity_mm_per_frame=velocity_mm_per_frame)
+    return Scene(camera=camera, volume=volume, truth=truth, seed=seed)
+
+
+_SCENE_KEYS = {"camera", "magnification", "seed", "frames", "velocity_mm_per_frame", "volume",
+               "random", "particles"}
+
+
+def load_scene(path: str | Path) -> Scene:
+    """Read a scene TOML file (schema in the module notes)."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{path}: scene file not found")
+    try:
+        data = tomllib.loads(path.read_text())
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise InputFileError(f"{path}: not valid TOML ({exc})") from None
+    unknown = sorted(set(data) - _SCENE_KEYS)
+    if unknown:
+        raise InputFileError(f"{path}: unknown key(s) {unknown}; allowed: {sorted(_SCENE_KEYS)}")
+    cam = data.get("camera")
+    if isinstance(cam, str):
+        camera = preset(cam)
+    elif isinstance(cam, dict):
+        camera = CameraSpec.from_dict(cam, source=str(path))
+    else:
+        raise InputFileError(f"{path}: 'camera' must be a preset name or a [camera] table")
+    if "magnification" in data:
+        camera = camera.with_changes(magnification=float(data["magnification"]))
+    seed = data.get("seed", 0)
+    frames = data.get("frames", 1)
+    velocity = data.get("velocity_mm_per_frame", [0.0, 0.0, 0.0])
+    if ("random" in data) == ("particles" in data):
+        raise InputFileError(f"{path}: give exactly one of a [random] table or [[particles]]")
+    try:
+        vol = data.get("volume", {})
+        depth = vol.get("depth_mm")
+        if "random" in data:
+            spec = data["random"]
+            diameter = float(spec.get("diameter_mm", 1.0))
+            volume = default_volume(camera, depth_mm=depth, diameter_mm=diameter)
+            return make_scene(camera, n_particles=int(spec["n"]), diameter_mm=diameter,
+                              frames=frames, velocity_mm_per_frame=velocity, volume=volume,
+                              seed=seed)
+        rows = data["particles"]
+        first = pd.DataFrame({
+            T_COLUMN: np.zeros(len(rows), np.int64), ID_COLUMN: np.arange(len(rows)),
+            **{c: [float(r[c]) for r in rows] for c in (*POS_COLUMNS, DIAMETER_COLUMN)}})
+        vel = np.array([r.get("velocity_mm_per_frame", velocity) for r in rows], dtype=float)
+        volume = default_volume(camera, depth_mm=depth,
+                                diameter_mm=float(first[DIAMETER_COLUMN].max()) if len(rows) else 1.0)
+        check_particles(first, volume, where=str(path))
+        truth = moving_particles(first, frames=frames,
+                                 velocity_mm_per_frame=vel if len(rows) else velocity)
+        return Scene(camera=camera, volume=volume, truth=truth, seed=int(seed))
+    except KeyError as exc:
+        raise InputFileError(f"{path}: missing key {exc}") from None
+    except (TypeError, ValueError) as exc:
+        if isinstance(exc, PlenoptrackError):
+            raise
+        raise InputFileError(f"{path}: bad value ({exc})") from None
