@@ -328,7 +328,7 @@ def _check_same_length(**arrays) -> None:
 def _initial_positions(initial_xyz, labels: np.ndarray) -> np.ndarray:
     """(K, 3) starting positions in the order of ``labels``."""
     if isinstance(initial_xyz, pd.DataFrame):
-        absent = [lab for lab in labels if lab not in initial_xyz.index]
+        absent = [lab for lab in labels.tolist() if lab not in initial_xyz.index]
         if absent:
             raise ValueError(f"initial_xyz has no row for cluster(s) {absent[:10]}; index it "
                              "by cluster label")
