@@ -1,0 +1,21 @@
+"""Shared fixtures: small simulated cameras with fixed seeds."""
+
+import pytest
+
+from plenoptrack import preset
+
+
+@pytest.fixture(scope="session")
+def small_optics():
+    """True optics of the 'small' hexagonal preset, seed 0."""
+    from plenoptrack.simulate import make_optics
+
+    return make_optics(preset("small"), seed=0)
+
+
+@pytest.fixture(scope="session")
+def small_rect_optics():
+    """True optics of the 'small-rect' rectangular preset, seed 1."""
+    from plenoptrack.simulate import make_optics
+
+    return make_optics(preset("small-rect"), seed=1)

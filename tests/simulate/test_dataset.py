@@ -1,0 +1,66 @@
+"""simulate_dataset writes the whole file contract, and the truth files round-trip."""
+
+import json
+import tomllib
+
+import numpy as np
+import pytest
+
+from plenoptrack import load_camera, preset
+from plenoptrack._columns import TRUTH_COLUMNS
+from plenoptrack.io import read_raw, read_table
+from plenoptrack.simulate import SceneError, SimOptics, make_scene, simulate_dataset
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim")
+    return simulate_dataset("small", out, seed=5, n_particles=6, frames=2,
+                            velocity_mm_per_frame=(0.2, 0.0, 0.5), magnification=-0.45,
+                            dotcard_depths=[-5.0, 0.0, 5.0])
+
+
+def test_writes_every_file(dataset):
+    out = dataset.out_dir
+    names = sorted(str(p.relative_to(out)) for p in out.rglob("*") if p.is_file())
+    assert names == ["camera.toml", "dotcards/card_00.tif", "dotcards/card_01.tif",
+                     "dotcards/card_02.tif", "dotcards/dotcards.toml", "raw/frame_0000.tif",
+                     "raw/frame_0001.tif", "truth.parquet", "truth_optics.json", "white.tif"]
+    for path in (*dataset.frame_paths, dataset.white_path, *dataset.dotcard_paths):
+        image = read_raw(path)
+        assert image.dtype == np.uint16 and image.shape == (600, 910)
+
+
+def test_camera_and_cards_files(dataset):
+    camera = load_camera(dataset.camera_path)
+    assert camera == preset("small").with_changes(magnification=-0.45)
+    cards = tomllib.loads(dataset.dotcards_path.read_text())
+    assert cards["spacing_mm"] == dataset.dotcard.spacing_mm
+    assert [c["z_mm"] for c in cards["cards"]] == [-5.0, 0.0, 5.0]
+    assert [c["file"] for c in cards["cards"]] == ["card_00.tif", "card_01.tif", "card_02.tif"]
+
+
+def test_truth_round_trips(dataset):
+    truth = read_table(dataset.truth_path)
+    assert list(truth.columns) == list(TRUTH_COLUMNS)
+    assert truth.equals(dataset.truth)
+    assert len(truth) == 12
+    doc = json.loads(dataset.optics_path.read_text())
+    assert SimOptics.from_dict(doc) == dataset.optics
+    assert doc["true_grid"] == dataset.optics.true_grid.to_dict()
+
+
+def test_frames_reproducible(dataset, tmp_path):
+    again = simulate_dataset("small", tmp_path, seed=5, n_particles=6, frames=2,
+                             velocity_mm_per_frame=(0.2, 0.0, 0.5), magnification=-0.45,
+                             dotcard_depths=[])
+    assert again.dotcard_paths == ()
+    for a, b in zip(dataset.frame_paths, again.frame_paths):
+        assert read_raw(a).tobytes() == read_raw(b).tobytes()
+    assert read_raw(dataset.white_path).tobytes() == read_raw(again.white_path).tobytes()
+
+
+def test_scene_camera_must_match(tmp_path):
+    scene = make_scene(preset("small-rect"), n_particles=1)
+    with pytest.raises(SceneError, match="pass scene.camera"):
+        simulate_dataset("small", tmp_path, scene=scene, dotcard_depths=[])
