@@ -8,20 +8,23 @@ into a :class:`~plenoptrack.lightfield.lattice.LensletGrid`, fully automatically
    vector. The nearest peaks give the pitch, the orientation and the packing (hexagonal:
    the second vector is 60 degrees from the first; rectangular: 90 degrees).
 2. **Phase.** Folding the crop onto one lattice cell (averaging the pixels that share the
-   same fractional lattice coordinates) shows where in the cell the discs are bright,
-   which places one reference lens.
-3. **Centres and fit.** Around each predicted lens centre a smooth window weighs the
-   background-subtracted intensity; its centroid is the measured centre. An affine
-   lattice (origin and two steps) is fitted to all measured centres by linear least
-   squares with 3-sigma (MAD) rejection, the windows are re-centred on the new lattice
-   and the two steps repeat. The fit starts on the lenses near the reference and grows
-   to the whole sensor, so small errors of the coarse lattice never accumulate over
-   hundreds of lenses.
-
-Because both lattices are centrally symmetric about every lens, a window centred on the
-true centre has its centroid exactly there; iterating window placement and lattice fit
-therefore converges to the unbiased centres, whatever the disc profile and the light that
-neighbouring discs spill into the window.
+   same fractional lattice coordinates) gives the mean microlens image; its centre of
+   symmetry (the brightest of the four the lattice allows) places one reference lens.
+3. **Centres.** Each microlens image, together with the light its neighbours spill
+   around it, is centrally symmetric about its centre, so the centre is the point about
+   which the image equals its own point reflection. Around each predicted centre a
+   Lucas-Kanade step between the window and its reflection (through a half-pixel point,
+   so pixels map onto pixels) estimates the offset; the window moves until it sits on the
+   nearest half pixel, and steps that reflect about the estimate itself (bilinear
+   interpolation) remove the error of the first-order model. The estimate needs no
+   model of the disc profile, vignetting or background, and is unbiased where the image
+   is symmetric.
+4. **Fit.** An affine lattice (origin and two steps) is fitted to all centres by linear
+   least squares with 3-sigma (MAD) rejection of outliers (defects, dust, clipped edge
+   lenses). The fit starts on the lenses near the reference, whose windows are placed
+   from the coarse lattice, and grows to the whole sensor, each stage placing its
+   windows from the previous fit, so small errors of the coarse lattice never accumulate
+   over hundreds of lenses.
 
 Coordinates follow ``docs/conventions.md``: (row, col) sensor pixels, pixel centres at
 integer coordinates.
@@ -161,7 +164,8 @@ def measure_grid(white, *, grid_type: str | None = None, pitch_px: float | None 
     if grid_type is not None and grid_type not in ("hex", "rect"):
         raise CalibrationError(f"grid_type must be 'hex', 'rect' or None; got {grid_type!r}")
     if pitch_px is not None and not (math.isfinite(pitch_px) and pitch_px >= _MIN_PITCH_PX):
-        raise CalibrationError(f"pitch_px must be a number >= {_MIN_PITCH_PX} pixels; got {pitch_px!r}")
+        raise CalibrationError(f"pitch_px must be a number >= {_MIN_PITCH_PX} pixels; "
+                               f"got {pitch_px!r}")
     image = _validate_white(white)
 
     with _progress_bar(progress, total=1 + sum(_PASSES)) as advance:
@@ -657,7 +661,12 @@ class _Fit:
 
 def _measure_and_fit(image: np.ndarray, lattice: np.ndarray, shift: float,
                      stage_radius: float, window_radius: float, background: float) -> _Fit:
-    """Measure centroids of the lenses near the reference lens and refit the lattice."""
+    """Measure the centres of the lenses near the reference lens and refit the lattice.
+
+    Lenses within ``stage_radius`` pitches of the reference (all when infinite) whose
+    window lies on the image are measured; unlit ones (window level above the gaps below
+    ``_MIN_LEVEL_FRACTION`` of the median) and the fit's outliers are dropped.
+    """
     pitch = float(np.hypot(*lattice[1]))
     margin = math.ceil(window_radius) + 1
     box = np.array([[margin, margin], [image.shape[0] - 1 - margin, image.shape[1] - 1 - margin]],
