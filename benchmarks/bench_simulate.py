@@ -1,0 +1,74 @@
+"""Time the simulator: full-sensor background and 100-particle frame, and a small frame.
+
+Each culled render is compared with a brute-force render of the same frame (every
+sample of every pixel tested against every particle, no bounding boxes or shortcuts)
+measured in the same run. For the full sensor the brute force is timed on a central
+window holding 1/100 of the pixels and scaled by 100.
+
+Run: ``python benchmarks/bench_simulate.py``.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numba
+import numpy as np
+
+from plenoptrack import preset
+from plenoptrack.simulate import (default_volume, make_optics, random_particles,
+                                  render_frame, render_irradiance)
+from plenoptrack.simulate import _kernels
+from plenoptrack.simulate.render import (_particle_table, background_irradiance,
+                                         sample_pattern)
+from plenoptrack.simulate.sensor import SensorModel, expose
+
+
+def _timed(fn, *args, **kwargs):
+    t = time.perf_counter()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - t
+
+
+def _brute_window(optics, particles, frac_side):
+    rows, cols = optics.camera.sensor_shape_px
+    h, w = int(rows * frac_side), int(cols * frac_side)
+    r0, c0 = (rows - h) // 2, (cols - w) // 2
+    occ = _particle_table(optics, particles)
+    _, dt = _timed(_kernels.render_all, _kernels.pack_params(optics), sample_pattern(optics, 16),
+                   occ, np.zeros(3), r0, r0 + h, c0, c0 + w, True)
+    return dt * (rows * cols) / (h * w)
+
+
+def bench(name, n_particles, brute_side):
+    camera = preset(name)
+    optics = make_optics(camera, seed=0)
+    particles = random_particles(n_particles, volume=default_volume(camera), diameter_mm=1.0,
+                                 seed=1)
+    _, t_bg = _timed(background_irradiance, optics)
+    render_irradiance(optics, particles.iloc[:1])           # warm caches
+    irr, t_irr = _timed(render_irradiance, optics, particles)
+    _, t_exp = _timed(expose, irr, level=0.7, bit_depth=camera.bit_depth, sensor=SensorModel(),
+                      rng=np.random.default_rng(0))
+    _, t_frame = _timed(render_frame, optics, particles, seed=0)
+    t_brute = _brute_window(optics, particles, brute_side)
+    rows, cols = camera.sensor_shape_px
+    print(f"{name} ({rows} x {cols} px, {n_particles} particles of 1 mm, "
+          f"{numba.get_num_threads()} threads)")
+    print(f"  background (cached once per optics) : {t_bg:7.2f} s")
+    print(f"  frame irradiance, culled            : {t_irr:7.2f} s")
+    print(f"  exposure and noise                  : {t_exp:7.2f} s")
+    print(f"  render_frame total                  : {t_frame:7.2f} s")
+    how = "measured" if brute_side == 1 else f"timed on a central 1/{round(1 / brute_side ** 2)} window, scaled"
+    print(f"  brute-force irradiance ({how}): {t_brute:7.2f} s")
+    print(f"  speed-up of culling vs brute force  : {t_brute / t_irr:7.1f} x")
+
+
+def main():
+    bench("small", 20, 1.0)            # compiles the kernels on a first run
+    print()
+    bench("hall2019", 100, 0.1)
+
+
+if __name__ == "__main__":
+    main()
