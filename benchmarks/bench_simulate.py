@@ -59,7 +59,8 @@ def bench(name, n_particles, brute_side):
     print(f"  frame irradiance, culled            : {t_irr:7.2f} s")
     print(f"  exposure and noise                  : {t_exp:7.2f} s")
     print(f"  render_frame total                  : {t_frame:7.2f} s")
-    how = "measured" if brute_side == 1 else f"timed on a central 1/{round(1 / brute_side ** 2)} window, scaled"
+    how = ("measured" if brute_side == 1
+           else f"timed on a central 1/{round(1 / brute_side ** 2)} window, scaled")
     print(f"  brute-force irradiance ({how}): {t_brute:7.2f} s")
     print(f"  speed-up of culling vs brute force  : {t_brute / t_irr:7.1f} x")
 

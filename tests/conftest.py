@@ -5,7 +5,7 @@ import pytest
 from plenoptrack import preset
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def small_optics():
     """True optics of the 'small' hexagonal preset, seed 0."""
     from plenoptrack.simulate import make_optics
@@ -13,7 +13,7 @@ def small_optics():
     return make_optics(preset("small"), seed=0)
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="module")
 def small_rect_optics():
     """True optics of the 'small-rect' rectangular preset, seed 1."""
     from plenoptrack.simulate import make_optics

@@ -260,7 +260,8 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, kee
         # The pixel straddles lens cells: its samples may use any lens whose image
         # centre is within e + 2 * half-diagonal of the pixel centre.
         if p1 == p0:
-            return _sample_loop(x0, y0, par, samples, occluders, cand, 0, card, not no_card, _PER_SAMPLE, 0)
+            return _sample_loop(x0, y0, par, samples, occluders, cand, 0, card, not no_card,
+                                _PER_SAMPLE, 0)
         nc = 0
         lim = (e + 2.0 * par[HALF_DIAG]) * (1.0 + 1e-9)
         for ni in range(i - 1, i + 2):
@@ -272,7 +273,8 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, kee
                     nc = _bundle_candidates(fx, fy, lx, ly, par, occluders, idx, p0, p1, cand, nc)
         if nc == 0 and no_card and keep:
             return KEEP
-        return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card, _PER_SAMPLE, 0)
+        return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card,
+                            _PER_SAMPLE, 0)
     tan_s = par[S_I] / par[F_ML]
     r_h = par[HALF_DIAG] * tan_s + par[CELL_R]          # spread of H about its centre
     h_lo = e * tan_s - r_h

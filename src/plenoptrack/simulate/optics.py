@@ -273,7 +273,9 @@ class SimOptics:
             "mla": {
                 "rotation_deg": self.rotation_deg,
                 "offset_mm": list(self.offset_mm),
-                "offset_px": [self.offset_mm[1] / self.pixel_pitch, self.offset_mm[0] / self.pixel_pitch],
+                # (row, col) pixels: Y then X
+                "offset_px": [self.offset_mm[1] / self.pixel_pitch,
+                              self.offset_mm[0] / self.pixel_pitch],
                 "pitch_scale": self.pitch_scale,
                 "pitch_mm": self.pitch,
                 "image_scale": self.image_scale,
@@ -312,7 +314,8 @@ def _true_grid(optics: SimOptics) -> LensletGrid:
     cam = optics.camera
     rows, cols = cam.sensor_shape_px
     # Sensor corners (half a pixel out) mapped back to the physical MLA lattice.
-    corners_px = np.array([[-0.5, -0.5], [-0.5, cols - 0.5], [rows - 0.5, -0.5], [rows - 0.5, cols - 0.5]])
+    corners_px = np.array([[-0.5, -0.5], [-0.5, cols - 0.5], [rows - 0.5, -0.5],
+                           [rows - 0.5, cols - 0.5]])
     corners = optics.pixels_to_sensor_mm(corners_px) / optics.image_scale
     ia = optics.lattice_coords(corners)
     i0 = int(math.floor(ia[:, 0].min()))

@@ -107,7 +107,8 @@ def default_volume(camera: CameraSpec, *, depth_mm: float | None = None,
     depth = volume_depth_mm(camera) if depth_mm is None else float(depth_mm)
     s_o = camera.object_distance_mm
     if not (math.isfinite(depth) and 0 < depth < 1.8 * s_o):
-        raise SceneError(f"volume depth_mm must be positive and below {1.8 * s_o:.0f} mm; got {depth_mm!r}")
+        raise SceneError(f"volume depth_mm must be positive and below {1.8 * s_o:.0f} mm; "
+                         f"got {depth_mm!r}")
     half_z = depth / 2
     h, w = camera.sensor_size_mm
     m = abs(camera.magnification)
