@@ -141,3 +141,21 @@ def test_invalid_arguments(small_optics):
         render_irradiance(small_optics, None, samples_per_pixel=0)
     with pytest.raises(TypeError, match="SimOptics"):
         render_white(preset("small"))
+
+
+@pytest.mark.parametrize("z, direction", [(8.0, 1), (-8.0, -1)])
+@pytest.mark.parametrize("axis", [0, 1])
+def test_view_shift_sign_convention(small_optics, z, direction, axis):
+    """A particle behind the focal plane moves towards larger s (t) as u (v) grows."""
+    o = small_optics
+    bg = background_irradiance(o).astype(float)
+    irr = render_irradiance(o, _particles([[0.0, 0.0, z, 0.6]])).astype(float)
+    centres = o.true_grid.centers().reshape(-1, 2)
+    rows, cols = irr.shape
+    positions = []
+    for step in (-3, 3):
+        px = np.round(centres + np.eye(2)[axis] * step).astype(int)
+        ok = (px[:, 0] >= 0) & (px[:, 0] < rows) & (px[:, 1] >= 0) & (px[:, 1] < cols)
+        shadow = bg[px[ok, 0], px[ok, 1]] - irr[px[ok, 0], px[ok, 1]]
+        positions.append((shadow * centres[ok, axis]).sum() / shadow.sum())
+    assert direction * (positions[1] - positions[0]) > 2.0
