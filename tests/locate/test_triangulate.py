@@ -134,6 +134,14 @@ def test_single_cluster_and_too_few_views(model, dlfc):
     assert np.isfinite(two.positions).all()
 
 
+def test_single_view_cluster_is_singular(model, dlfc):
+    """All centroids from one view: depth is unobservable, sigma is withheld."""
+    u = v = np.zeros(6)
+    s, t = model(1.0, 2.0, 3.0, u, v)
+    res = triangulate_cluster(dlfc, u, v, s + 0.01 * np.arange(6), t, [1.0, 2.0, 5.0])
+    assert res.flags[0] & F.SINGULAR and np.all(np.isnan(res.sigma))
+
+
 def test_unassigned_rows_ignored_and_dataframe_start(model, dlfc):
     truth, start = random_particles(3, seed=31)
     det = particle_detections(model, truth, noise_px=0.03, seed=32)
@@ -186,6 +194,8 @@ def test_argument_errors(dlfc):
                                                      index=[7]))
     with pytest.raises(ValueError, match="solver must be 'lm' or 'scipy'"):
         triangulate_clusters(dlfc, det, np.zeros((1, 3)), solver="gn")
+    with pytest.raises(ValueError, match=r"initial position is NaN or infinite for cluster\(s\) \[0\]"):
+        triangulate_clusters(dlfc, det, np.array([[0.0, np.nan, 0.0]]))
     with pytest.raises(ValueError, match="same length"):
         triangulate_cluster(dlfc, [0.0, 1.0], [0.0], [1.0, 2.0], [1.0, 2.0], [0, 0, 0])
 

@@ -351,6 +351,11 @@ def _triangulate(dlfc, u, v, s, t, labels, cluster_ids, x0, n_possible_views,
         raise ValueError(f"min_views must be at least 2 (3 unknowns, 2 equations per view); "
                          f"got {min_views}")
     n_k = len(cluster_ids)
+    bad_start = ~np.all(np.isfinite(x0), axis=1)
+    if bad_start.any():
+        raise ValueError(f"initial position is NaN or infinite for cluster(s) "
+                         f"{np.asarray(cluster_ids)[bad_start][:10].tolist()}; give a finite "
+                         "starting guess (x, y, z in mm) for every cluster")
     if n_k == 0:
         warnings.warn("no clustered detections to triangulate; returning an empty result",
                       NoParticlesWarning, stacklevel=3)
@@ -416,6 +421,15 @@ def _outliers(err, labels, keep, n_k, reject_k, min_views, min_threshold_px) -> 
     return out
 
 
+def _powers(values: np.ndarray, top: int) -> np.ndarray:
+    """``values ** j`` for ``j = 0 .. top`` along a new last axis, by repeated products."""
+    out = np.empty((*values.shape, top + 1))
+    out[..., 0] = 1.0
+    for j in range(1, top + 1):
+        out[..., j] = out[..., j - 1] * values
+    return out
+
+
 class _ClusterModel:
     """Per-cluster least-squares problem in the view-factorised form of the DLFC.
 
@@ -435,7 +449,8 @@ class _ClusterModel:
         self.xyz_e, uv_e, self.tensor = dlfc.view_factorisation
         un = (u - dlfc.centre[3]) / dlfc.scale[3]
         vn = (v - dlfc.centre[4]) / dlfc.scale[4]
-        self.w = un[:, None] ** uv_e[:, 0] * vn[:, None] ** uv_e[:, 1]          # (M, B)
+        top = int(uv_e.max())
+        self.w = _powers(un, top)[:, uv_e[:, 0]] * _powers(vn, top)[:, uv_e[:, 1]]  # (M, B)
         counts = np.bincount(labels, minlength=n_k)
         self.ref = np.stack([np.bincount(labels, obs[:, c], minlength=n_k) for c in (0, 1)],
                             axis=1) / np.maximum(counts, 1)[:, None]
@@ -466,7 +481,7 @@ class _ClusterModel:
         dlfc, e = self.dlfc, self.xyz_e
         qn = (positions - dlfc.centre[:3]) / dlfc.scale[:3]
         top = int(e.max())
-        powers = qn[:, :, None] ** np.arange(top + 1)                         # (K, 3, n+1)
+        powers = _powers(qn, top)                                               # (K, 3, n+1)
         f = [powers[:, j, e[:, j]] for j in range(3)]                          # (K, A) each
         df = [e[:, j] * powers[:, j, np.maximum(e[:, j] - 1, 0)] / dlfc.scale[j]
               for j in range(3)]
