@@ -19,7 +19,7 @@ from ..camera import CameraSpec
 from . import _kernels
 from .optics import SimOptics
 from .render import DEFAULT_SAMPLES_PER_PIXEL, _check_optics, _check_samples, sample_pattern
-from .scene import volume_depth_mm
+from .scene import SceneError, volume_depth_mm
 from .sensor import SensorModel, expose
 
 __all__ = ["DotCard", "default_dotcard", "default_dotcard_depths", "render_dotcard",
@@ -43,9 +43,9 @@ class DotCard:
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.spacing_mm) and self.spacing_mm > 0):
-            raise ValueError(f"dot card spacing_mm must be positive; got {self.spacing_mm!r}")
+            raise SceneError(f"dot card spacing_mm must be positive; got {self.spacing_mm!r}")
         if not (math.isfinite(self.dot_diameter_mm) and 0 < self.dot_diameter_mm < self.spacing_mm):
-            raise ValueError("dot card dot_diameter_mm must be positive and below spacing_mm "
+            raise SceneError("dot card dot_diameter_mm must be positive and below spacing_mm "
                              f"({self.spacing_mm}); got {self.dot_diameter_mm!r}")
 
 
@@ -99,7 +99,7 @@ def dot_grid(optics: SimOptics, z_mm: float, card: DotCard) -> pd.DataFrame:
 
 def _card_vector(optics: SimOptics, z_mm: float, card: DotCard) -> np.ndarray:
     if not math.isfinite(z_mm) or optics.s_o + z_mm <= 0.05 * optics.s_o:
-        raise ValueError(f"dot card depth z_mm must be finite and in front of the lens "
+        raise SceneError(f"dot card depth z_mm must be finite and in front of the lens "
                          f"(z > {-0.95 * optics.s_o:.1f} mm); got {z_mm!r}")
     return np.array([optics.s_o + z_mm, card.spacing_mm, (card.dot_diameter_mm / 2) ** 2])
 

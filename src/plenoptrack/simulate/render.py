@@ -33,6 +33,7 @@ import pandas as pd
 from .._columns import DIAMETER_COLUMN, POS_COLUMNS, T_COLUMN
 from . import _kernels
 from .optics import SimOptics
+from .scene import SceneError
 from .sensor import SensorModel, expose
 
 __all__ = ["render_irradiance", "render_white", "render_frame", "background_irradiance",
@@ -126,22 +127,22 @@ def _particle_table(optics: SimOptics, particles) -> np.ndarray:
     needed = [*POS_COLUMNS, DIAMETER_COLUMN]
     missing = [c for c in needed if c not in particles.columns]
     if missing:
-        raise ValueError(f"particles table is missing column(s) {missing}; "
+        raise SceneError(f"particles table is missing column(s) {missing}; "
                          f"expected {needed} (mm, world frame)")
     if T_COLUMN in particles.columns and particles[T_COLUMN].nunique() > 1:
-        raise ValueError("particles table holds several frames "
+        raise SceneError("particles table holds several frames "
                          f"({sorted(particles[T_COLUMN].unique())[:5]}...); select one frame first")
     values = particles[needed].to_numpy(dtype=np.float64)
     if not np.isfinite(values).all():
-        raise ValueError("particles table contains NaN or infinite positions or diameters")
+        raise SceneError("particles table contains NaN or infinite positions or diameters")
     diam = values[:, 3]
     if (diam <= 0).any():
-        raise ValueError(f"particle diameters must be positive (mm); got min {diam.min()}")
+        raise SceneError(f"particle diameters must be positive (mm); got min {diam.min()}")
     big_z = values[:, 2] + optics.s_o
     radius = diam / 2
     behind = big_z - radius <= 0.05 * optics.s_o
     if behind.any():
-        raise ValueError(f"particle(s) at z = {values[behind, 2][:3]} mm reach the main lens "
+        raise SceneError(f"particle(s) at z = {values[behind, 2][:3]} mm reach the main lens "
                          f"(the focal plane is {optics.s_o:.1f} mm in front of it); "
                          f"keep z - diameter/2 > {-0.95 * optics.s_o:.1f} mm")
     return np.column_stack([-values[:, 0], -values[:, 1], big_z, radius ** 2])
