@@ -196,6 +196,8 @@ def test_argument_errors(dlfc):
         triangulate_clusters(dlfc, det, np.zeros((1, 3)), solver="gn")
     with pytest.raises(ValueError, match=r"initial position is NaN or infinite for cluster\(s\) \[0\]"):
         triangulate_clusters(dlfc, det, np.array([[0.0, np.nan, 0.0]]))
+    with pytest.raises(ValueError, match="reject_k must be positive"):
+        triangulate_clusters(dlfc, det, np.zeros((1, 3)), reject_k=0)
     with pytest.raises(ValueError, match="same length"):
         triangulate_cluster(dlfc, [0.0, 1.0], [0.0], [1.0, 2.0], [1.0, 2.0], [0, 0, 0])
 

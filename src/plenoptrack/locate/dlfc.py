@@ -31,8 +31,9 @@ i.e. ``1, x, y, z, u, v, x^2, x y, x z, x u, x v, y^2, y z, ...`` (see
 
 References
 ----------
-Hall, E. M., Fahringer, T. W., Guildenbecher, D. R., Thurow, B. S. (2018). Volumetric
-calibration of a plenoptic camera. Applied Optics 57(4), 914-923.
+Hall et al., Volumetric calibration of a plenoptic camera (Applied Optics, 2018): the
+DLFC. Its use for particle location with a fourth-order fit: the conference and journal
+papers on perspective-shifted plenoptic images (2019), section 2.3.
 """
 
 from __future__ import annotations

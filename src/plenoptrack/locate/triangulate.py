@@ -12,16 +12,16 @@ standard uncertainties from the Jacobian at the solution, its residuals, and the
 confidence value of the paper's eq. (3).
 
 Two solvers give the same answers: ``"lm"`` (default) runs a Levenberg-Marquardt
-iteration on all particles at once, with per-particle 3 x 3 normal equations assembled
-by ``bincount``; ``"scipy"`` calls :func:`scipy.optimize.least_squares` once per particle
-with the analytic Jacobian (about 20 to 50 times slower for a few hundred particles, kept
-as a reference).
+iteration on all particles at once; each particle's 3 x 3 normal equations come from
+moments of its view monomials (the DLFC regrouped as a polynomial in ``(u, v)``), so an
+iteration costs the same however many views a particle has; ``"scipy"`` calls :func:`scipy.optimize.least_squares` once per particle
+with the analytic Jacobian (about 100 times slower for 200 particles seen in 149
+views: ~15 s against ~0.1 s; kept as a reference).
 
 References
 ----------
-Clifford, C., Hall, E. M., Thurow, B. S., Guildenbecher, D. R. Particle location and
-sizing from single-snapshot plenoptic images using perspective shifts (method paper,
-sections 2.3 and 2.4).
+Development and uncertainty characterization of 3D particle location from perspective
+shifted plenoptic images (Optical Society of America, 2019), sections 2.3 and 2.4.
 """
 
 from __future__ import annotations
@@ -350,6 +350,8 @@ def _triangulate(dlfc, u, v, s, t, labels, cluster_ids, x0, n_possible_views,
     if min_views < 2:
         raise ValueError(f"min_views must be at least 2 (3 unknowns, 2 equations per view); "
                          f"got {min_views}")
+    if not reject_k > 0:
+        raise ValueError(f"reject_k must be positive (np.inf disables rejection); got {reject_k!r}")
     n_k = len(cluster_ids)
     bad_start = ~np.all(np.isfinite(x0), axis=1)
     if bad_start.any():
