@@ -317,7 +317,7 @@ def triangulate_clusters(dlfc: DLFC, detections: pd.DataFrame, initial_xyz, *,
     return Triangulation(**{**result.__dict__, "inliers": inliers})
 
 
-# --- validation helpers --------------------------------------------------------------
+# --- argument checks ---------------------------------------------------------------
 
 def _check_same_length(**arrays) -> None:
     lengths = {k: len(a) for k, a in arrays.items()}
