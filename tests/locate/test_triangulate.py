@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 import warnings
 
 import numpy as np
@@ -209,14 +208,11 @@ def test_empty_input_warns(dlfc):
     assert len(res) == 0 and res.to_frame().shape == (0, 12)
 
 
-def test_speed_200_particles(model, dlfc):
+def test_200_particles_all_converge_without_warnings(model, dlfc):
     truth, start = random_particles(200, seed=41)
     det = particle_detections(model, truth, noise_px=0.05, seed=42)
     triangulate_clusters(dlfc, det.iloc[:298], start[:2])          # warm up
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        t0 = time.perf_counter()
         res = triangulate_clusters(dlfc, det, start, n_possible_views=149)
-        elapsed = time.perf_counter() - t0
     assert len(res) == 200 and np.all(res.flags & F.CONVERGED)
-    assert elapsed < 1.0          # ~0.1-0.2 s measured on a loaded 2-core machine
