@@ -17,6 +17,7 @@ import numpy as np
 import typer
 from rich.console import Console
 from rich.table import Table
+from rich.text import Text
 
 from .errors import PlenoptrackError
 
@@ -31,15 +32,27 @@ console = Console(stderr=True)
 out = Console()
 
 
+def _error_line(message: str) -> None:
+    """Print ``error: message`` on stderr as one line (no wrapping, no markup parsing)."""
+    line = Text("error:", style="bold red")
+    line.append(" " + " ".join(str(message).split()))
+    console.print(line, soft_wrap=True, highlight=False)
+
+
 def _reports_errors(func):
-    """Turn library errors into one readable line and exit code 1."""
+    """Turn library and file-system errors into one readable line and exit code 1."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
         try:
             return func(*args, **kwargs)
         except PlenoptrackError as exc:
-            console.print(f"[bold red]error:[/] {exc}", highlight=False)
+            _error_line(str(exc))
+            raise typer.Exit(code=1) from None
+        except OSError as exc:
+            name = exc.filename2 or exc.filename  # for a rename, the target is the user's path
+            where = f"{name}: " if name else ""
+            _error_line(f"{where}{exc.strerror or exc}")
             raise typer.Exit(code=1) from None
         except KeyboardInterrupt:
             console.print("[bold red]interrupted[/]; nothing half-written was kept")
