@@ -2,14 +2,17 @@
 
 A calibration file is JSON with a format tag and a version, the nominal camera it was
 made for, the lenslet grid measured from a white image and, once fitted, the volumetric
-(DLFC) calibration. It is validated on load: a corrupt file, a file of another format
-version, or a file made for another camera is refused with a message that says what to do.
+(DLFC) calibration in a ``dlfc`` section (with its own format tag and version, see
+:meth:`plenoptrack.locate.dlfc.DLFC.to_dict`). It is validated on load: a corrupt file
+or DLFC section, a file of another format version, or a file made for another camera is
+refused with a message that says what to do. The whole workflow, white image and dot
+cards to calibration file, is :func:`plenoptrack.calibrate.calibrate`.
 """
 
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +22,7 @@ from .camera import CameraSpec
 from .errors import CalibrationError, CameraSpecError
 from .io import atomic_write_text
 from .lightfield.lattice import LensletGrid
+from .locate.dlfc import DLFC
 
 __all__ = ["Calibration", "load_calibration", "save_calibration", "FORMAT", "VERSION"]
 
@@ -40,13 +44,46 @@ class Calibration:
         Relative brightness of each angular sample in the white image (1 = unvignetted),
         used to flag vignetted views.
     extra : dict
-        Further sections (e.g. the volumetric calibration), stored as JSON.
+        Further sections, stored as JSON; ``extra["dlfc"]`` is the volumetric calibration
+        (:meth:`DLFC.to_dict` output), read through :attr:`dlfc` and set with
+        :meth:`with_dlfc`.
     """
 
     camera: CameraSpec
     grid: LensletGrid
     vignetting: np.ndarray | None = None
     extra: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def has_dlfc(self) -> bool:
+        """True when the calibration holds a volumetric (DLFC) calibration."""
+        return "dlfc" in self.extra
+
+    @property
+    def dlfc(self) -> DLFC:
+        """The Direct Light Field Calibration stored in ``extra["dlfc"]``.
+
+        Raises
+        ------
+        CalibrationError
+            If there is none (a grid-only calibration) or the section is corrupt.
+        """
+        if not self.has_dlfc:
+            raise CalibrationError("calibration file has no DLFC; run `plenoptrack calibrate` "
+                                   "with dot cards")
+        return DLFC.from_dict(self.extra["dlfc"], source="calibration [dlfc]")
+
+    def with_dlfc(self, dlfc: DLFC) -> "Calibration":
+        """A copy of this calibration holding ``dlfc`` (replacing any earlier one).
+
+        Parameters
+        ----------
+        dlfc : DLFC
+            Fitted volumetric calibration (:func:`plenoptrack.locate.dlfc.fit_dlfc`).
+        """
+        if not isinstance(dlfc, DLFC):
+            raise TypeError(f"dlfc must be a DLFC; got {type(dlfc).__name__}")
+        return replace(self, extra={**self.extra, "dlfc": dlfc.to_dict()})
 
     def check_camera(self, camera: CameraSpec, *, source: str = "calibration") -> None:
         """Raise :class:`CalibrationError` if ``camera`` is not the camera calibrated."""
@@ -102,11 +139,16 @@ class Calibration:
                                    f"{camera.sensor_shape_px}; re-run the calibration")
         vignetting = data.get("vignetting")
         if vignetting is not None:
-            vignetting = np.asarray(vignetting, dtype=float)
+            try:
+                vignetting = np.asarray(vignetting, dtype=float)
+            except (TypeError, ValueError):
+                vignetting = np.full(1, np.nan)
             if vignetting.ndim != 2 or not np.all(np.isfinite(vignetting)):
                 raise CalibrationError(f"{source}: corrupt vignetting table; re-run the calibration")
         known = {"format", "version", "camera", "lenslet_grid", "vignetting"}
         extra = {k: v for k, v in data.items() if k not in known}
+        if "dlfc" in extra:  # validate now, so that a corrupt file is refused on load
+            DLFC.from_dict(extra["dlfc"], source=f"{source} [dlfc]")
         return cls(camera=camera, grid=grid, vignetting=vignetting, extra=extra)
 
 

@@ -167,6 +167,9 @@ class CameraSpec:
     @classmethod
     def from_dict(cls, data: dict, *, source: str = "camera description") -> "CameraSpec":
         known = {f.name for f in fields(cls)}
+        if not isinstance(data, dict):
+            raise CameraSpecError(f"{source}: the camera must be a table of {sorted(known)}; "
+                                  f"got {type(data).__name__}")
         unknown = sorted(set(data) - known)
         if unknown:
             raise CameraSpecError(f"{source}: unknown key(s) {unknown}; allowed: {sorted(known)}")

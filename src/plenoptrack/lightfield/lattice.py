@@ -143,6 +143,9 @@ class LensletGrid:
     def from_dict(cls, data: dict, *, source: str = "lenslet grid") -> "LensletGrid":
         keys = ("grid_type", "shape", "origin_px", "col_step_px", "row_step_px",
                 "odd_row_shift", "sensor_shape_px")
+        if not isinstance(data, dict):
+            raise CalibrationError(f"{source}: lenslet grid must be a table of {list(keys)}; "
+                                   f"got {type(data).__name__}; re-run `plenoptrack calibrate-grid`")
         missing = [k for k in keys if k not in data]
         if missing:
             raise CalibrationError(f"{source}: lenslet grid is missing {missing}; "
