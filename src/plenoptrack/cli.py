@@ -71,21 +71,32 @@ def _camera_from_options(preset_name: str, camera_file: Optional[Path]):
 @_reports_errors
 def simulate(
     out_dir: Path = typer.Option(Path("sim"), "--out", "-o", help="Output folder."),
-    preset_name: str = typer.Option("small", "--preset", help="Camera preset: small, small-rect, hall2019."),
+    preset_name: Optional[str] = typer.Option(None, "--preset", help="Camera preset: small (default), small-rect, hall2019; with --scene, the scene's camera is used."),
     seed: int = typer.Option(0, "--seed", help="Random seed; the same seed gives the same bytes."),
     particles: int = typer.Option(20, "--particles", min=0, help="Number of particles (random scene)."),
     diameter: float = typer.Option(1.0, "--diameter", help="Particle diameter, mm."),
     magnification: Optional[float] = typer.Option(None, "--magnification", help="Override the preset magnification (negative, e.g. -0.5)."),
     frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
-    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file (overrides the random-scene options)."),
+    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification and particles replace --preset, --magnification and the random-scene options."),
     samples: int = typer.Option(16, "--samples", min=1, help="Ray samples per pixel."),
 ) -> None:
     """Simulate a plenoptic data set: raw frames, white image, dot cards and ground truth."""
     from .camera import preset
     from .simulate import load_scene, simulate_dataset
 
-    camera = preset(preset_name)
-    scene_obj = load_scene(scene) if scene is not None else None
+    scene_obj = None
+    if scene is not None:
+        scene_obj = load_scene(scene)
+        camera = scene_obj.camera
+        if preset_name is not None and preset_name != camera.name:
+            raise typer.BadParameter(f"the scene file is for camera {camera.name!r}; "
+                                     "drop --preset or change the scene's camera", param_hint="--preset")
+        if magnification is not None and magnification != camera.magnification:
+            raise typer.BadParameter("with --scene, set magnification in the scene file",
+                                     param_hint="--magnification")
+        magnification = None
+    else:
+        camera = preset(preset_name or "small")
     t0 = time.perf_counter()
     result = simulate_dataset(camera, out_dir, seed=seed, n_particles=particles,
                               diameter_mm=diameter, magnification=magnification, frames=frames,
