@@ -202,6 +202,88 @@ def refocus(
 
 @app.command()
 @_reports_errors
+def locate(
+    raw: list[Path] = typer.Argument(..., help="Raw plenoptic images (uint16 TIFF; multi-page = frames)."),
+    calib_file: Path = typer.Option(..., "--calib", help="Calibration file with a DLFC (`plenoptrack calibrate`)."),
+    out_file: Path = typer.Option(Path("particles.parquet"), "--out", "-o", help="Particle table (.parquet or .csv)."),
+    detections_file: Optional[Path] = typer.Option(None, "--detections", help="Also write every centroid found in every view."),
+    window: int = typer.Option(31, "--window", help="Local-threshold window of the segmentation, view pixels."),
+    contrast: float = typer.Option(0.15, "--contrast", help="Relative darkness a particle pixel needs."),
+    planes: int = typer.Option(10, "--planes", help="Refocus planes of the clustering."),
+) -> None:
+    """Locate particles in 3D (perspective-shift method) and write a particle table."""
+    import warnings
+
+    import pandas as pd
+    from rich.progress import Progress
+
+    from .calibration import load_calibration
+    from .errors import NoParticlesWarning
+    from .io import read_frames, write_table
+    from .locate.perspective import PerspectiveLocator, locate_frame
+
+    calib = load_calibration(calib_file)
+    calib.dlfc  # refuse a calibration without a DLFC before any work
+    locator = PerspectiveLocator(window=window, contrast=contrast, n_planes=planes)
+    tables, detections, frame, empty = [], [], 0, 0
+    t0 = time.perf_counter()
+    with Progress(console=console, transient=True) as bar:
+        task = bar.add_task("locating", total=len(raw))
+        for path in raw:
+            stack = read_frames(path)
+            calib.check_image(stack, source=str(path))
+            for image in stack:
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", NoParticlesWarning)
+                    result = locate_frame(image, calib, frame=frame, locator=locator)
+                empty += any(issubclass(w.category, NoParticlesWarning) for w in caught)
+                tables.append(result.particles)
+                if detections_file is not None:
+                    detections.append(result.detections)
+                frame += 1
+            bar.advance(task)
+    particles = pd.concat(tables, ignore_index=True)
+    write_table(particles, out_file)
+    if detections_file is not None:
+        write_table(pd.concat(detections, ignore_index=True), detections_file)
+    note = f" ({empty} frame(s) without particles)" if empty else ""
+    console.print(f"{len(particles)} particles in {frame} frame(s){note}, "
+                  f"{time.perf_counter() - t0:.2f} s; wrote {out_file}", highlight=False)
+
+
+@app.command()
+@_reports_errors
+def evaluate(
+    particles_file: Path = typer.Argument(..., help="Measured particle table (.parquet or .csv)."),
+    truth_file: Path = typer.Argument(..., help="True particle table, e.g. a simulator's truth.parquet."),
+    tolerance: float = typer.Option(1.0, "--tolerance", help="Largest 3D distance of a match, mm."),
+    as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
+) -> None:
+    """Match measured particles to the truth (Hungarian, within a tolerance) and report errors."""
+    import json
+
+    from .evaluate import evaluate_particles
+    from .io import read_table
+
+    ev = evaluate_particles(read_table(particles_file), read_table(truth_file), tolerance_mm=tolerance)
+    if as_json:
+        print(json.dumps(ev.to_dict()))
+        return
+    table = Table(title=f"{particles_file} against {truth_file} (tolerance {tolerance:g} mm)")
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    table.add_row("true / measured / matched", f"{ev.n_true} / {ev.n_measured} / {ev.n_matched}")
+    table.add_row("recall", f"{ev.recall:.4f}")
+    table.add_row("precision", f"{ev.precision:.4f}")
+    for axis in "xyz":
+        mean, std = getattr(ev, f"mean_error_{axis}"), getattr(ev, f"std_error_{axis}")
+        table.add_row(f"{axis} error mean / sd, mm", f"{mean:+.4f} / {std:.4f}")
+    table.add_row("lateral RMS error, mm", f"{ev.rms_error_lateral:.4f}")
+    out.print(table)
+
+
+@app.command()
+@_reports_errors
 def demo(
     out_dir: Path = typer.Option(Path("plenoptrack-demo"), "--out", "-o", help="Folder for the demo's files."),
     seed: int = typer.Option(0, "--seed", help="Random seed of the simulated scene."),
