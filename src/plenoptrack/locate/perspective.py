@@ -79,6 +79,10 @@ class PerspectiveLocator:
         Side of the local-threshold window in each view, view pixels.
     contrast : float
         A particle pixel is darker than its local background by at least this fraction.
+    core_contrast : float or None
+        A second segmentation at this (higher) contrast finds the dark cores of the
+        particle images; a region that holds two or more cores is the merged image of
+        touching particles and is replaced by its cores. None disables the split.
     area_range : (float, float)
         Accepted region areas in a view, view pixels.
     max_eccentricity : float
@@ -97,15 +101,31 @@ class PerspectiveLocator:
         particle's RMS residual if that is larger.
     passes : int
         Rounds of "cluster the unassigned centroids, triangulate, add centroids".
-    merge_distance_px : float
-        Two particles whose predicted positions in the central view are closer than this
-        (view pixels) and whose depths agree within their combined uncertainty are merged.
+    merge_distance_px : float or None
+        Two particles whose predicted positions lie within this distance (view pixels)
+        of each other in most views (median over views) are one particle and are merged;
+        default half the median equivalent diameter of the detections.
+    max_residual_ratio : float
+        Particles whose RMS residual exceeds this multiple of the median over the frame
+        (and ``add_tolerance_px``) are dropped.
+    min_aperture_spread : float
+        Particles whose views span less than this fraction of the aperture (RMS
+        distance of their views' ``(u, v)`` from its mean, against that of all valid
+        views) are dropped: their depth rests on a narrow baseline.
+    max_area_ratio : float
+        Regions larger than this multiple of the median region area of the frame are
+        taken for merged images of several particles: they are neither clustered nor
+        added to particles (their centroids lie between the particles).
+    max_explained : float
+        Particles for which, in more than this fraction of their views, two other
+        particles are predicted on the centroid are dropped (built from merged images).
     seed : int
         Seed of the k-means initialisation.
     """
 
     window: int = 31
     contrast: float = 0.15
+    core_contrast: float | None = 0.93
     area_range: tuple[float, float] = (2.0, math.inf)
     max_eccentricity: float = 1.0
     n_planes: int = 10
@@ -114,7 +134,11 @@ class PerspectiveLocator:
     min_views: int = 6
     add_tolerance_px: float = 1.0
     passes: int = 2
-    merge_distance_px: float = 1.0
+    merge_distance_px: float | None = None
+    max_residual_ratio: float = 4.0
+    min_aperture_spread: float = 0.4
+    max_explained: float = 0.5
+    max_area_ratio: float = 1.3
     seed: int = 0
     extra: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -123,6 +147,9 @@ class PerspectiveLocator:
             raise ValueError(f"window must be at least 3 view pixels; got {self.window}")
         if not 0 < self.contrast < 1:
             raise ValueError(f"contrast must be between 0 and 1; got {self.contrast}")
+        if self.core_contrast is not None and not self.contrast < self.core_contrast < 1:
+            raise ValueError(f"core_contrast must be None or between contrast "
+                             f"({self.contrast}) and 1; got {self.core_contrast}")
         if self.n_planes < 2:
             raise ValueError(f"n_planes must be at least 2; got {self.n_planes}")
         if self.min_views < 2:
@@ -168,18 +195,45 @@ def _initial_positions(clusters: pd.DataFrame, camera) -> pd.DataFrame:
                          "z": z}, index=clusters["cluster"].to_numpy())
 
 
-def _add_centroids(dlfc, detections: pd.DataFrame, owner: np.ndarray, positions: np.ndarray,
-                   residual: np.ndarray, confidence: np.ndarray, tolerance_px: float) -> np.ndarray:
+_MERGED = -2  # owner of regions taken for merged images of several particles
+
+
+def _view_index(detections: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Index of each detection's view and the (n_views, 2) table of view ``(u, v)``."""
+    uv = detections[["u", "v"]].to_numpy(float)
+    views, idx = np.unique(uv, axis=0, return_inverse=True)
+    return idx.ravel().astype(np.int64), views.reshape(-1, 2)
+
+
+def _predict_all(dlfc, positions: np.ndarray, views: np.ndarray) -> np.ndarray:
+    """(P, V, 2) predicted ``(s, t)`` of every particle in every view; NaN rows for
+    particles without a finite position."""
+    out = np.full((len(positions), len(views), 2), np.nan)
+    ok = np.all(np.isfinite(positions), axis=1)
+    if ok.any() and len(views):
+        p = positions[ok]
+        s, t = dlfc.predict(p[:, None, 0], p[:, None, 1], p[:, None, 2],
+                            views[None, :, 0], views[None, :, 1])
+        out[ok, :, 0] = s
+        out[ok, :, 1] = t
+    return out
+
+
+def _add_centroids(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np.ndarray,
+                   residual: np.ndarray, confidence: np.ndarray,
+                   tolerance_px: float) -> np.ndarray:
     """Give unassigned centroids to the particle that predicts them (most confident first).
 
     Parameters
     ----------
-    detections : DataFrame
-        Columns ``u, v, s, t``.
+    pred : (P, V, 2) float ndarray
+        Predicted ``(s, t)`` of every particle in every view (:func:`_predict_all`).
+    st : (M, 2) float ndarray
+        Measured centroids ``(s, t)``, view pixels.
+    view : (M,) int ndarray
+        View index of each centroid.
     owner : (M,) int ndarray
         Particle row of each detection, -1 for unassigned.
-    positions : (P, 3) float ndarray
-        Particle positions, mm.
     residual, confidence : (P,) float ndarray
         RMS reprojection error (view pixels) and confidence of each particle.
 
@@ -191,34 +245,138 @@ def _add_centroids(dlfc, detections: pd.DataFrame, owner: np.ndarray, positions:
         at most one centroid per view (the nearest).
     """
     owner = owner.copy()
-    ok = np.all(np.isfinite(positions), axis=1)
+    n_p, n_v = pred.shape[:2]
+    ok = np.all(np.isfinite(pred[:, 0]), axis=1)
     if not ok.any():
         return owner
-    u = detections["u"].to_numpy(float)
-    v = detections["v"].to_numpy(float)
-    s = detections["s"].to_numpy(float)
-    t = detections["t"].to_numpy(float)
-    view_key = np.round(u).astype(np.int64) * 1000 + np.round(v).astype(np.int64)
+    has = np.zeros((n_p, n_v), dtype=bool)
+    mine = owner >= 0
+    has[owner[mine], view[mine]] = True
     tol = np.maximum(tolerance_px, 3.0 * np.nan_to_num(residual, nan=tolerance_px))
     rank = np.argsort(-np.nan_to_num(confidence, nan=-np.inf), kind="stable")
-    for key in np.unique(view_key[owner < 0]):
-        in_view = view_key == key
-        free = np.flatnonzero(in_view & (owner < 0))
-        taken = np.unique(owner[in_view & (owner >= 0)])
-        candidates = np.setdiff1d(np.flatnonzero(ok), taken)
-        if len(candidates) == 0:
+    rank = rank[ok[rank]]
+    free = np.flatnonzero(owner == -1)
+    order = np.argsort(view[free], kind="stable")
+    free = free[order]
+    bounds = np.searchsorted(view[free], np.arange(n_v + 1))
+    for w in np.unique(view[free]):
+        rows = free[bounds[w]:bounds[w + 1]]
+        cand = rank[~has[rank, w]]
+        if len(cand) == 0:
             continue
-        ps, pt = predict_detection(dlfc, positions[candidates], u[free[0]], v[free[0]])
-        dist = np.hypot(s[free][:, None] - ps[None, :], t[free][:, None] - pt[None, :])
-        within = dist <= tol[candidates][None, :]
+        d = np.hypot(st[rows, None, 0] - pred[None, cand, w, 0],
+                     st[rows, None, 1] - pred[None, cand, w, 1])
+        within = d <= tol[cand][None, :]
         if not within.any():
             continue
-        order = np.argsort(np.argsort(rank))[candidates]  # confidence rank of candidates
-        for c in np.argsort(order):  # most confident particle first
-            hits = np.flatnonzero(within[:, c] & (owner[free] < 0))
+        taken = np.zeros(len(rows), dtype=bool)
+        for c in np.flatnonzero(within.any(axis=0)):  # most confident particle first
+            hits = np.flatnonzero(within[:, c] & ~taken)
             if len(hits):
-                owner[free[hits[np.argmin(dist[hits, c])]]] = candidates[c]
+                h = hits[np.argmin(d[hits, c])]
+                taken[h] = True
+                owner[rows[h]] = cand[c]
     return owner
+
+
+def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np.ndarray,
+                      n_views: np.ndarray, merge_px: float) -> np.ndarray:
+    """Merge particles whose predictions coincide in most views.
+
+    Two particles are the same when the median distance between their predicted
+    positions over all views is at most ``merge_px``. The one with fewer centroids is
+    merged into the other: the centroids of both are pooled and, in each view, the one
+    nearest the surviving particle's prediction is kept (the others are released).
+
+    Returns
+    -------
+    (M,) int ndarray
+        Updated owners.
+    """
+    ok = np.flatnonzero(np.all(np.isfinite(pred[:, 0]), axis=1) & (n_views > 0))
+    if len(ok) < 2:
+        return owner
+    p = pred[ok]
+    d = np.median(np.hypot(p[:, None, :, 0] - p[None, :, :, 0],
+                           p[:, None, :, 1] - p[None, :, :, 1]), axis=2)
+    np.fill_diagonal(d, np.inf)
+    if not (d <= merge_px).any():
+        return owner
+    owner = owner.copy()
+    target = np.arange(len(pred))
+    strength = n_views[ok]
+    for a in np.argsort(-strength, kind="stable"):
+        if target[ok[a]] != ok[a]:
+            continue
+        for b in np.flatnonzero(d[a] <= merge_px):
+            if target[ok[b]] == ok[b] and strength[b] <= strength[a]:
+                target[ok[b]] = ok[a]
+    merged = np.flatnonzero(target != np.arange(len(pred)))
+    survivors = np.unique(target[merged])
+    mine = owner >= 0
+    owner[mine] = target[owner[mine]]
+    for k in survivors:
+        rows = np.flatnonzero(owner == k)
+        dist = np.hypot(st[rows, 0] - pred[k, view[rows], 0], st[rows, 1] - pred[k, view[rows], 1])
+        order = np.lexsort((dist, view[rows]))
+        rows, vw = rows[order], view[rows][order]
+        first = np.r_[True, vw[1:] != vw[:-1]]
+        owner[rows[~first]] = -1
+    return owner
+
+
+def _explained_by_others(pred: np.ndarray, st: np.ndarray, view: np.ndarray,
+                         owner: np.ndarray, radius_px: np.ndarray, ok: np.ndarray
+                         ) -> np.ndarray:
+    """Fraction of each particle's centroids that two other particles' predictions fall on.
+
+    A region where the images of two particles merge has its centroid between them; a
+    spurious particle built from such regions has both neighbours predicted inside
+    (within ``radius_px``, the region radius) of nearly all its centroids.
+    """
+    n_p = len(pred)
+    frac = np.zeros(n_p)
+    idx = np.flatnonzero(ok)
+    if len(idx) < 3:
+        return frac
+    mine = np.flatnonzero(owner >= 0)
+    own = owner[mine]
+    d = np.hypot(st[mine, None, 0] - pred[idx][:, view[mine], 0].T,
+                 st[mine, None, 1] - pred[idx][:, view[mine], 1].T)       # (m, K)
+    near = d <= radius_px[mine, None]
+    near[own[:, None] == idx[None, :]] = False
+    hit = near.sum(axis=1) >= 2
+    counts = np.bincount(own, minlength=n_p)
+    frac = np.bincount(own, hit.astype(float), minlength=n_p) / np.maximum(counts, 1)
+    return frac
+
+
+def _split_merged(coarse: pd.DataFrame, cores: pd.DataFrame) -> pd.DataFrame:
+    """Replace regions that hold two or more dark cores by those cores.
+
+    ``coarse`` are regions at the segmentation contrast, ``cores`` regions of the same
+    views at the (higher) core contrast. Each core joins the nearest coarse region of
+    its view within half the region's major axis plus a pixel; a coarse region with
+    several cores is the merged image of several particles.
+    """
+    if len(coarse) == 0 or len(cores) == 0:
+        return coarse
+    from scipy.spatial import cKDTree
+
+    def key(df):
+        return np.column_stack([df["s"].to_numpy() + 1e4 * (df["u"].to_numpy() + 100),
+                                df["t"].to_numpy() + 1e4 * (df["v"].to_numpy() + 100)])
+
+    dist, nearest = cKDTree(key(coarse)).query(key(cores))
+    reach = 0.5 * coarse["major_axis_px"].to_numpy()[np.minimum(nearest, len(coarse) - 1)] + 1.0
+    inside = np.isfinite(dist) & (dist <= reach)
+    n_cores = np.bincount(nearest[inside], minlength=len(coarse))
+    merged = n_cores >= 2
+    if not merged.any():
+        return coarse
+    replacement = cores[inside & merged[np.minimum(nearest, len(coarse) - 1)]]
+    out = pd.concat([coarse[~merged], replacement], ignore_index=True)
+    return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)
 
 
 def _region_shape(detections: pd.DataFrame, owner: np.ndarray, n: int) -> pd.DataFrame:
@@ -287,23 +445,41 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         calibration.check_image(image)
         lf = decode(image, calibration.grid)
 
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NoParticlesWarning)
-        detections = segment_views(lf, frame=frame, window=locator.window,
-                                   contrast=locator.contrast, area_range=locator.area_range,
-                                   max_eccentricity=locator.max_eccentricity)
-    detections = detections.reset_index(drop=True)
+    detections = _segment(lf, frame, locator)
+    if len(detections) == 0:
+        return _finish_empty(detections, frame)
+    view, views = _view_index(detections)
+    st = detections[["s", "t"]].to_numpy(float)
     owner = np.full(len(detections), -1, dtype=np.int64)
+    area = detections["area"].to_numpy(float)
+    owner[area > locator.max_area_ratio * np.median(area)] = _MERGED
     z_lo, z_hi = (locator.depth_range_mm if locator.depth_range_mm is not None
                   else (float(dlfc.bounds[0, 2]), float(dlfc.bounds[1, 2])))
     volume_depth = z_hi - z_lo
     alphas = plane_alphas(camera, (z_lo, z_hi), locator.n_planes)
     geometry = ProjectionGeometry.from_lightfield(lf, camera)
     n_possible = int(lf.view_mask.sum())
+    radius_px = 0.5 * detections["major_axis_px"].to_numpy(float) + locator.add_tolerance_px
+    merge_px = (locator.merge_distance_px if locator.merge_distance_px is not None
+                else 0.5 * float(detections["diameter_px"].median()))
+
+    def solve(owner, initial):
+        tri = _solve(dlfc, detections, owner, _initial_frame(initial, owner), n_possible,
+                     volume_depth, locator)
+        positions, table = _gather(tri, len(initial))
+        return np.where(tri.inliers | (owner == _MERGED), owner, -1), positions, table
+
+    def grow(owner, positions, table):
+        pred = _predict_all(dlfc, positions, views)
+        n_v = table["n_views"].to_numpy().astype(np.int64)
+        owner = _merge_duplicates(pred, st, view, owner, n_v, merge_px)
+        return _add_centroids(pred, st, view, owner, table["residual_px"].to_numpy(),
+                              table["confidence"].to_numpy(), locator.add_tolerance_px)
 
     positions = np.zeros((0, 3))
+    initial = np.zeros((0, 3))
     for _ in range(locator.passes):
-        free = np.flatnonzero(owner < 0)
+        free = np.flatnonzero(owner == -1)
         if len(free) < locator.min_views:
             break
         with warnings.catch_warnings():
@@ -316,25 +492,33 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         labels = clustering.detections["cluster"].to_numpy()
         owner[free[labels >= 0]] = labels[labels >= 0] + start
         init_new = _initial_positions(clustering.clusters, camera).to_numpy()
-        initial = np.vstack([positions, init_new])
-        # Solve, then grow clusters with the centroids their particles predict, solve again.
-        for _grow in range(2):
-            tri = _solve(dlfc, detections, owner, _initial_frame(initial, owner), n_possible,
-                         volume_depth, locator)
-            positions, table = _gather(tri, len(initial))
-            owner = np.where(tri.inliers, owner, -1)
-            owner = _add_centroids(dlfc, detections, owner, positions,
-                                   table["residual_px"].to_numpy(),
-                                   table["confidence"].to_numpy(), locator.add_tolerance_px)
+        initial = np.vstack([initial, init_new])
+        # Solve, merge duplicates, grow particles with the centroids they predict.
+        for _grow in range(3):
+            owner, positions, table = solve(owner, initial)
+            owner = grow(owner, positions, table)
             initial = np.where(np.isfinite(positions), positions, initial)
     if len(positions) == 0:
         return _finish_empty(detections, frame)
 
-    tri = _solve(dlfc, detections, owner, _initial_frame(initial, owner), n_possible,
-                 volume_depth, locator)
-    positions, table = _gather(tri, len(initial))
-    owner = np.where(tri.inliers, owner, -1)
-    keep = (table["n_views"].to_numpy() >= locator.min_views) & np.all(np.isfinite(positions), axis=1)
+    # Final checks: drop particles built from merged regions, too few or clustered
+    # views, or residuals far above the typical one; release their centroids to the
+    # others and solve once more.
+    owner, positions, table = solve(owner, initial)
+    for _check in range(2):
+        bad = _inconsistent(positions, table, owner, view, views, st, radius_px,
+                            lf.view_mask, lf.u, lf.v, dlfc, locator)
+        if not bad.any():
+            break
+        owner = np.where(bad[np.maximum(owner, 0)] & (owner >= 0), -1, owner)
+        positions = np.where(bad[:, None], np.nan, positions)
+        table.loc[bad, "n_views"] = 0
+        owner = grow(owner, positions, table)
+        initial = np.where(np.isfinite(positions), positions, initial)
+        owner, positions, table = solve(owner, initial)
+    keep = ((table["n_views"].to_numpy() >= locator.min_views)
+            & np.all(np.isfinite(positions), axis=1))
+    owner = np.where(keep[np.maximum(owner, 0)] & (owner >= 0), owner, -1)
     shape = _region_shape(detections, owner, len(positions))
     mag = dlfc.local_magnification(*positions[keep].T) if keep.any() else np.zeros(0)
     particles = table.loc[keep, ["x", "y", "z", "sigma_x", "sigma_y", "sigma_z", "n_views",
@@ -355,6 +539,57 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     if len(particles) == 0:
         return _finish_empty(detections, frame)
     return LocateResult(particles=particles, detections=detections)
+
+
+def _segment(lf, frame: int, locator: PerspectiveLocator) -> pd.DataFrame:
+    """Detections of every valid view, merged regions split into their dark cores."""
+    kw = dict(frame=frame, window=locator.window, area_range=locator.area_range,
+              max_eccentricity=locator.max_eccentricity)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NoParticlesWarning)
+        detections = segment_views(lf, contrast=locator.contrast, **kw)
+        if locator.core_contrast is not None and len(detections):
+            cores = segment_views(lf, contrast=locator.core_contrast,
+                                  **{**kw, "area_range": (1.0, math.inf),
+                                     "max_eccentricity": 1.0})
+            detections = _split_merged(detections, cores)
+    return detections.reset_index(drop=True)
+
+
+def _inconsistent(positions, table, owner, view, views, st, radius_px, view_mask, u_all,
+                  v_all, dlfc, locator) -> np.ndarray:
+    """(P,) mask of particles that fail the final consistency checks.
+
+    A particle fails when it has fewer than ``min_views`` centroids; when the views of
+    its centroids span less than ``min_aperture_spread`` of the aperture (RMS distance
+    from their mean ``(u, v)`` against that of all valid views); when its RMS residual
+    exceeds ``max_residual_ratio`` times the median over all particles; or when, in
+    more than ``max_explained`` of its views, two other particles are predicted on its
+    centroid (a particle made of merged images of two others).
+    """
+    n_v = table["n_views"].to_numpy()
+    ok = np.all(np.isfinite(positions), axis=1) & (n_v > 0)
+    bad = ok & (n_v < locator.min_views)
+    mine = owner >= 0
+    own = owner[mine]
+    cnt = np.maximum(np.bincount(own, minlength=len(positions)), 1)
+    uu = views[view[mine], 0]
+    vv = views[view[mine], 1]
+    mu = np.bincount(own, uu, minlength=len(positions)) / cnt
+    mv = np.bincount(own, vv, minlength=len(positions)) / cnt
+    spread = np.sqrt(np.bincount(own, (uu - mu[own]) ** 2 + (vv - mv[own]) ** 2,
+                                 minlength=len(positions)) / cnt)
+    vg, ug = np.meshgrid(v_all, u_all, indexing="ij")
+    ua, va = ug[view_mask], vg[view_mask]
+    full = np.sqrt(np.mean((ua - ua.mean()) ** 2 + (va - va.mean()) ** 2))
+    bad |= ok & (spread < locator.min_aperture_spread * full)
+    res = table["residual_px"].to_numpy()
+    typical = np.nanmedian(res[ok]) if ok.any() else np.nan
+    bad |= ok & (res > max(locator.max_residual_ratio * typical, locator.add_tolerance_px))
+    pred = _predict_all(dlfc, positions, views)
+    frac = _explained_by_others(pred, st, view, owner, radius_px, ok & ~bad)
+    bad |= ok & (frac > locator.max_explained)
+    return bad
 
 
 def _initial_frame(initial: np.ndarray, owner: np.ndarray) -> pd.DataFrame:

@@ -23,8 +23,8 @@ from .dotcard import (DotCard, default_dotcard, default_dotcard_depths, dot_grid
                       dotcard_irradiance, render_dotcard)
 from .optics import SimOptics, make_optics
 from .render import render_frame, render_irradiance, render_white
-from .scene import (Scene, SceneError, Volume, default_volume, load_scene, make_scene,
-                    moving_particles, random_particles)
+from .scene import (Scene, SceneError, Volume, default_diameter_mm, default_volume, load_scene,
+                    make_scene, moving_particles, random_particles)
 from .sensor import SensorModel
 
 __all__ = [
@@ -32,7 +32,8 @@ __all__ = [
     "render_white", "render_frame", "render_irradiance",
     "DotCard", "default_dotcard", "default_dotcard_depths", "dot_grid", "render_dotcard",
     "dotcard_irradiance",
-    "Scene", "SceneError", "Volume", "default_volume", "random_particles", "moving_particles",
+    "Scene", "SceneError", "Volume", "default_volume", "default_diameter_mm", "random_particles",
+    "moving_particles",
     "make_scene", "load_scene",
     "SensorModel", "simulate_dataset", "SimulationResult",
 ]

@@ -88,7 +88,7 @@ def _progress(enabled: bool):
 
 
 def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int = 0,
-                     n_particles: int = 20, diameter_mm: float = 1.0,
+                     n_particles: int = 20, diameter_mm: float | None = None,
                      magnification: float | None = None, frames: int = 1,
                      velocity_mm_per_frame=(0.0, 0.0, 0.0), scene: Scene | None = None,
                      samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
@@ -107,7 +107,9 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         Master seed: the optics are ``make_optics(camera, seed)``; particle positions and
         every noise draw use generators seeded from ``[seed, purpose, index]``.
     n_particles, diameter_mm : int, float
-        Random scene (ignored when ``scene`` is given): particles and their diameter, mm.
+        Random scene (ignored when ``scene`` is given): particles and their diameter, mm
+        (default per camera preset, :func:`~plenoptrack.simulate.scene.default_diameter_mm`:
+        0.4 mm on the small presets, 1 mm otherwise).
     magnification : float, optional
         Replaces the camera's magnification (also in ``camera.toml``).
     frames : int

@@ -20,7 +20,7 @@ Scene files (TOML)
 
     [random]                            # either a random set ...
     n = 20
-    diameter_mm = 1.0
+    diameter_mm = 1.0                   # optional, default per preset (default_diameter_mm)
 
     [[particles]]                       # ... or explicit particles at frame 0
     x = 0.0
@@ -46,11 +46,17 @@ from .._columns import DIAMETER_COLUMN, ID_COLUMN, POS_COLUMNS, T_COLUMN, TRUTH_
 from ..camera import CameraSpec, preset
 from ..errors import InputFileError, PlenoptrackError
 
-__all__ = ["SceneError", "Volume", "Scene", "VOLUME_DEPTH_MM", "volume_depth_mm",
-           "default_volume", "random_particles", "moving_particles", "make_scene", "load_scene"]
+__all__ = ["SceneError", "Volume", "Scene", "VOLUME_DEPTH_MM", "DIAMETER_MM", "volume_depth_mm",
+           "default_diameter_mm", "default_volume", "random_particles", "moving_particles",
+           "make_scene", "load_scene"]
 
 VOLUME_DEPTH_MM = {"hall2019": 50.0, "small": 20.0, "small-rect": 20.0}
 """Default measurement-volume depth per camera preset, mm."""
+
+DIAMETER_MM = {"hall2019": 1.0, "small": 0.4, "small-rect": 0.4}
+"""Default particle diameter per camera preset, mm. The small presets see a 10 x 6.6 mm
+field (hexagonal) through 64 x 48 lenslets: 1 mm spheres, blurred over up to 1.3 mm at
+the volume faces, would overlap in most views."""
 
 
 class SceneError(PlenoptrackError, ValueError):
@@ -60,6 +66,11 @@ class SceneError(PlenoptrackError, ValueError):
 def volume_depth_mm(camera: CameraSpec) -> float:
     """Default volume depth for ``camera``: the preset table, else 15 % of s_o."""
     return VOLUME_DEPTH_MM.get(camera.name, round(0.15 * camera.object_distance_mm, 1))
+
+
+def default_diameter_mm(camera: CameraSpec) -> float:
+    """Default particle diameter for ``camera``: the preset table, else 1 mm."""
+    return DIAMETER_MM.get(camera.name, 1.0)
 
 
 @dataclass(frozen=True)
@@ -96,15 +107,19 @@ class Volume:
 
 
 def default_volume(camera: CameraSpec, *, depth_mm: float | None = None,
-                   diameter_mm: float = 1.0) -> Volume:
-    """Volume in which a particle is fully seen by every part of the aperture.
+                   diameter_mm: float | None = None) -> Volume:
+    """Measurement volume filling the camera's field of view.
 
     Depth ``depth_mm`` (default :func:`volume_depth_mm`) centred on the focal plane.
     Laterally: the field of view at the near face (the focal-plane field scaled by
-    ``(s_o + z_near) / s_o``) minus, on each side, the largest defocus blur radius in the
-    volume projected to the focal plane (``D/2 |1 - s_o / (s_o + z)|``) and one diameter.
+    ``(s_o + z_near) / s_o``) minus, on each side, half the largest defocus blur radius
+    in the volume projected to the focal plane (``D/4 |1 - s_o / (s_o + z)|``) and one
+    diameter (default :func:`default_diameter_mm`). A particle near the side faces is
+    then cut off in the views through the far side of the aperture but seen whole
+    through the rest, which is enough to locate it.
     """
     depth = volume_depth_mm(camera) if depth_mm is None else float(depth_mm)
+    diameter_mm = default_diameter_mm(camera) if diameter_mm is None else float(diameter_mm)
     s_o = camera.object_distance_mm
     if not (math.isfinite(depth) and 0 < depth < 1.8 * s_o):
         raise SceneError(f"volume depth_mm must be positive and below {1.8 * s_o:.0f} mm; "
@@ -115,8 +130,8 @@ def default_volume(camera: CameraSpec, *, depth_mm: float | None = None,
     near = (s_o - half_z) / s_o
     blur = camera.aperture_diameter_mm / 2 * max(abs(1 - s_o / (s_o - half_z)),
                                                  abs(1 - s_o / (s_o + half_z)))
-    half_x = w / m / 2 * near - blur - diameter_mm
-    half_y = h / m / 2 * near - blur - diameter_mm
+    half_x = w / m / 2 * near - blur / 2 - diameter_mm
+    half_y = h / m / 2 * near - blur / 2 - diameter_mm
     if half_x <= 0 or half_y <= 0:
         raise SceneError(f"a {depth:g} mm deep volume leaves no lateral room on camera "
                          f"{camera.name!r}; choose a smaller depth_mm or diameter")
@@ -271,14 +286,16 @@ def check_particles(particles: pd.DataFrame, volume: Volume, *, where: str = "sc
                                      f"{int(grp[ID_COLUMN].iloc[b])} overlap")
 
 
-def make_scene(camera: CameraSpec, *, n_particles: int = 20, diameter_mm: float = 1.0,
+def make_scene(camera: CameraSpec, *, n_particles: int = 20, diameter_mm: float | None = None,
                frames: int = 1, velocity_mm_per_frame=(0.0, 0.0, 0.0),
                volume: Volume | None = None, seed: int = 0) -> Scene:
     """Random scene: ``n_particles`` spheres in the volume, moving at constant velocity.
 
-    The volume (default :func:`default_volume`) bounds the frame-0 positions; later
-    frames may leave it.
+    The diameter defaults to :func:`default_diameter_mm` of the camera. The volume
+    (default :func:`default_volume`) bounds the frame-0 positions; later frames may
+    leave it.
     """
+    diameter_mm = default_diameter_mm(camera) if diameter_mm is None else float(diameter_mm)
     volume = default_volume(camera, diameter_mm=diameter_mm) if volume is None else volume
     first = random_particles(n_particles, volume=volume, diameter_mm=diameter_mm,
                              seed=np.random.default_rng([seed, 1]))
@@ -321,7 +338,7 @@ def load_scene(path: str | Path) -> Scene:
         depth = vol.get("depth_mm")
         if "random" in data:
             spec = data["random"]
-            diameter = float(spec.get("diameter_mm", 1.0))
+            diameter = float(spec.get("diameter_mm", default_diameter_mm(camera)))
             volume = default_volume(camera, depth_mm=depth, diameter_mm=diameter)
             return make_scene(camera, n_particles=int(spec["n"]), diameter_mm=diameter,
                               frames=frames, velocity_mm_per_frame=velocity, volume=volume,
@@ -332,7 +349,8 @@ def load_scene(path: str | Path) -> Scene:
             **{c: [float(r[c]) for r in rows] for c in (*POS_COLUMNS, DIAMETER_COLUMN)}})
         vel = np.array([r.get("velocity_mm_per_frame", velocity) for r in rows], dtype=float)
         volume = default_volume(camera, depth_mm=depth,
-                                diameter_mm=float(first[DIAMETER_COLUMN].max()) if len(rows) else 1.0)
+                                diameter_mm=float(first[DIAMETER_COLUMN].max()) if len(rows)
+                                else None)
         check_particles(first, volume, where=str(path))
         truth = moving_particles(first, frames=frames,
                                  velocity_mm_per_frame=vel if len(rows) else velocity)
