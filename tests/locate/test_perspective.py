@@ -1,0 +1,126 @@
+"""End-to-end tests of the perspective-shift locator on simulated images.
+
+One calibration (white image, lenslet grid, dot cards, DLFC) per camera is shared by the
+scenes of a module: the optics seed is fixed, the scene and noise seeds vary.
+"""
+
+import warnings
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from plenoptrack import preset
+from plenoptrack.calibration import calibrate_from_white
+from plenoptrack.errors import NoParticlesWarning
+from plenoptrack.evaluate import evaluate_particles
+from plenoptrack.lightfield import decode
+from plenoptrack.locate.dlfc import fit_dlfc
+from plenoptrack.locate.dotcards import dotcard_points
+from plenoptrack.locate.perspective import PARTICLE_COLUMNS, PerspectiveLocator, locate_frame
+from plenoptrack.simulate import (default_dotcard, default_dotcard_depths, make_optics,
+                                  make_scene, render_dotcard, render_frame, render_white)
+
+
+def _calibrated(camera_name: str, depths=None):
+    """Optics (seed 0) and a calibration with a DLFC fitted on simulated dot cards."""
+    camera = preset(camera_name)
+    optics = make_optics(camera, seed=0)
+    white = render_white(optics, seed=np.random.default_rng([0, 2]))
+    calib, _ = calibrate_from_white(white, camera)
+    card = default_dotcard(camera)
+    depths = default_dotcard_depths(camera) if depths is None else depths
+    points = []
+    for k, z in enumerate(depths):
+        image = render_dotcard(optics, float(z), card=card, seed=np.random.default_rng([0, 4, k]))
+        points.append(dotcard_points(decode(image, calib.grid), spacing_mm=card.spacing_mm,
+                                     z_mm=float(z), camera=camera))
+    dlfc = fit_dlfc(pd.concat(points, ignore_index=True), order=4, group_by="z", reject_k=5)
+    return optics, calib.with_dlfc(dlfc)
+
+
+def _frame(optics, truth, seed: int) -> np.ndarray:
+    return render_frame(optics, truth, seed=np.random.default_rng([seed, 3, 0]))
+
+
+@pytest.fixture(scope="module")
+def small():
+    return _calibrated("small")
+
+
+def test_small_scenes_recall_and_precision(small):
+    optics, calib = small
+    n_true = n_found = n_matched = 0
+    per_seed = []
+    for seed in range(5):
+        scene = make_scene(calib.camera, n_particles=20, seed=seed)
+        result = locate_frame(_frame(optics, scene.truth, seed), calib)
+        ev = evaluate_particles(result.particles, scene.truth, tolerance_mm=1.0)
+        per_seed.append((seed, ev.recall, ev.precision))
+        n_true += ev.n_true
+        n_found += ev.n_measured
+        n_matched += ev.n_matched
+        # Well-located: depth within a few tenths of a mm, lateral within a few hundredths.
+        assert abs(ev.mean_error_z) < 0.15 and ev.rms_error_lateral < 0.06, per_seed[-1]
+    assert n_matched / n_true >= 0.98, per_seed
+    assert n_matched / n_found >= 0.98, per_seed
+    assert min(min(r, p) for _, r, p in per_seed) >= 0.95, per_seed
+
+
+def test_raw_and_lightfield_inputs_agree(small):
+    optics, calib = small
+    scene = make_scene(calib.camera, n_particles=8, seed=11)
+    raw = _frame(optics, scene.truth, 11)
+    from_raw = locate_frame(raw, calib, frame=3)
+    from_lf = locate_frame(decode(raw, calib.grid), calib, frame=3)
+    pd.testing.assert_frame_equal(from_raw.particles, from_lf.particles)
+    assert list(from_raw.particles.columns) == list(PARTICLE_COLUMNS)
+    assert (from_raw.particles["frame"] == 3).all()
+    assert len(from_raw.particles) >= 7
+    det = from_raw.detections
+    assert det["particle"].max() == len(from_raw.particles) - 1
+    assert (det.loc[det["inlier"], "particle"] >= 0).all()
+
+
+def test_no_particles_gives_empty_table_and_warning(small):
+    optics, calib = small
+    empty = make_scene(calib.camera, n_particles=0).truth
+    raw = _frame(optics, empty, 0)
+    with pytest.warns(NoParticlesWarning):
+        result = locate_frame(raw, calib)
+    assert len(result.particles) == 0
+    assert list(result.particles.columns) == list(PARTICLE_COLUMNS)
+    assert result.particles["n_views"].dtype == np.int64
+    assert result.particles["flags"].dtype == np.uint8
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"window": 2}, "window"),
+    ({"contrast": 1.5}, "contrast"),
+    ({"core_contrast": 0.1}, "core_contrast"),
+    ({"min_views": 1}, "min_views"),
+    ({"depth_range_mm": (5.0, -5.0)}, "depth_range_mm"),
+])
+def test_locator_settings_are_validated(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        PerspectiveLocator(**kwargs)
+
+
+def test_locator_repr_and_settings():
+    loc = PerspectiveLocator(core_contrast=None, merge_distance_px=2.0)
+    assert "merge_distance_px=2.0" in repr(loc)
+    assert loc.settings()["core_contrast"] is None
+
+
+@pytest.mark.slow
+def test_hall2019_full_sensor_accuracy():
+    camera = preset("hall2019")
+    optics, calib = _calibrated("hall2019", depths=np.linspace(-25.0, 25.0, 7))
+    scene = make_scene(camera, n_particles=100, seed=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", NoParticlesWarning)
+        result = locate_frame(_frame(optics, scene.truth, 0), calib)
+    ev = evaluate_particles(result.particles, scene.truth, tolerance_mm=2.0)
+    assert ev.recall >= 0.99 and ev.precision >= 0.99, ev
+    assert ev.std_error_z <= 0.2 and abs(ev.mean_error_z) <= 0.05, ev
+    assert ev.rms_error_lateral <= 0.05, ev
