@@ -119,6 +119,9 @@ class PerspectiveLocator:
     max_explained : float
         Particles for which, in more than this fraction of their views, two other
         particles are predicted on the centroid are dropped (built from merged images).
+    solver : {"lm", "scipy"}
+        Least-squares solver of the triangulation (see
+        :func:`~plenoptrack.locate.triangulate.triangulate_clusters`).
     seed : int
         Seed of the k-means initialisation.
     """
@@ -139,6 +142,7 @@ class PerspectiveLocator:
     min_aperture_spread: float = 0.4
     max_explained: float = 0.5
     max_area_ratio: float = 1.3
+    solver: str = "lm"
     seed: int = 0
     extra: dict = field(default_factory=dict, repr=False, compare=False)
 
@@ -154,6 +158,8 @@ class PerspectiveLocator:
             raise ValueError(f"n_planes must be at least 2; got {self.n_planes}")
         if self.min_views < 2:
             raise ValueError(f"min_views must be at least 2; got {self.min_views}")
+        if self.solver not in ("lm", "scipy"):
+            raise ValueError(f"solver must be 'lm' or 'scipy'; got {self.solver!r}")
         if self.passes < 1:
             raise ValueError(f"passes must be at least 1; got {self.passes}")
         if self.depth_range_mm is not None and not self.depth_range_mm[1] > self.depth_range_mm[0]:
@@ -409,7 +415,7 @@ def _solve(dlfc, detections, owner, initial, n_possible, volume_depth, locator):
         tri = triangulate_clusters(dlfc, detections.assign(_owner=owner), initial,
                                    cluster_column="_owner", n_possible_views=n_possible,
                                    volume_depth_mm=volume_depth, reject_k=locator.reject_k,
-                                   min_views=min(4, locator.min_views))
+                                   min_views=min(4, locator.min_views), solver=locator.solver)
     return tri
 
 
