@@ -167,6 +167,16 @@ def views(
         console.print(f"wrote {mosaic}")
 
 
+def _check_depths(camera, depths) -> None:
+    """Refuse depths that no real image of the main lens corresponds to."""
+    nearest = camera.focal_length_mm - camera.object_distance_mm  # object at the focal point
+    for z in depths:
+        if not (np.isfinite(z) and z > nearest):
+            raise typer.BadParameter(
+                f"depth {z:g} mm has no real image; depths must be finite and beyond "
+                f"{nearest:g} mm (the main lens's front focal point)", param_hint="--depth/--alpha/--zmin/--zmax")
+
+
 @app.command()
 @_reports_errors
 def refocus(
@@ -187,11 +197,16 @@ def refocus(
 
     if not depth and not alpha and stack <= 0:
         raise typer.BadParameter("give --depth, --alpha or --stack")
+    for a in alpha:
+        if not (np.isfinite(a) and a > 0):
+            raise typer.BadParameter(f"alpha must be a positive number; got {a}", param_hint="--alpha")
     calib = load_calibration(calib_file)
     camera = calib.camera
-    depths = list(depth) + [float(camera.depth_for_alpha(a)) for a in alpha]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depths = list(depth) + [float(camera.depth_for_alpha(np.float64(a))) for a in alpha]
     if stack > 0:
         depths += list(np.linspace(zmin, zmax, stack))
+    _check_depths(camera, depths)
     image = _load_frame(raw, frame, calib)
     t0 = time.perf_counter()
     lf = decode(image, calib.grid)
