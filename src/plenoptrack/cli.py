@@ -159,12 +159,15 @@ def views(
     t0 = time.perf_counter()
     lf = decode(image, calib.grid, progress=True)
     write_views_tiff(out_file, lf)
+    if mosaic is not None:
+        try:
+            write_mosaic_png(mosaic, lf)
+        except BaseException:
+            out_file.unlink(missing_ok=True)  # a failed run leaves neither output
+            raise
     console.print(f"decoded {lf.data.shape[0]} x {lf.data.shape[1]} views of "
                   f"{lf.data.shape[2]} x {lf.data.shape[3]} samples in {time.perf_counter() - t0:.2f} s; "
-                  f"wrote {out_file}")
-    if mosaic is not None:
-        write_mosaic_png(mosaic, lf)
-        console.print(f"wrote {mosaic}")
+                  f"wrote {out_file}" + (f" and {mosaic}" if mosaic is not None else ""))
 
 
 def _check_depths(camera, depths) -> None:
