@@ -468,3 +468,16 @@ def test_output_in_place_of_a_folder(bad_inputs, sim, calib_file):
     assert_error_line(result, "a_folder")
     assert_nothing_written(folder, before | {"a_folder"})
     assert not list((folder / "a_folder").iterdir())
+
+
+def test_views_and_refocus_read_a_frame_of_a_multi_page_raw(sim, calib_file, tmp_path):
+    frames = np.stack([read_raw(sim / "raw" / f"frame_{f:04d}.tif") for f in range(N_FRAMES)])
+    multi = tmp_path / "frames.tif"
+    tifffile.imwrite(multi, frames)
+    ok("views", multi, "--calib", calib_file, "--frame", 1, "--out", tmp_path / "multi.tif")
+    ok("views", sim / "raw" / "frame_0001.tif", "--calib", calib_file, "--out", tmp_path / "one.tif")
+    np.testing.assert_array_equal(tifffile.imread(tmp_path / "multi.tif"),
+                                  tifffile.imread(tmp_path / "one.tif"))
+    ok("refocus", multi, "--calib", calib_file, "--frame", 1, "--depth", 3, "--out", tmp_path / "r1.tif")
+    ok("refocus", multi, "--calib", calib_file, "--depth", 3, "--out", tmp_path / "r0.tif")
+    assert not np.array_equal(tifffile.imread(tmp_path / "r1.tif"), tifffile.imread(tmp_path / "r0.tif"))
