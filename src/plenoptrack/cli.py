@@ -74,7 +74,7 @@ def simulate(
     preset_name: Optional[str] = typer.Option(None, "--preset", help="Camera preset: small (default), small-rect, hall2019; with --scene, the scene's camera is used."),
     seed: int = typer.Option(0, "--seed", help="Random seed; the same seed gives the same bytes."),
     particles: int = typer.Option(20, "--particles", min=0, help="Number of particles (random scene)."),
-    diameter: float = typer.Option(1.0, "--diameter", help="Particle diameter, mm."),
+    diameter: Optional[float] = typer.Option(None, "--diameter", help="Particle diameter, mm (default per preset: 0.4 on the small presets, 1.0 on hall2019)."),
     magnification: Optional[float] = typer.Option(None, "--magnification", help="Override the preset magnification (negative, e.g. -0.5)."),
     frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
     scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification and particles replace --preset, --magnification and the random-scene options."),
@@ -130,6 +130,52 @@ def calibrate_grid_cmd(
     table.add_row("centres detected", f"{report.n_detected}")
     table.add_row("fit residual RMS, px", f"{report.rms_residual_px:.4f}")
     out.print(table)
+    console.print(f"wrote {out_file}")
+
+
+@app.command("calibrate")
+@_reports_errors
+def calibrate_cmd(
+    white: Path = typer.Option(..., "--white", "-w", help="White (flat-field) image, uint16 TIFF."),
+    dotcards: Path = typer.Option(..., "--dotcards", "-d", help="Dot-card folder with dotcards.toml and one TIFF per depth."),
+    camera_file: Path = typer.Option(..., "--camera", "-c", help="Nominal camera description (camera.toml)."),
+    out_file: Path = typer.Option(Path("calib.json"), "--out", "-o", help="Calibration file to write."),
+    order: int = typer.Option(4, "--order", help="DLFC total polynomial order (1-6)."),
+) -> None:
+    """Calibrate: lenslet grid from a white image, DLFC from dot cards; write a calibration file."""
+    from .calibrate import calibrate, read_dotcards
+    from .calibration import save_calibration
+    from .camera import load_camera
+
+    camera = load_camera(camera_file)
+    cards = read_dotcards(dotcards)
+    calib, report = calibrate(white, cards, camera, order=order, progress=True)
+    save_calibration(calib, out_file)
+    g, fit = calib.grid, report.fit
+    summary = Table(title=f"calibration ({report.seconds['total']:.1f} s)")
+    summary.add_column("quantity")
+    summary.add_column("value", justify="right")
+    summary.add_row("grid type", g.grid_type)
+    summary.add_row("lenslets (rows x cols)", f"{g.shape[0]} x {g.shape[1]}")
+    summary.add_row("pitch, px", f"{g.pitch_px:.4f}")
+    summary.add_row("rotation, deg", f"{g.rotation_deg:.4f}")
+    summary.add_row("grid fit residual RMS, px", f"{report.grid.rms_residual_px:.4f}")
+    summary.add_row("DLFC order", f"{report.order}")
+    summary.add_row("dot cards", f"{len(cards)}")
+    summary.add_row("points used", f"{fit.n_points}")
+    summary.add_row("points rejected", f"{fit.n_rejected}")
+    summary.add_row("DLFC residual RMS, view px", f"{fit.rms_px:.4f}")
+    summary.add_row("DLFC residual max, view px", f"{fit.max_px:.4f}")
+    out.print(summary)
+    per_card = Table(title="DLFC residual per dot card")
+    for name in ("card", "z, mm", "views", "points", "rejected", "RMS, view px"):
+        per_card.add_column(name, justify="left" if name == "card" else "right")
+    for row in report.cards.itertuples():
+        per_card.add_row(row.file, f"{row.z_mm:g}", f"{row.n_views}", f"{row.n_points}",
+                         f"{row.n_rejected}", f"{row.rms_px:.4f}")
+    per_card.add_row("all", "", "", f"{fit.n_points + fit.n_rejected}", f"{fit.n_rejected}",
+                     f"{fit.rms_px:.4f}", style="bold")
+    out.print(per_card)
     console.print(f"wrote {out_file}")
 
 

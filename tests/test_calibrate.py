@@ -1,0 +1,314 @@
+"""Tests of the calibration workflow (white image + dot cards -> calibration file).
+
+One simulated 'small' data set (seed 0, 11 dot cards from -10 to +10 mm) is shared by the
+module; its true optics give an independent check of the fitted DLFC.
+"""
+
+import json
+import shutil
+import time
+
+import numpy as np
+import pandas as pd
+import pytest
+from typer.testing import CliRunner
+
+from plenoptrack.calibrate import (CalibrationReport, DotCardSet, calibrate, dlfc_points,
+                                   read_dotcards)
+from plenoptrack.calibration import Calibration, load_calibration, save_calibration
+from plenoptrack.cli import app
+from plenoptrack.errors import CalibrationError, InputFileError
+from plenoptrack.io import read_raw
+from plenoptrack.lightfield import decode
+from plenoptrack.locate.dlfc import DLFC
+from plenoptrack.locate.segment import segment_views
+from plenoptrack.simulate import render_frame, simulate_dataset
+
+# well-separated particles: every view shows each one whole and alone
+PARTICLES = pd.DataFrame({"x": [-3.0, 3.0, -2.5, 2.5, 0.0], "y": [-1.2, 1.2, 1.5, -1.5, 0.0],
+                          "z": [-8.0, 7.5, 3.0, -3.5, 0.5], "diameter": 0.6})
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return simulate_dataset("small", tmp_path_factory.mktemp("sim"), seed=0, n_particles=0)
+
+
+@pytest.fixture(scope="module")
+def white(dataset):
+    return read_raw(dataset.white_path)
+
+
+@pytest.fixture(scope="module")
+def points(dataset, white):
+    """Dot measurements of all cards, flat-fielded (what calibrate fits)."""
+    from plenoptrack.calibration import calibrate_from_white
+
+    calib, _ = calibrate_from_white(white, dataset.camera)
+    return calib, dlfc_points(dataset.out_dir / "dotcards", calib.grid, dataset.camera,
+                              white=white)
+
+
+@pytest.fixture(scope="module")
+def calibrated(dataset, white):
+    return calibrate(white, dataset.out_dir / "dotcards", dataset.camera, order=4)
+
+
+# --- dot-card folder --------------------------------------------------------------------
+
+def test_read_dotcards(dataset):
+    cards = read_dotcards(dataset.out_dir / "dotcards")
+    assert isinstance(cards, DotCardSet) and len(cards) == 11
+    assert cards.spacing_mm == dataset.dotcard.spacing_mm
+    assert cards.dot_diameter_mm == dataset.dotcard.dot_diameter_mm
+    np.testing.assert_array_equal(cards.depths_mm, dataset.dotcard_depths_mm)
+    assert [c.path for c in cards.cards] == list(dataset.dotcard_paths)
+    # the TOML file itself is accepted too
+    assert read_dotcards(dataset.dotcards_path) == cards
+
+
+def _copy_cards(dataset, tmp_path, toml_text=None):
+    folder = tmp_path / "cards"
+    shutil.copytree(dataset.out_dir / "dotcards", folder)
+    if toml_text is not None:
+        (folder / "dotcards.toml").write_text(toml_text)
+    return folder
+
+
+@pytest.mark.parametrize("toml_text, match", [
+    (None, "dot-card description not found"),
+    ("spacing_mm = 1.25\ncards = []\n", "lists no dot cards"),
+    ("spacing_mm = 1.25\n", "lists no dot cards"),
+    ('cards = [{ file = "card_00.tif", z_mm = 0.0 }]\n', "spacing_mm .* is missing"),
+    ('spacing_mm = -1.0\ncards = [{ file = "card_00.tif", z_mm = 0.0 }]\n',
+     "spacing_mm must be a positive number"),
+    ('spacing_mm = 1.25\ncards = [{ file = "card_00.tif" }]\n', r"cards\[0\] must have `file` and `z_mm`"),
+    ('spacing_mm = 1.25\ncards = [{ file = "card_00.tif", z_mm = 0.0 }, '
+     '{ file = "card_01.tif", z_mm = 0.0 }]\n', r"several cards at z_mm = \[0.0\]"),
+    ("spacing_mm = [\n", "not valid TOML"),
+])
+def test_bad_dotcards_toml(dataset, tmp_path, toml_text, match):
+    folder = _copy_cards(dataset, tmp_path, toml_text)
+    if toml_text is None:
+        (folder / "dotcards.toml").unlink()
+    with pytest.raises(InputFileError, match=match) as info:
+        read_dotcards(folder)
+    assert "dotcards.toml" in str(info.value)  # the message names the file
+
+
+def test_missing_card_file(dataset, tmp_path):
+    folder = _copy_cards(dataset, tmp_path)
+    (folder / "card_03.tif").unlink()
+    with pytest.raises(InputFileError, match=r"card_03.tif: dot-card image listed in "
+                       r"dotcards.toml \(cards\[3\]\) not found"):
+        read_dotcards(folder)
+
+
+def test_missing_folder(tmp_path):
+    with pytest.raises(InputFileError, match="dot-card folder not found"):
+        read_dotcards(tmp_path / "nowhere")
+
+
+# --- calibration points -------------------------------------------------------------
+
+def test_dlfc_points_table(points, dataset):
+    _, table = points
+    assert {"u", "v", "s", "t", "x", "y", "z", "i", "j", "card"} <= set(table.columns)
+    assert table["card"].dtype == np.int64
+    assert sorted(table["card"].unique()) == list(range(11))
+    for k, z in enumerate(dataset.dotcard_depths_mm):
+        sub = table[table["card"] == k]
+        assert (sub["z"] == z).all()
+        assert sub.groupby(["u", "v"]).ngroups == 145      # every valid view
+    np.testing.assert_allclose(table["x"] / dataset.dotcard.spacing_mm, table["i"])
+
+
+def test_dlfc_points_central_view_match_truth(points, dataset):
+    """Dot centroids in the central view sit where the simulator's chief ray lands."""
+    calib, table = points
+    lf = decode(read_raw(dataset.dotcard_paths[0]), calib.grid)
+    centre = table[(table["u"] == 0) & (table["v"] == 0)]
+    true_st = lf.from_sensor(dataset.optics.world_to_pixels(centre[["x", "y", "z"]].to_numpy()))
+    err = np.hypot(centre["s"] - true_st[:, 0], centre["t"] - true_st[:, 1])
+    assert np.sqrt(np.mean(err ** 2)) < 0.1
+
+
+# --- the fit ------------------------------------------------------------------------
+
+def test_calibrate_order4_residual(calibrated):
+    calib, report = calibrated
+    assert isinstance(calib, Calibration) and isinstance(report, CalibrationReport)
+    assert calib.dlfc.order == 4 and report.order == 4
+    assert report.rms_px <= 0.1
+    assert report.fit.n_rejected < 0.02 * (report.fit.n_points + report.fit.n_rejected)
+    cards = report.cards
+    assert list(cards["z_mm"]) == sorted(cards["z_mm"]) and len(cards) == 11
+    assert (cards["rms_px"] <= 0.1).all()
+    assert (cards["n_views"] == 145).all()
+    assert cards["n_points"].sum() == report.fit.n_points + report.fit.n_rejected
+    assert set(report.seconds) == {"grid", "dots", "fit", "total"}
+
+
+def test_order_comparison(calibrated, points, dataset):
+    """Order 4 fits better than 3; order 5 is refused: the card shows only 5 dot rows."""
+    from plenoptrack.locate.dlfc import fit_dlfc
+
+    _, table = points
+    rms = {order: fit_dlfc(table, order=order, group_by="z", reject_k=5.0).report.rms_px
+           for order in (3, 4)}
+    print(f"DLFC RMS residual, small preset: order 3 {rms[3]:.4f} px, order 4 {rms[4]:.4f} px")
+    assert rms[4] < rms[3]
+    assert rms[4] == pytest.approx(calibrated[1].rms_px)
+    with pytest.raises(CalibrationError, match=r"only 5 distinct dot rows \(y\); an order-5 "
+                       r"DLFC needs at least 6.*at most 4"):
+        calibrate(dataset.white_path, dataset.out_dir / "dotcards", dataset.camera, order=5)
+
+
+def test_too_few_depths_for_order(dataset, tmp_path):
+    folder = _copy_cards(dataset, tmp_path, 'spacing_mm = 1.25\ncards = [\n' + "".join(
+        f'  {{ file = "card_{k:02d}.tif", z_mm = {z} }},\n'
+        for k, z in enumerate(dataset.dotcard_depths_mm[:3])) + "]\n")
+    with pytest.raises(CalibrationError, match="3 card depth.*cannot determine an order-4 DLFC"):
+        calibrate(dataset.white_path, folder, dataset.camera, order=4)
+
+
+def test_dlfc_central_view_matches_true_optics(calibrated, dataset):
+    """Between dots and between card depths, P(x, y, z, 0, 0) is where the chief ray lands."""
+    calib, _ = calibrated
+    dlfc = calib.dlfc
+    lf = decode(read_raw(dataset.white_path), calib.grid)
+    rng = np.random.default_rng(7)
+    n = 2000
+    xyz = np.column_stack([rng.uniform(-4.5, 4.5, n), rng.uniform(-2.2, 2.2, n),
+                           rng.uniform(-10, 10, n)])
+    true_st = lf.from_sensor(dataset.optics.world_to_pixels(xyz))
+    s, t = dlfc.predict(xyz[:, 0], xyz[:, 1], xyz[:, 2], 0.0, 0.0)
+    err = np.hypot(s - true_st[:, 0], t - true_st[:, 1])
+    assert np.sqrt(np.mean(err ** 2)) < 0.03
+    assert err.max() < 0.1
+
+
+def test_dlfc_predicts_particle_views(calibrated, dataset, white):
+    """A rendered particle is found, view by view, where the DLFC says it should be."""
+    calib, _ = calibrated
+    dlfc = calib.dlfc
+    raw = render_frame(dataset.optics, PARTICLES, seed=5)
+    lf = decode(raw, calib.grid, white=white)
+    det = segment_views(lf)
+    views = det[["u", "v"]].drop_duplicates().to_numpy()
+    for p in PARTICLES.itertuples():
+        s, t = dlfc.predict(p.x, p.y, p.z, views[:, 0], views[:, 1])
+        dists = []
+        for (u, v), ps, pt in zip(views, s, t):
+            in_view = det[(det["u"] == u) & (det["v"] == v)]
+            dists.append(np.hypot(in_view["s"] - ps, in_view["t"] - pt).min())
+        dists = np.asarray(dists)
+        found = dists < 2.0        # the segmentation misses a particle in a few views
+        assert found.mean() > 0.85, (p, found.mean())
+        assert np.median(dists[found]) < 0.1, (p, np.median(dists[found]))
+        # the worst are rim views, whose partial vignetting biases the centroid
+        assert np.mean(dists[found] < 0.3) > 0.9, (p, np.sort(dists[found])[-5:])
+
+
+# --- calibration file ---------------------------------------------------------------
+
+def test_calibration_file_round_trip(calibrated, tmp_path):
+    calib, _ = calibrated
+    path = save_calibration(calib, tmp_path / "calib.json")
+    loaded = load_calibration(path, camera=calib.camera)
+    assert loaded.has_dlfc and isinstance(loaded.dlfc, DLFC)
+    np.testing.assert_array_equal(loaded.dlfc.coefficients, calib.dlfc.coefficients)
+    x = np.array([1.0, -2.0]), np.array([0.5, 1.0]), np.array([-3.0, 7.0])
+    np.testing.assert_array_equal(loaded.dlfc.predict(*x, 2.0, -1.0),
+                                  calib.dlfc.predict(*x, 2.0, -1.0))
+    doc = json.loads(path.read_text())
+    assert doc["format"] == "plenoptrack-calibration" and doc["version"] == 1
+    assert doc["dlfc"]["order"] == 4 and doc["dlfc"]["fit"]["group_by"] == "z"
+
+
+def test_grid_only_calibration_has_no_dlfc(calibrated):
+    calib, _ = calibrated
+    grid_only = Calibration(camera=calib.camera, grid=calib.grid, vignetting=calib.vignetting)
+    assert not grid_only.has_dlfc
+    with pytest.raises(CalibrationError, match="calibration file has no DLFC; run "
+                       "`plenoptrack calibrate` with dot cards"):
+        grid_only.dlfc
+    assert grid_only.with_dlfc(calib.dlfc).dlfc.order == 4
+
+
+@pytest.mark.parametrize("corrupt, match", [
+    (lambda d: d.__setitem__("dlfc", 3), "not a DLFC section"),
+    (lambda d: d["dlfc"].__setitem__("coefficients", [[1.0, 2.0]]), "coefficients must have shape"),
+    (lambda d: d["dlfc"].__setitem__("order", 9), "DLFC order must be one of"),
+    (lambda d: d["dlfc"].__setitem__("version", 99), "DLFC version 99 is not supported"),
+    (lambda d: d["dlfc"]["centre"].__setitem__(0, None), "centre"),
+])
+def test_corrupt_dlfc_section_refused(calibrated, tmp_path, corrupt, match):
+    calib, _ = calibrated
+    path = save_calibration(calib, tmp_path / "calib.json")
+    doc = json.loads(path.read_text())
+    corrupt(doc)
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CalibrationError, match=match) as info:
+        load_calibration(path)
+    assert str(path) in str(info.value)
+
+
+# --- command line -------------------------------------------------------------------
+
+def test_cli_calibrate(dataset, tmp_path):
+    out = tmp_path / "calib.json"
+    result = CliRunner().invoke(app, [
+        "calibrate", "--white", str(dataset.white_path), "--dotcards",
+        str(dataset.out_dir / "dotcards"), "--camera", str(dataset.camera_path),
+        "--out", str(out), "--order", "3"])
+    assert result.exit_code == 0, result.output
+    for text in ("DLFC order", "points used", "card_00.tif", "card_10.tif", "RMS", "pitch"):
+        assert text in result.output
+    calib = load_calibration(out, camera=dataset.camera)
+    assert calib.dlfc.order == 3 and calib.dlfc.report.rms_px < 0.1
+
+
+@pytest.mark.parametrize("breakage, match", [
+    ("no-toml", "dot-card description not found"),
+    ("no-card", "card_02.tif: dot-card image listed"),
+    ("no-cards", "lists no dot cards"),
+])
+def test_cli_calibrate_bad_dotcards(dataset, tmp_path, breakage, match):
+    folder = _copy_cards(dataset, tmp_path, "spacing_mm = 1.25\ncards = []\n"
+                         if breakage == "no-cards" else None)
+    if breakage == "no-toml":
+        (folder / "dotcards.toml").unlink()
+    elif breakage == "no-card":
+        (folder / "card_02.tif").unlink()
+    out = tmp_path / "calib.json"
+    result = CliRunner().invoke(app, [
+        "calibrate", "--white", str(dataset.white_path), "--dotcards", str(folder),
+        "--camera", str(dataset.camera_path), "--out", str(out)])
+    assert result.exit_code == 1
+    assert match in " ".join(result.output.split())
+    assert "Traceback" not in result.output
+    assert not out.exists()
+
+
+# --- full sensor ----------------------------------------------------------------------
+
+@pytest.mark.slow
+def test_full_sensor_hall2019(tmp_path):
+    """hall2019, 11 full-sensor cards (6600 x 4400) over +-25 mm: residual and time."""
+    data = simulate_dataset("hall2019", tmp_path / "hall", seed=0, n_particles=0)
+    t0 = time.perf_counter()
+    calib, report = calibrate(data.white_path, data.out_dir / "dotcards", data.camera)
+    seconds = time.perf_counter() - t0
+    print(f"hall2019 calibration: {seconds:.1f} s, {report.seconds}, RMS {report.rms_px:.4f} px")
+    print(report.cards.to_string())
+    assert report.rms_px < 0.1
+    assert (report.cards["rms_px"] < 0.15).all()
+    assert (report.cards["n_views"] == 145).all()
+    lf = decode(read_raw(data.white_path), calib.grid)
+    rng = np.random.default_rng(3)
+    xyz = np.column_stack([rng.uniform(-10, 10, 500), rng.uniform(-7, 7, 500),
+                           rng.uniform(-25, 25, 500)])
+    true_st = lf.from_sensor(data.optics.world_to_pixels(xyz))
+    s, t = calib.dlfc.predict(xyz[:, 0], xyz[:, 1], xyz[:, 2], 0.0, 0.0)
+    assert np.sqrt(np.mean((s - true_st[:, 0]) ** 2 + (t - true_st[:, 1]) ** 2)) < 0.06
