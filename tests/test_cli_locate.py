@@ -1,0 +1,96 @@
+"""The ``plenoptrack`` commands calibrate -> locate -> evaluate, and the demo."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+import tifffile
+from typer.testing import CliRunner
+
+from plenoptrack.cli import app
+from plenoptrack.evaluate import evaluate_particles
+from plenoptrack.io import read_table
+from plenoptrack.locate.perspective import PARTICLE_COLUMNS
+
+runner = CliRunner()
+
+
+def run(*args):
+    return runner.invoke(app, [str(a) for a in args])
+
+
+def ok(*args):
+    result = run(*args)
+    assert result.exit_code == 0, (result.stdout, result.stderr, result.exception)
+    return result
+
+
+@pytest.fixture(scope="module")
+def calibrated(tmp_path_factory):
+    root = tmp_path_factory.mktemp("cli_locate")
+    sim = root / "sim"
+    ok("simulate", "--preset", "small", "--seed", 1, "--particles", 12, "--frames", 2,
+       "--out", sim)
+    ok("calibrate", "--white", sim / "white.tif", "--dotcards", sim / "dotcards",
+       "--camera", sim / "camera.toml", "--out", root / "calib.json")
+    return root, sim
+
+
+def test_locate_then_evaluate_against_truth(calibrated):
+    root, sim = calibrated
+    frames = sorted((sim / "raw").glob("frame_*.tif"))
+    out = root / "particles.csv"
+    ok("locate", *frames, "--calib", root / "calib.json", "--out", out)
+    particles = read_table(out)
+    assert list(particles.columns) == list(PARTICLE_COLUMNS)
+    assert sorted(particles["frame"].unique()) == [0, 1]
+    truth = read_table(sim / "truth.parquet")
+    ev = evaluate_particles(particles, truth, tolerance_mm=1.0)
+    assert ev.recall >= 0.9 and ev.precision >= 0.9
+    assert ev.rms_error_lateral < 0.05
+    # the evaluate command prints the same numbers as one JSON object
+    res = ok("evaluate", out, sim / "truth.parquet", "--tolerance", 1.0, "--json")
+    printed = json.loads(res.stdout)
+    assert printed["n_matched"] == ev.n_matched
+    assert printed["mean_error_z"] == pytest.approx(ev.mean_error_z)
+    table = ok("evaluate", out, sim / "truth.parquet")
+    assert "recall" in table.stdout and "precision" in table.stdout
+
+
+def test_locate_empty_image_gives_empty_table(calibrated, tmp_path):
+    root, sim = calibrated
+    white = tifffile.imread(sim / "raw" / "frame_0000.tif")
+    blank = np.full_like(white, int(np.median(white)))
+    tifffile.imwrite(tmp_path / "blank.tif", blank)
+    out = tmp_path / "p.parquet"
+    res = ok("locate", tmp_path / "blank.tif", "--calib", root / "calib.json", "--out", out)
+    assert "without particles" in res.stderr
+    assert len(pd.read_parquet(out)) == 0
+
+
+def test_locate_refuses_calibration_without_dlfc(calibrated, tmp_path):
+    root, sim = calibrated
+    ok("calibrate-grid", sim / "white.tif", "--camera", sim / "camera.toml",
+       "--out", tmp_path / "grid.json")
+    res = run("locate", sim / "raw" / "frame_0000.tif", "--calib", tmp_path / "grid.json",
+              "--out", tmp_path / "p.parquet")
+    assert res.exit_code == 1
+    assert "no DLFC" in res.stderr and "Traceback" not in res.stderr
+    assert not (tmp_path / "p.parquet").exists()
+
+
+def test_evaluate_missing_table(tmp_path):
+    res = run("evaluate", tmp_path / "absent.parquet", tmp_path / "truth.parquet")
+    assert res.exit_code == 1 and "absent.parquet: table not found" in res.stderr
+
+
+def test_demo_runs_end_to_end(tmp_path):
+    res = ok("demo", "--out", tmp_path / "demo")
+    assert "recall" in res.stdout
+    particles = read_table(tmp_path / "demo" / "particles.parquet")
+    truth = read_table(tmp_path / "demo" / "sim" / "truth.parquet")
+    ev = evaluate_particles(particles, truth, tolerance_mm=1.0)
+    assert ev.recall >= 0.9 and ev.precision >= 0.9
