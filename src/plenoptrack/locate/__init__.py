@@ -1,1 +1,24 @@
-"""Particle location from decoded light fields."""
+"""Particle location from decoded light fields (the perspective-shift method).
+
+The usual entry point is :func:`locate_frame`; the steps it composes are public too:
+:func:`segment_views` (per-view segmentation), :func:`cluster_detections`
+(projected-plane k-means), :func:`fit_dlfc` / :class:`DLFC` (volumetric calibration) and
+:func:`triangulate_clusters` (3D solve with outlier rejection).
+"""
+
+from .cluster import Clustering, ProjectionGeometry, cluster_detections, plane_alphas
+from .dlfc import DLFC, FitReport, fit_dlfc
+from .dotcards import dotcard_points
+from .perspective import PARTICLE_COLUMNS, LocateResult, PerspectiveLocator, locate_frame
+from .segment import DETECTION_COLUMNS, segment_array, segment_view, segment_views
+from .triangulate import (Triangulation, TriangulationFlag, predict_detection,
+                          triangulate_cluster, triangulate_clusters)
+
+__all__ = [
+    "locate_frame", "PerspectiveLocator", "LocateResult", "PARTICLE_COLUMNS",
+    "segment_views", "segment_view", "segment_array", "DETECTION_COLUMNS",
+    "cluster_detections", "Clustering", "ProjectionGeometry", "plane_alphas",
+    "DLFC", "FitReport", "fit_dlfc", "dotcard_points",
+    "triangulate_clusters", "triangulate_cluster", "Triangulation", "TriangulationFlag",
+    "predict_detection",
+]
