@@ -248,27 +248,58 @@ class Clustering:
 # --------------------------------------------------------------------------------------
 # compiled cores
 @numba.njit(cache=True)
+def _nearest_two(px, py, centres):  # pragma: no cover - compiled
+    """Index of the nearest centre and distances to the nearest and second nearest."""
+    best = 0
+    d1 = np.inf
+    d2 = np.inf
+    for c in range(centres.shape[0]):
+        dx = px - centres[c, 0]
+        dy = py - centres[c, 1]
+        d = dx * dx + dy * dy
+        if d < d1:
+            d2 = d1
+            d1 = d
+            best = c
+        elif d < d2:
+            d2 = d
+    return best, math.sqrt(d1), math.sqrt(d2)
+
+
+@numba.njit(cache=True)
 def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
-    """Lloyd iterations from ``centres`` (modified in place); return labels (n,)."""
+    """Lloyd iterations from ``centres`` (modified in place); return labels (n,).
+
+    Each point keeps an upper bound on the distance to its centre and a lower bound on
+    the distance to every other centre (Hamerly's bounds); the full search over the
+    centres runs only for points whose bounds no longer prove the assignment, so the
+    labels are those of plain Lloyd iterations at a fraction of the cost.
+    """
     n = points.shape[0]
     k = centres.shape[0]
     labels = np.full(n, -1, dtype=np.int64)
+    upper = np.empty(n)
+    lower = np.empty(n)
     sums = np.empty((k, 2))
     counts = np.empty(k)
-    for _ in range(max_iter):
+    shift = np.zeros(k)
+    half_gap = np.zeros(k)
+    for it in range(max_iter):
         changed = False
         for i in range(n):
-            px = points[i, 0]
-            py = points[i, 1]
-            best = 0
-            bd = np.inf
-            for c in range(k):
-                dx = px - centres[c, 0]
-                dy = py - centres[c, 1]
-                d = dx * dx + dy * dy
-                if d < bd:
-                    bd = d
-                    best = c
+            if it > 0:
+                lab = labels[i]
+                m = max(half_gap[lab], lower[i])
+                if upper[i] <= m:
+                    continue
+                dx = points[i, 0] - centres[lab, 0]
+                dy = points[i, 1] - centres[lab, 1]
+                upper[i] = math.sqrt(dx * dx + dy * dy)
+                if upper[i] <= m:
+                    continue
+            best, d1, d2 = _nearest_two(points[i, 0], points[i, 1], centres)
+            upper[i] = d1
+            lower[i] = d2
             if labels[i] != best:
                 labels[i] = best
                 changed = True
@@ -280,11 +311,69 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
             sums[labels[i], 0] += points[i, 0]
             sums[labels[i], 1] += points[i, 1]
             counts[labels[i]] += 1.0
+        max_shift = 0.0
         for c in range(k):
+            shift[c] = 0.0
             if counts[c] > 0:  # an empty cluster keeps its centre
-                centres[c, 0] = sums[c, 0] / counts[c]
-                centres[c, 1] = sums[c, 1] / counts[c]
+                nx = sums[c, 0] / counts[c]
+                ny = sums[c, 1] / counts[c]
+                shift[c] = math.sqrt((nx - centres[c, 0]) ** 2 + (ny - centres[c, 1]) ** 2)
+                centres[c, 0] = nx
+                centres[c, 1] = ny
+            if shift[c] > max_shift:
+                max_shift = shift[c]
+        for c in range(k):
+            g = np.inf
+            for c2 in range(k):
+                if c2 != c:
+                    d = (centres[c, 0] - centres[c2, 0]) ** 2 + (centres[c, 1] - centres[c2, 1]) ** 2
+                    if d < g:
+                        g = d
+            half_gap[c] = 0.5 * math.sqrt(g)
+        for i in range(n):
+            upper[i] += shift[labels[i]]
+            lower[i] -= max_shift
     return labels
+
+
+@numba.njit(cache=True)
+def _kmeanspp_topup(points, centres, n_extra, uniforms):  # pragma: no cover - compiled
+    """Append up to ``n_extra`` k-means++ draws (one uniform each) to ``centres``."""
+    n = points.shape[0]
+    k0 = centres.shape[0]
+    out = np.empty((k0 + n_extra, 2))
+    out[:k0] = centres
+    d2 = np.full(n, np.inf)
+    for i in range(n):
+        for c in range(k0):
+            d = (points[i, 0] - centres[c, 0]) ** 2 + (points[i, 1] - centres[c, 1]) ** 2
+            if d < d2[i]:
+                d2[i] = d
+    if k0 == 0:
+        d2[:] = 1.0
+    m = k0
+    for e in range(n_extra):
+        total = 0.0
+        for i in range(n):
+            total += d2[i]
+        if not total > 0:
+            break
+        target = uniforms[e] * total
+        acc = 0.0
+        pick = n - 1
+        for i in range(n):
+            acc += d2[i]
+            if acc > target:
+                pick = i
+                break
+        out[m, 0] = points[pick, 0]
+        out[m, 1] = points[pick, 1]
+        m += 1
+        for i in range(n):
+            d = (points[i, 0] - points[pick, 0]) ** 2 + (points[i, 1] - points[pick, 1]) ** 2
+            if d < d2[i]:
+                d2[i] = d
+    return out[:m]
 
 
 @numba.njit(cache=True)
@@ -435,19 +524,11 @@ def _initial_centres(points, view, view_r2, k, rng) -> np.ndarray:
     counts = np.bincount(view)
     best = np.flatnonzero(counts == counts.max())
     seed_view = best[np.argmin(view_r2[best])]
-    centres = points[view == seed_view][:k]
+    centres = np.ascontiguousarray(points[view == seed_view][:k], dtype=np.float64)
     if len(centres) < k:
-        extra = []
-        d2 = ((points[:, None, :] - centres[None, :, :]) ** 2).sum(-1).min(axis=1)
-        for _ in range(k - len(centres)):
-            total = d2.sum()
-            if not total > 0:
-                break
-            i = rng.choice(len(points), p=d2 / total)
-            extra.append(points[i])
-            d2 = np.minimum(d2, ((points - points[i]) ** 2).sum(-1))
-        if extra:
-            centres = np.vstack([centres, np.array(extra)])
+        n_extra = k - len(centres)
+        centres = _kmeanspp_topup(np.ascontiguousarray(points, dtype=np.float64), centres,
+                                  n_extra, rng.random(n_extra))
     return np.ascontiguousarray(centres, dtype=np.float64)
 
 
