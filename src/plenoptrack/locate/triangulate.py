@@ -31,6 +31,7 @@ import warnings
 from dataclasses import dataclass
 from typing import Literal
 
+import numba
 import numpy as np
 import pandas as pd
 from scipy.optimize import least_squares
@@ -376,7 +377,7 @@ def _triangulate(dlfc, u, v, s, t, labels, cluster_ids, x0, n_possible_views,
         positions[active] = p[active]
         converged[active] = conv[active]
         err = np.hypot(*model.residuals(positions).T)
-        new_out = _outliers(err, labels, keep, n_k, reject_k, min_views, min_threshold_px)
+        new_out = _outliers(err, model, keep, n_k, reject_k, min_views, min_threshold_px)
         new_out &= can_reject[labels]
         if not new_out.any():
             break
@@ -387,32 +388,40 @@ def _triangulate(dlfc, u, v, s, t, labels, cluster_ids, x0, n_possible_views,
                       min_views, n_possible_views, volume_depth_mm)
 
 
-def _group_median(values: np.ndarray, groups: np.ndarray, n_groups: int) -> np.ndarray:
-    """Median of ``values`` within each group (NaN for empty groups)."""
-    order = np.lexsort((values, groups))
-    counts = np.bincount(groups, minlength=n_groups)
-    starts = np.cumsum(counts) - counts
-    med = np.full(n_groups, np.nan)
-    has = counts > 0
-    sv = values[order]
-    lo = starts[has] + (counts[has] - 1) // 2
-    hi = starts[has] + counts[has] // 2
-    med[has] = 0.5 * (sv[lo] + sv[hi])
-    return med
+@numba.njit(cache=True)
+def _robust_thresholds(err, order, bounds, keep, k_sigma, floor):  # pragma: no cover
+    """Per-cluster ``max(median + k_sigma * MAD, floor)`` of ``err`` over kept rows
+    (NaN for clusters without kept rows or with a NaN median)."""
+    n_k = len(bounds) - 1
+    out = np.full(n_k, np.nan)
+    buf = np.empty(len(err))
+    for k in range(n_k):
+        m = 0
+        for r in range(bounds[k], bounds[k + 1]):
+            i = order[r]
+            if keep[i]:
+                buf[m] = err[i]
+                m += 1
+        if m == 0:
+            continue
+        med = np.median(buf[:m])
+        if np.isnan(med):
+            continue
+        mad = np.median(np.abs(buf[:m] - med))
+        out[k] = max(med + k_sigma * mad, floor)
+    return out
 
 
-def _outliers(err, labels, keep, n_k, reject_k, min_views, min_threshold_px) -> np.ndarray:
+def _outliers(err, model, keep, n_k, reject_k, min_views, min_threshold_px) -> np.ndarray:
     """(M,) mask of kept centroids to reject now, never leaving fewer than ``min_views``."""
-    idx = np.flatnonzero(keep)
-    lab = labels[idx]
-    e = err[idx]
-    med = _group_median(e, lab, n_k)
-    mad = _group_median(np.abs(e - med[lab]), lab, n_k)
-    threshold = np.maximum(med + reject_k * _MAD_TO_SIGMA * mad, min_threshold_px)
-    cand = idx[e > threshold[lab]]
+    labels = model.labels
+    threshold = _robust_thresholds(err, model.order, model.bounds, keep,
+                                   reject_k * _MAD_TO_SIGMA, min_threshold_px)
+    with np.errstate(invalid="ignore"):
+        cand = np.flatnonzero(keep & (err > threshold[labels]))
     if cand.size == 0:
         return np.zeros(len(err), dtype=bool)
-    allowed = np.maximum(np.bincount(lab, minlength=n_k) - min_views, 0)
+    allowed = np.maximum(np.bincount(labels[keep], minlength=n_k) - min_views, 0)
     order = np.lexsort((-err[cand], labels[cand]))      # worst first within each cluster
     cand = cand[order]
     cl = labels[cand]
@@ -432,6 +441,228 @@ def _powers(values: np.ndarray, top: int) -> np.ndarray:
     return out
 
 
+@numba.njit(cache=True)
+def _coefficients_one(pos, xyz_e, tensor, centre, scale, powers, c, dc):  # pragma: no cover
+    """``C = X(p) G`` (B, 2) and ``dC/d(x, y, z)`` (3, B, 2) at one position, into ``c``
+    and ``dc`` (``dc`` with a zero first axis skips the derivatives)."""
+    n_a, n_b = tensor.shape[0], tensor.shape[1]
+    with_deriv = dc.shape[0] == 3
+    top = powers.shape[1] - 1
+    for j in range(3):
+        qn = (pos[j] - centre[j]) / scale[j]
+        powers[j, 0] = 1.0
+        for e in range(1, top + 1):
+            powers[j, e] = powers[j, e - 1] * qn
+    c[:, :] = 0.0
+    if with_deriv:
+        dc[:, :, :] = 0.0
+    for a in range(n_a):
+        e0, e1, e2 = xyz_e[a, 0], xyz_e[a, 1], xyz_e[a, 2]
+        f0, f1, f2 = powers[0, e0], powers[1, e1], powers[2, e2]
+        xm = f0 * f1 * f2
+        if with_deriv:
+            d0 = e0 * powers[0, e0 - 1] / scale[0] if e0 > 0 else 0.0
+            d1 = e1 * powers[1, e1 - 1] / scale[1] if e1 > 0 else 0.0
+            d2 = e2 * powers[2, e2 - 1] / scale[2] if e2 > 0 else 0.0
+            g0, g1, g2 = d0 * f1 * f2, f0 * d1 * f2, f0 * f1 * d2
+        for b in range(n_b):
+            for ch in range(2):
+                coef = tensor[a, b, ch]
+                if coef == 0.0:
+                    continue
+                c[b, ch] += xm * coef
+                if with_deriv:
+                    dc[0, b, ch] += g0 * coef
+                    dc[1, b, ch] += g1 * coef
+                    dc[2, b, ch] += g2 * coef
+
+
+@numba.njit(cache=True)
+def _normal_one(pos, k, mom, wo, oo, ref, xyz_e, tensor, centre, scale, powers, c, dc, mdc,
+                jtj, jtr):  # pragma: no cover - compiled
+    """J^T J and J^T r of cluster ``k`` at ``pos`` (written into ``jtj``, ``jtr``); returns
+    the residual sum of squares."""
+    n_b = tensor.shape[1]
+    _coefficients_one(pos, xyz_e, tensor, centre, scale, powers, c, dc)
+    c[0, 0] -= ref[k, 0]
+    c[0, 1] -= ref[k, 1]
+    ssr = oo[k]
+    for d in range(3):
+        jtr[d] = 0.0
+    for b in range(n_b):
+        for ch in range(2):
+            mc = 0.0
+            for b2 in range(n_b):
+                mc += mom[k, b, b2] * c[b2, ch]
+            ssr += c[b, ch] * (mc - 2.0 * wo[k, b, ch])
+            g = mc - wo[k, b, ch]
+            for d in range(3):
+                jtr[d] += dc[d, b, ch] * g
+    for d in range(3):
+        for b in range(n_b):
+            for ch in range(2):
+                acc = 0.0
+                for b2 in range(n_b):
+                    acc += mom[k, b, b2] * dc[d, b2, ch]
+                mdc[d, b, ch] = acc
+    for d in range(3):
+        for e in range(d, 3):
+            acc = 0.0
+            for b in range(n_b):
+                for ch in range(2):
+                    acc += dc[d, b, ch] * mdc[e, b, ch]
+            jtj[d, e] = acc
+            jtj[e, d] = acc
+    return max(ssr, 0.0)
+
+
+@numba.njit(cache=True)
+def _normal_kernel(positions, idx, mom, wo, oo, ref, xyz_e, tensor, centre,
+                   scale):  # pragma: no cover - compiled
+    """J^T J (k, 3, 3), J^T r (k, 3) and SSR (k,) of clusters ``idx`` at ``positions``."""
+    n_b = tensor.shape[1]
+    top = xyz_e.max()
+    powers = np.empty((3, top + 1))
+    c = np.empty((n_b, 2))
+    dc = np.empty((3, n_b, 2))
+    mdc = np.empty((3, n_b, 2))
+    jtj = np.zeros((len(idx), 3, 3))
+    jtr = np.zeros((len(idx), 3))
+    ssr = np.zeros(len(idx))
+    for r in range(len(idx)):
+        ssr[r] = _normal_one(positions[r], idx[r], mom, wo, oo, ref, xyz_e, tensor, centre,
+                             scale, powers, c, dc, mdc, jtj[r], jtr[r])
+    return jtj, jtr, ssr
+
+
+@numba.njit(cache=True)
+def _solve3(a, b):  # pragma: no cover - compiled
+    """Solution of the 3 x 3 system ``a x = b`` (Gaussian elimination, partial pivoting)."""
+    m = a.copy()
+    x = b.copy()
+    for col in range(3):
+        piv = col
+        for r in range(col + 1, 3):
+            if abs(m[r, col]) > abs(m[piv, col]):
+                piv = r
+        if piv != col:
+            for j in range(3):
+                m[col, j], m[piv, j] = m[piv, j], m[col, j]
+            x[col], x[piv] = x[piv], x[col]
+        for r in range(col + 1, 3):
+            f = m[r, col] / m[col, col]
+            for j in range(col, 3):
+                m[r, j] -= f * m[col, j]
+            x[r] -= f * x[col]
+    for r in range(2, -1, -1):
+        acc = x[r]
+        for j in range(r + 1, 3):
+            acc -= m[r, j] * x[j]
+        x[r] = acc / m[r, r]
+    return x
+
+
+@numba.njit(cache=True)
+def _lm_kernel(p, idx, mom, wo, oo, ref, xyz_e, tensor, centre, scale, max_iter, xtol,
+               ftol, converged):  # pragma: no cover - compiled
+    """Levenberg-Marquardt on each cluster of ``idx`` from ``p[k]`` (updated in place)."""
+    n_b = tensor.shape[1]
+    top = xyz_e.max()
+    powers = np.empty((3, top + 1))
+    c = np.empty((n_b, 2))
+    dc = np.empty((3, n_b, 2))
+    mdc = np.empty((3, n_b, 2))
+    jtj = np.empty((3, 3))
+    jtr = np.empty(3)
+    t_jtj = np.empty((3, 3))
+    t_jtr = np.empty(3)
+    damped = np.empty((3, 3))
+    trial = np.empty(3)
+    for k in idx:
+        cost = _normal_one(p[k], k, mom, wo, oo, ref, xyz_e, tensor, centre, scale, powers,
+                           c, dc, mdc, jtj, jtr)
+        lam = 1e-3
+        for _ in range(max_iter):
+            tr = jtj[0, 0] + jtj[1, 1] + jtj[2, 2]
+            for i in range(3):
+                for j in range(3):
+                    damped[i, j] = jtj[i, j]
+                damped[i, i] += lam * jtj[i, i] + 1e-12 * tr + 1e-300
+            step = -_solve3(damped, jtr)
+            for j in range(3):
+                trial[j] = p[k, j] + step[j]
+            t_cost = _normal_one(trial, k, mom, wo, oo, ref, xyz_e, tensor, centre, scale,
+                                 powers, c, dc, mdc, t_jtj, t_jtr)
+            if t_cost <= cost:
+                gain = cost - t_cost
+                cost = t_cost
+                p[k, :] = trial
+                jtj[:, :] = t_jtj
+                jtr[:] = t_jtr
+                lam /= 10.0
+                big = max(abs(step[0]), abs(step[1]), abs(step[2]))
+                if big <= xtol or gain <= ftol * max(cost, 1e-300):
+                    converged[k] = True
+                    break
+            else:
+                lam *= 10.0
+                if lam > 1e12:
+                    break
+
+
+@numba.njit(cache=True)
+def _moments_kernel(w, obs, labels, keep, active, n_k):  # pragma: no cover - compiled
+    """``M`` (K, B, B), ``b`` (K, B, 2), ``sum |o|^2`` (K,) over kept centroids of active
+    clusters (zero for the others)."""
+    n_b = w.shape[1]
+    mom = np.zeros((n_k, n_b, n_b))
+    wo = np.zeros((n_k, n_b, 2))
+    oo = np.zeros(n_k)
+    for i in range(w.shape[0]):
+        k = labels[i]
+        if not (keep[i] and active[k]):
+            continue
+        o0, o1 = obs[i, 0], obs[i, 1]
+        oo[k] += o0 * o0 + o1 * o1
+        for b in range(n_b):
+            wb = w[i, b]
+            wo[k, b, 0] += wb * o0
+            wo[k, b, 1] += wb * o1
+            for b2 in range(b, n_b):
+                mom[k, b, b2] += wb * w[i, b2]
+    for k in range(n_k):
+        for b in range(n_b):
+            for b2 in range(b + 1, n_b):
+                mom[k, b2, b] = mom[k, b, b2]
+    return mom, wo, oo
+
+
+@numba.njit(cache=True)
+def _residual_kernel(positions, w, obs, labels, ref, xyz_e, tensor, centre,
+                     scale):  # pragma: no cover - compiled
+    """(M, 2) measured minus predicted ``(s, t)`` of every centroid."""
+    n_k = positions.shape[0]
+    n_b = tensor.shape[1]
+    top = xyz_e.max()
+    powers = np.empty((3, top + 1))
+    coef = np.empty((n_k, n_b, 2))
+    no_deriv = np.empty((0, n_b, 2))
+    for k in range(n_k):
+        _coefficients_one(positions[k], xyz_e, tensor, centre, scale, powers, coef[k],
+                          no_deriv)
+        coef[k, 0, 0] -= ref[k, 0]
+        coef[k, 0, 1] -= ref[k, 1]
+    out = np.empty((w.shape[0], 2))
+    for i in range(w.shape[0]):
+        k = labels[i]
+        for ch in range(2):
+            acc = 0.0
+            for b in range(n_b):
+                acc += w[i, b] * coef[k, b, ch]
+            out[i, ch] = obs[i, ch] - acc
+    return out
+
+
 class _ClusterModel:
     """Per-cluster least-squares problem in the view-factorised form of the DLFC.
 
@@ -442,120 +673,72 @@ class _ClusterModel:
     ``M_k = sum_i W_i W_i^T``, ``b_k = sum_i W_i o_i`` and ``sum_i |o_i|^2``, formed once
     per set of kept centroids, and every iteration costs ``O(K)`` small products however
     many views each particle has. Observations are taken relative to each cluster's mean
-    so that the moment form of the residual sum of squares does not cancel digits.
+    so that the moment form of the residual sum of squares does not cancel digits. The
+    products run in compiled kernels, one cluster at a time.
     """
 
     def __init__(self, dlfc: DLFC, u, v, obs, labels, n_k):
         self.dlfc, self.labels, self.n_k = dlfc, labels, n_k
         self.u, self.v, self.raw_obs = u, v, obs
-        self.xyz_e, uv_e, self.tensor = dlfc.view_factorisation
+        xyz_e, uv_e, tensor = dlfc.view_factorisation
+        self.xyz_e = np.ascontiguousarray(xyz_e, dtype=np.int64)
+        self.tensor = np.ascontiguousarray(tensor, dtype=np.float64)
+        self.centre = np.ascontiguousarray(dlfc.centre[:3], dtype=np.float64)
+        self.scale = np.ascontiguousarray(dlfc.scale[:3], dtype=np.float64)
         un = (u - dlfc.centre[3]) / dlfc.scale[3]
         vn = (v - dlfc.centre[4]) / dlfc.scale[4]
         top = int(uv_e.max())
-        self.w = _powers(un, top)[:, uv_e[:, 0]] * _powers(vn, top)[:, uv_e[:, 1]]  # (M, B)
+        self.w = np.ascontiguousarray(_powers(un, top)[:, uv_e[:, 0]]
+                                      * _powers(vn, top)[:, uv_e[:, 1]])           # (M, B)
         counts = np.bincount(labels, minlength=n_k)
         self.ref = np.stack([np.bincount(labels, obs[:, c], minlength=n_k) for c in (0, 1)],
                             axis=1) / np.maximum(counts, 1)[:, None]
-        self.obs = obs - self.ref[labels]
+        self.obs = np.ascontiguousarray(obs - self.ref[labels])
+        self.labels = np.ascontiguousarray(labels, dtype=np.int64)
         self.order = np.argsort(labels, kind="stable")
         self.bounds = np.searchsorted(labels[self.order], np.arange(n_k + 1))
 
     def moments(self, keep: np.ndarray, clusters: np.ndarray):
-        """``M`` (K, B, B), ``b`` (K, B, 2), ``sum |o|^2`` (K,) over kept centroids."""
-        n_b = self.w.shape[1]
-        mom = np.zeros((self.n_k, n_b, n_b))
-        wo = np.zeros((self.n_k, n_b, 2))
-        oo = np.zeros(self.n_k)
-        for k in clusters:
-            rows = self.order[self.bounds[k]:self.bounds[k + 1]]
-            rows = rows[keep[rows]]
-            wk, ok = self.w[rows], self.obs[rows]
-            mom[k] = wk.T @ wk
-            wo[k] = wk.T @ ok
-            oo[k] = np.sum(ok * ok)
-        return mom, wo, oo
-
-    def coefficients(self, positions: np.ndarray, idx: np.ndarray):
-        """``C`` (k, B, 2) and ``dC/d(x, y, z)`` (k, 3, B, 2) of clusters ``idx``.
-
-        ``positions`` (k, 3), mm, are the positions of those clusters.
-        """
-        dlfc, e = self.dlfc, self.xyz_e
-        qn = (positions - dlfc.centre[:3]) / dlfc.scale[:3]
-        top = int(e.max())
-        powers = _powers(qn, top)                                               # (K, 3, n+1)
-        f = [powers[:, j, e[:, j]] for j in range(3)]                          # (K, A) each
-        df = [e[:, j] * powers[:, j, np.maximum(e[:, j] - 1, 0)] / dlfc.scale[j]
-              for j in range(3)]
-        x_mono = f[0] * f[1] * f[2]
-        dx_mono = np.stack([df[0] * f[1] * f[2], f[0] * df[1] * f[2], f[0] * f[1] * df[2]], 1)
-        c = np.einsum("ka,abc->kbc", x_mono, self.tensor)
-        c[:, 0, :] -= self.ref[idx]
-        dc = np.einsum("kda,abc->kdbc", dx_mono, self.tensor)
-        return c, dc
+        """``M`` (K, B, B), ``b`` (K, B, 2), ``sum |o|^2`` (K,) over kept centroids of
+        ``clusters`` (zero for the other clusters)."""
+        active = np.zeros(self.n_k, dtype=bool)
+        active[clusters] = True
+        return _moments_kernel(self.w, self.obs, self.labels, np.asarray(keep, dtype=bool),
+                               active, self.n_k)
 
     def normal_equations(self, positions, idx, moments):
         """J^T J (k, 3, 3), J^T r (k, 3) and SSR (k,) of clusters ``idx``.
 
-        ``positions`` (k, 3) and ``moments`` belong to those clusters.
+        ``positions`` (k, 3) are the positions of those clusters; ``moments`` come from
+        :meth:`moments` (all clusters).
         """
         mom, wo, oo = moments
-        c, dc = self.coefficients(positions, idx)
-        mc = np.einsum("kij,kjc->kic", mom, c)                                  # M C
-        ssr = np.einsum("kic,kic->k", c, mc - 2 * wo) + oo
-        g = mc - wo                                                              # M C - b
-        jtr = np.einsum("kdic,kic->kd", dc, g)
-        jtj = np.einsum("kdic,kij,kejc->kde", dc, mom, dc, optimize=True)
-        return jtj, jtr, np.maximum(ssr, 0.0)
+        return _normal_kernel(np.ascontiguousarray(positions, dtype=np.float64),
+                              np.asarray(idx, dtype=np.int64), mom, wo, oo, self.ref,
+                              self.xyz_e, self.tensor, self.centre, self.scale)
 
     def residuals(self, positions) -> np.ndarray:
         """(M, 2) measured minus predicted (s, t) of every centroid, view pixels."""
-        c, _ = self.coefficients(positions, np.arange(self.n_k))
-        return self.obs - np.einsum("mb,mbc->mc", self.w, c[self.labels])
+        return _residual_kernel(np.ascontiguousarray(positions, dtype=np.float64), self.w,
+                                self.obs, self.labels, self.ref, self.xyz_e, self.tensor,
+                                self.centre, self.scale)
 
 
 def _solve_lm(model: _ClusterModel, keep, start, active, max_iter, *,
               xtol_mm: float = 1e-6, ftol: float = 1e-10):
-    """Batched Levenberg-Marquardt on the clusters marked ``active``.
+    """Levenberg-Marquardt on each cluster marked ``active``.
 
-    Each iteration takes the damped step ``(A + lam diag(A)) d = -g`` from each
+    Each iteration takes the damped step ``(A + lam diag(A)) d = -g`` from the
     cluster's 3 x 3 normal equations and keeps it where the cost drops (``lam / 10``)
     or undoes it (``lam * 10``). A cluster stops when an accepted step is below
     ``xtol_mm`` in every coordinate or lowers the cost by less than ``ftol`` relative.
     """
-    n_k = len(start)
-    idx_active = np.flatnonzero(active)
-    moments = model.moments(keep, idx_active)
-    p = start.copy()
-    lam = np.full(n_k, 1e-3)
-    running = active.copy()
-    converged = np.zeros(n_k, dtype=bool)
-    sub = idx_active
-    mom_sub = tuple(m[sub] for m in moments)
-    jtj, jtr, cost = (np.zeros((n_k, 3, 3)), np.zeros((n_k, 3)), np.zeros(n_k))
-    jtj[sub], jtr[sub], cost[sub] = model.normal_equations(p[sub], sub, mom_sub)
-    for _ in range(max_iter):
-        idx = np.flatnonzero(running)
-        if idx.size == 0:
-            break
-        a = jtj[idx]
-        diag = np.einsum("kii->ki", a)
-        damping = lam[idx, None] * diag + 1e-12 * diag.sum(1, keepdims=True) + 1e-300
-        step = -np.linalg.solve(a + damping[:, :, None] * np.eye(3), jtr[idx][:, :, None])[..., 0]
-        trial = p[idx] + step
-        t_jtj, t_jtr, t_cost = model.normal_equations(trial, idx,
-                                                      tuple(m[idx] for m in moments))
-        better = t_cost <= cost[idx]
-        acc = idx[better]
-        p[acc], jtj[acc], jtr[acc] = trial[better], t_jtj[better], t_jtr[better]
-        gain = cost[acc] - t_cost[better]
-        cost[acc] = t_cost[better]
-        lam[idx] = np.where(better, lam[idx] / 10, lam[idx] * 10)
-        done = np.zeros(n_k, dtype=bool)
-        done[acc] = (np.abs(step[better]).max(axis=1) <= xtol_mm) \
-            | (gain <= ftol * np.maximum(cost[acc], 1e-300))
-        converged |= done
-        running &= ~done & (lam <= 1e12)
+    idx = np.flatnonzero(active).astype(np.int64)
+    moments = model.moments(keep, idx)
+    p = np.ascontiguousarray(start, dtype=np.float64).copy()
+    converged = np.zeros(len(start), dtype=bool)
+    _lm_kernel(p, idx, *moments, model.ref, model.xyz_e, model.tensor, model.centre,
+               model.scale, int(max_iter), float(xtol_mm), float(ftol), converged)
     return p, converged
 
 
@@ -596,8 +779,8 @@ def _summarise(model: _ClusterModel, cluster_ids, positions, keep, converged, so
     jtj = np.zeros((n_k, 3, 3))
     ssr = np.zeros(n_k)
     if idx.size:
-        moments = tuple(m[idx] for m in model.moments(keep, idx))
-        jtj[idx], _, ssr[idx] = model.normal_equations(positions[idx], idx, moments)
+        jtj[idx], _, ssr[idx] = model.normal_equations(positions[idx], idx,
+                                                       model.moments(keep, idx))
     n_views = np.bincount(labels[keep], minlength=n_k)
     err = np.hypot(*model.residuals(np.nan_to_num(positions)).T)
     sum_err = np.bincount(labels[keep], err[keep], minlength=n_k)
