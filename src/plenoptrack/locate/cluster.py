@@ -514,6 +514,12 @@ def _evaluate(points, aperture, labels, centres, view, area, n_views, thresh, ar
 
 
 # --------------------------------------------------------------------------------------
+def _max_distance(points: np.ndarray) -> float:
+    from scipy.spatial.distance import pdist
+
+    return float(pdist(points).max(initial=0.0)) if len(points) > 1 else 0.0
+
+
 def _max_per_view(view: np.ndarray, n_views: int) -> int:
     return int(np.bincount(view, minlength=n_views).max(initial=0))
 
@@ -532,12 +538,55 @@ def _initial_centres(points, view, view_r2, k, rng) -> np.ndarray:
     return np.ascontiguousarray(centres, dtype=np.float64)
 
 
+def _density_clusters(pts, aperture, view, area, n_views, thresh, need, area_factor, max_trim,
+                      line_tol) -> list[np.ndarray]:
+    """Clusters found around the densest points of one plane (members, index arrays).
+
+    Points are visited from the one with the most neighbours within ``T / 2`` down; the
+    unused points within ``T / 2`` of a visited point's neighbourhood mean form a
+    candidate, which passes the same tests as a k-means cluster (:func:`_evaluate`).
+    """
+    from scipy.spatial import cKDTree
+
+    n = len(pts)
+    if n < need:
+        return []
+    tree = cKDTree(pts)
+    radius = 0.5 * thresh
+    n_near = tree.query_ball_point(pts, radius, return_length=True)
+    used = np.zeros(n, dtype=bool)
+    found = []
+    for i in np.argsort(-n_near, kind="stable"):
+        if n_near[i] < need:
+            break
+        if used[i]:
+            continue
+        idx = np.asarray(tree.query_ball_point(pts[i], radius), dtype=np.int64)
+        idx = idx[~used[idx]]
+        if len(np.unique(view[idx])) < need:
+            continue
+        centre = pts[idx].mean(axis=0)
+        idx = np.asarray(tree.query_ball_point(centre, radius), dtype=np.int64)
+        idx = idx[~used[idx]]
+        if len(idx) < need:
+            continue
+        acc, size = _evaluate(pts[idx], aperture[idx], np.zeros(len(idx), dtype=np.int64),
+                              centre[None].copy(), view[idx], area[idx], n_views, thresh,
+                              area_factor, need, max_trim, line_tol)
+        if np.isfinite(size[0]):
+            members = idx[acc == 0]
+            used[members] = True
+            found.append(members)
+    return found
+
+
 def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, alphas, *,
                        margin: float = 1.2, noise_floor_samples: float = 1.0,
                        min_members: int = 5, min_fraction: float = 0.2,
                        area_factor: float = 3.0, max_trim: float = 0.1,
                        line_tol_samples: float = 1.0,
                        max_rounds: int = 4, k_growth: float = 0.25, max_iter: int = 50,
+                       density_sweep: bool = True,
                        seed: int | np.random.Generator = 0) -> Clustering:
     """Group the detections of the same particle across views (projected-plane k-means).
 
@@ -579,6 +628,10 @@ def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, a
         See ``max_rounds``.
     max_iter : int
         Lloyd iterations per plane.
+    density_sweep : bool
+        After the k-means passes, visit every plane once more and build clusters
+        around the densest remaining projected points (the unused points within
+        ``T / 2`` of a neighbourhood's mean), accepted under the same tests.
     seed : int or numpy.random.Generator
         Seed of the k-means++ draws used when ``k`` exceeds the fullest view's count.
 
@@ -673,6 +726,30 @@ def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, a
         if idle_rounds >= 2:
             break
         k_extra += max(1, int(math.ceil(k_growth * k0)))
+
+    # Last, clusters around the densest remaining points of each plane: k-means with
+    # ``k`` set by the fullest view splits the few clusters left among noise between
+    # several centres, none of which then has enough members.
+    for p in (plane_order if density_sweep else []):
+        if len(remaining) < need:
+            break
+        a = alphas[p]
+        pts = project(u[remaining], v[remaining], s[remaining], t[remaining], a, g)
+        taken = np.zeros(len(remaining), dtype=bool)
+        for members in _density_clusters(pts, aperture[remaining], view_all[remaining],
+                                         area[remaining], n_views, thresholds[p], need,
+                                         float(area_factor), float(max_trim),
+                                         line_tol_samples * g.mm_per_sample * a):
+            cid = len(rows)
+            idx = remaining[members]
+            cluster[idx] = cid
+            cluster_alpha[idx] = a
+            cx, cy = pts[members].mean(axis=0)
+            rows.append((cid, a, len(members), _max_distance(pts[members]), thresholds[p],
+                         cx, cy, g.axis_st[0] + cx / (a * g.mm_per_sample),
+                         g.axis_st[1] + cy / (a * g.mm_per_sample)))
+            taken[members] = True
+        remaining = remaining[~taken]
 
     clusters = pd.DataFrame(rows, columns=list(CLUSTER_COLUMNS)).astype(
         {"cluster": np.int64, "n": np.int64, "alpha": float, "size_mm": float,

@@ -116,9 +116,16 @@ class PerspectiveLocator:
         Regions larger than this multiple of the median region area of the frame are
         taken for merged images of several particles: they are neither clustered nor
         added to particles (their centroids lie between the particles).
+    merged_elongation : float
+        After the first pass, large regions no more elongated than this (major over
+        minor axis) on which no located particle is predicted are returned to the pool:
+        they are single particles near the camera, imaged at a higher magnification.
     max_explained : float
         Particles for which, in more than this fraction of their views, two other
         particles are predicted on the centroid are dropped (built from merged images).
+    max_view_ratio : float or None
+        Views with more than this multiple of the median number of regions per view are
+        dominated by noise (dim rim views) and are not used; None keeps every view.
     solver : {"lm", "scipy"}
         Least-squares solver of the triangulation (see
         :func:`~plenoptrack.locate.triangulate.triangulate_clusters`).
@@ -142,6 +149,8 @@ class PerspectiveLocator:
     min_aperture_spread: float = 0.4
     max_explained: float = 0.5
     max_area_ratio: float = 1.3
+    merged_elongation: float = 1.25
+    max_view_ratio: float | None = 2.0
     solver: str = "lm"
     seed: int = 0
     extra: dict = field(default_factory=dict, repr=False, compare=False)
@@ -160,6 +169,8 @@ class PerspectiveLocator:
             raise ValueError(f"min_views must be at least 2; got {self.min_views}")
         if self.solver not in ("lm", "scipy"):
             raise ValueError(f"solver must be 'lm' or 'scipy'; got {self.solver!r}")
+        if self.max_view_ratio is not None and not self.max_view_ratio > 1:
+            raise ValueError(f"max_view_ratio must be None or above 1; got {self.max_view_ratio}")
         if self.passes < 1:
             raise ValueError(f"passes must be at least 1; got {self.passes}")
         if self.depth_range_mm is not None and not self.depth_range_mm[1] > self.depth_range_mm[0]:
@@ -331,6 +342,27 @@ def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner:
     return owner
 
 
+def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_):
+    """Return large round regions that no located particle is predicted on to the pool.
+
+    A region taken for a merged image (owner ``_MERGED``) that is round and has no
+    located particle predicted inside it (within ``radius_px``) is the image of one
+    particle near the camera, larger than the typical image; it is released (owner -1)
+    so that the next clustering pass can find that particle.
+    """
+    rows = np.flatnonzero((owner == _MERGED) & round_)
+    ok = np.all(np.isfinite(positions), axis=1)
+    if len(rows) == 0 or not ok.any():
+        return owner
+    pred = _predict_all(dlfc, positions[ok], views)                       # (P, V, 2)
+    d = np.hypot(st[rows, None, 0] - pred[:, view[rows], 0].T,
+                 st[rows, None, 1] - pred[:, view[rows], 1].T)           # (m, P)
+    empty = ~(d <= radius_px[rows, None]).any(axis=1)
+    owner = owner.copy()
+    owner[rows[empty]] = -1
+    return owner
+
+
 def _explained_by_others(pred: np.ndarray, st: np.ndarray, view: np.ndarray,
                          owner: np.ndarray, radius_px: np.ndarray, ok: np.ndarray
                          ) -> np.ndarray:
@@ -458,6 +490,8 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     st = detections[["s", "t"]].to_numpy(float)
     owner = np.full(len(detections), -1, dtype=np.int64)
     area = detections["area"].to_numpy(float)
+    elongation = (detections["major_axis_px"].to_numpy(float)
+                  / np.maximum(detections["minor_axis_px"].to_numpy(float), 1e-9))
     owner[area > locator.max_area_ratio * np.median(area)] = _MERGED
     z_lo, z_hi = (locator.depth_range_mm if locator.depth_range_mm is not None
                   else (float(dlfc.bounds[0, 2]), float(dlfc.bounds[1, 2])))
@@ -485,6 +519,9 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     positions = np.zeros((0, 3))
     initial = np.zeros((0, 3))
     for _ in range(locator.passes):
+        if len(positions):
+            owner = _release_single_large(dlfc, positions, views, st, view, owner, radius_px,
+                                          elongation <= locator.merged_elongation)
         free = np.flatnonzero(owner == -1)
         if len(free) < locator.min_views:
             break
@@ -559,6 +596,15 @@ def _segment(lf, frame: int, locator: PerspectiveLocator) -> pd.DataFrame:
                                   **{**kw, "area_range": (1.0, math.inf),
                                      "max_eccentricity": 1.0})
             detections = _split_merged(detections, cores)
+    if len(detections) and locator.max_view_ratio is not None:
+        # A view with far more regions than the typical view is dominated by noise (a
+        # dim, partly vignetted rim view): its regions would only inflate k and the
+        # pool of false centroids.
+        _, view_of, counts = np.unique(detections[["v", "u"]].to_numpy(float), axis=0,
+                                       return_inverse=True, return_counts=True)
+        noisy = counts > locator.max_view_ratio * np.median(counts)
+        if noisy.any():
+            detections = detections[~noisy[view_of.ravel()]]
     return detections.reset_index(drop=True)
 
 
