@@ -24,6 +24,7 @@ Opt. Express 27 (2019).
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from dataclasses import asdict, dataclass, field
 
@@ -60,10 +61,15 @@ class LocateResult:
     detections : DataFrame
         Every centroid found in every view with its ``particle`` row index (-1 when it was
         not used) and ``inlier`` flag.
+    stage_seconds : dict
+        Wall-clock time of each stage of the call, s: ``decode``, ``segment``,
+        ``cluster`` (every clustering pass), ``triangulate`` (solves, duplicate merging
+        and centroid addition) and ``checks`` (final consistency checks and the table).
     """
 
     particles: pd.DataFrame
     detections: pd.DataFrame
+    stage_seconds: dict = field(default_factory=dict, compare=False)
 
 
 @dataclass(frozen=True)
@@ -476,6 +482,15 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     locator = PerspectiveLocator() if locator is None else locator
     dlfc = calibration.dlfc
     camera = calibration.camera
+    clock = {"decode": 0.0, "segment": 0.0, "cluster": 0.0, "triangulate": 0.0, "checks": 0.0}
+    t_last = time.perf_counter()
+
+    def lap(stage):
+        nonlocal t_last
+        now = time.perf_counter()
+        clock[stage] += now - t_last
+        t_last = now
+
     if isinstance(raw_or_lf, LightField):
         lf = raw_or_lf
     else:
@@ -483,9 +498,11 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         calibration.check_image(image)
         lf = decode(image, calibration.grid)
 
+    lap("decode")
     detections = _segment(lf, frame, locator)
+    lap("segment")
     if len(detections) == 0:
-        return _finish_empty(detections, frame)
+        return _finish_empty(detections, frame, clock)
     view, views = _view_index(detections)
     st = detections[["s", "t"]].to_numpy(float)
     owner = np.full(len(detections), -1, dtype=np.int64)
@@ -525,10 +542,12 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         free = np.flatnonzero(owner == -1)
         if len(free) < locator.min_views:
             break
+        lap("triangulate")
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", NoParticlesWarning)
             clustering = cluster_detections(detections.iloc[free], geometry, alphas,
                                             min_members=locator.min_views, seed=locator.seed)
+        lap("cluster")
         if clustering.n_clusters == 0:
             break
         start = len(positions)
@@ -541,8 +560,9 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
             owner, positions, table = solve(owner, initial)
             owner = grow(owner, positions, table)
             initial = np.where(np.isfinite(positions), positions, initial)
+    lap("triangulate")
     if len(positions) == 0:
-        return _finish_empty(detections, frame)
+        return _finish_empty(detections, frame, clock)
 
     # Final checks: drop particles built from merged regions, too few or clustered
     # views, or residuals far above the typical one; release their centroids to the
@@ -579,9 +599,10 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     particles["n_views"] = particles["n_views"].astype(np.int64)
     particles["flags"] = particles["flags"].astype(np.uint8)
     detections = detections.assign(particle=particle_of, inlier=particle_of >= 0)
+    lap("checks")
     if len(particles) == 0:
-        return _finish_empty(detections, frame)
-    return LocateResult(particles=particles, detections=detections)
+        return _finish_empty(detections, frame, clock)
+    return LocateResult(particles=particles, detections=detections, stage_seconds=clock)
 
 
 def _segment(lf, frame: int, locator: PerspectiveLocator) -> pd.DataFrame:
@@ -659,11 +680,12 @@ def _gather(tri, n: int) -> tuple[np.ndarray, pd.DataFrame]:
     return positions, table
 
 
-def _finish_empty(detections: pd.DataFrame, frame: int) -> LocateResult:
+def _finish_empty(detections: pd.DataFrame, frame: int, clock=None) -> LocateResult:
     warnings.warn(f"frame {frame}: no particles found", NoParticlesWarning, stacklevel=3)
     detections = detections.assign(particle=np.full(len(detections), -1, dtype=np.int64),
                                    inlier=np.zeros(len(detections), dtype=bool))
-    return LocateResult(particles=_empty_particles(), detections=detections)
+    return LocateResult(particles=_empty_particles(), detections=detections,
+                        stage_seconds=dict(clock or {}))
 
 
 def flags_text(flags: int) -> str:
