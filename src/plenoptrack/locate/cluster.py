@@ -586,7 +586,8 @@ def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, a
                        area_factor: float = 3.0, max_trim: float = 0.1,
                        line_tol_samples: float = 1.0,
                        max_rounds: int = 4, k_growth: float = 0.25, max_iter: int = 50,
-                       density_sweep: bool = True,
+                       density_sweep: bool = True, sweep_min_fraction: float = 0.1,
+                       sweep_max_trim: float = 0.3,
                        seed: int | np.random.Generator = 0) -> Clustering:
     """Group the detections of the same particle across views (projected-plane k-means).
 
@@ -632,6 +633,14 @@ def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, a
         After the k-means passes, visit every plane once more and build clusters
         around the densest remaining projected points (the unused points within
         ``T / 2`` of a neighbourhood's mean), accepted under the same tests.
+    sweep_min_fraction : float
+        Fraction of the views a cluster of the density sweep needs (``min_fraction``
+        for the k-means passes): particles partly hidden behind others are seen alone
+        in fewer views.
+    sweep_max_trim : float
+        ``max_trim`` of the density sweep (the larger of the two is used): centroids of
+        regions split from merged images scatter more, and the triangulation rejects
+        the outliers that remain.
     seed : int or numpy.random.Generator
         Seed of the k-means++ draws used when ``k`` exceeds the fullest view's count.
 
@@ -730,15 +739,17 @@ def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, a
     # Last, clusters around the densest remaining points of each plane: k-means with
     # ``k`` set by the fullest view splits the few clusters left among noise between
     # several centres, none of which then has enough members.
+    need_sweep = max(int(min_members), int(math.ceil(sweep_min_fraction * n_views)))
     for p in (plane_order if density_sweep else []):
-        if len(remaining) < need:
+        if len(remaining) < need_sweep:
             break
         a = alphas[p]
         pts = project(u[remaining], v[remaining], s[remaining], t[remaining], a, g)
         taken = np.zeros(len(remaining), dtype=bool)
         for members in _density_clusters(pts, aperture[remaining], view_all[remaining],
-                                         area[remaining], n_views, thresholds[p], need,
-                                         float(area_factor), float(max_trim),
+                                         area[remaining], n_views, thresholds[p],
+                                         need_sweep, float(area_factor),
+                                         max(float(max_trim), sweep_max_trim),
                                          line_tol_samples * g.mm_per_sample * a):
             cid = len(rows)
             idx = remaining[members]
