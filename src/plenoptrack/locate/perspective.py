@@ -126,6 +126,11 @@ class PerspectiveLocator:
         After the first pass, large regions no more elongated than this (major over
         minor axis) on which no located particle is predicted are returned to the pool:
         they are single particles near the camera, imaged at a higher magnification.
+    split_pairs : bool
+        Replace regions larger than ``max_area_ratio`` times the median and more
+        elongated than ``merged_elongation`` by two half regions placed from their
+        second moments (the merged image of two particles); otherwise such regions are
+        left out.
     max_explained : float
         Particles for which, in more than this fraction of their views, two other
         particles are predicted on the centroid are dropped (built from merged images).
@@ -156,6 +161,7 @@ class PerspectiveLocator:
     max_explained: float = 0.5
     max_area_ratio: float = 1.3
     merged_elongation: float = 1.25
+    split_pairs: bool = True
     max_view_ratio: float | None = 2.0
     solver: str = "lm"
     seed: int = 0
@@ -626,7 +632,47 @@ def _segment(lf, frame: int, locator: PerspectiveLocator) -> pd.DataFrame:
         noisy = counts > locator.max_view_ratio * np.median(counts)
         if noisy.any():
             detections = detections[~noisy[view_of.ravel()]]
+    if len(detections) and locator.split_pairs:
+        detections = _split_pairs(detections, locator.max_area_ratio,
+                                  locator.merged_elongation)
     return detections.reset_index(drop=True)
+
+
+def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
+                 elongation: float) -> pd.DataFrame:
+    """Replace large elongated regions by the two particle images they are made of.
+
+    A region larger than ``max_area_ratio`` times the median area and more elongated
+    than ``elongation`` (major over minor axis) is taken for the merged image of two
+    equal particles. Two discs of radius ``r`` with centres ``c +- a e`` have second
+    moments ``r^2 / 4 + a^2`` along ``e`` and ``r^2 / 4`` across it, so
+    ``a = sqrt(l1 - l2)`` from the region's moments (``l = (axis / 4)^2``), ``e`` is its
+    major axis and ``2 r`` its minor axis. Each half gets half the area and a round
+    shape of the minor-axis diameter.
+    """
+    area = detections["area"].to_numpy(float)
+    major = detections["major_axis_px"].to_numpy(float)
+    minor = detections["minor_axis_px"].to_numpy(float)
+    pair = (area > max_area_ratio * np.median(area)) & (major > elongation * minor)
+    if not pair.any():
+        return detections
+    src = detections[pair]
+    half = np.sqrt(np.maximum((major[pair] / 4) ** 2 - (minor[pair] / 4) ** 2, 0.0))
+    theta = src["orientation"].to_numpy(float)
+    ds, dt = half * np.cos(theta), half * np.sin(theta)
+    halves = []
+    for sign in (-1.0, 1.0):
+        h = src.copy()
+        h["s"] = src["s"].to_numpy(float) + sign * ds
+        h["t"] = src["t"].to_numpy(float) + sign * dt
+        h["area"] = np.maximum(np.round(src["area"].to_numpy(float) / 2), 1).astype(
+            detections["area"].dtype)
+        h["diameter_px"] = np.sqrt(4.0 * h["area"].to_numpy(float) / math.pi)
+        h["major_axis_px"] = minor[pair]
+        h["eccentricity"] = 0.0
+        halves.append(h)
+    out = pd.concat([detections[~pair], *halves], ignore_index=True)
+    return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)
 
 
 def _inconsistent(positions, table, owner, view, views, st, radius_px, view_mask, u_all,
