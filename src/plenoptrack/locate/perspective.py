@@ -134,6 +134,11 @@ class PerspectiveLocator:
     max_explained : float
         Particles for which, in more than this fraction of their views, two other
         particles are predicted on the centroid are dropped (built from merged images).
+    max_explained_strong : float
+        The same limit for particles seen in at least a quarter of the valid views. A
+        phantom made of merged images exists only in the views where the images merge
+        (a part of the aperture, fractions near 1); a real particle in line with two
+        others in depth can be overlapped in three quarters of its many views.
     max_view_ratio : float or None
         Views with more than this multiple of the median number of regions per view are
         dominated by noise (dim rim views) and are not used; None keeps every view.
@@ -159,6 +164,7 @@ class PerspectiveLocator:
     max_residual_ratio: float = 4.0
     min_aperture_spread: float = 0.4
     max_explained: float = 0.5
+    max_explained_strong: float = 0.85
     max_area_ratio: float = 1.3
     merged_elongation: float = 1.25
     split_pairs: bool = True
@@ -516,6 +522,11 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     elongation = (detections["major_axis_px"].to_numpy(float)
                   / np.maximum(detections["minor_axis_px"].to_numpy(float), 1e-9))
     owner[area > locator.max_area_ratio * np.median(area)] = _MERGED
+    # Halves of split merged images wait, like merged regions, until particles have
+    # been located: only those no located particle accounts for join the pool.
+    split = (detections["split_pair"].to_numpy(bool) if "split_pair" in detections.columns
+             else np.zeros(len(detections), dtype=bool))
+    owner[split] = _MERGED
     z_lo, z_hi = (locator.depth_range_mm if locator.depth_range_mm is not None
                   else (float(dlfc.bounds[0, 2]), float(dlfc.bounds[1, 2])))
     volume_depth = z_hi - z_lo
@@ -544,7 +555,8 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     for _ in range(locator.passes):
         if len(positions):
             owner = _release_single_large(dlfc, positions, views, st, view, owner, radius_px,
-                                          elongation <= locator.merged_elongation)
+                                          (elongation <= locator.merged_elongation)
+                                          | split)
         free = np.flatnonzero(owner == -1)
         if len(free) < locator.min_views:
             break
@@ -655,7 +667,7 @@ def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
     minor = detections["minor_axis_px"].to_numpy(float)
     pair = (area > max_area_ratio * np.median(area)) & (major > elongation * minor)
     if not pair.any():
-        return detections
+        return detections.assign(split_pair=False)
     src = detections[pair]
     half = np.sqrt(np.maximum((major[pair] / 4) ** 2 - (minor[pair] / 4) ** 2, 0.0))
     theta = src["orientation"].to_numpy(float)
@@ -670,8 +682,9 @@ def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
         h["diameter_px"] = np.sqrt(4.0 * h["area"].to_numpy(float) / math.pi)
         h["major_axis_px"] = minor[pair]
         h["eccentricity"] = 0.0
+        h["split_pair"] = True
         halves.append(h)
-    out = pd.concat([detections[~pair], *halves], ignore_index=True)
+    out = pd.concat([detections[~pair].assign(split_pair=False), *halves], ignore_index=True)
     return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)
 
 
@@ -707,7 +720,8 @@ def _inconsistent(positions, table, owner, view, views, st, radius_px, view_mask
     bad |= ok & (res > max(locator.max_residual_ratio * typical, locator.add_tolerance_px))
     pred = _predict_all(dlfc, positions, views)
     frac = _explained_by_others(pred, st, view, owner, radius_px, ok & ~bad)
-    bad |= ok & (frac > locator.max_explained)
+    strong = n_v >= 0.25 * view_mask.sum()
+    bad |= ok & (frac > np.where(strong, locator.max_explained_strong, locator.max_explained))
     return bad
 
 
