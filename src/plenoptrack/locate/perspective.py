@@ -3,14 +3,18 @@
 Composes the steps of section 2 of the method paper:
 
 1. decode the raw image and segment dark particles in every valid perspective view
-   (:mod:`~plenoptrack.locate.segment`);
+   (:mod:`~plenoptrack.locate.segment`); split regions holding several dark cores into
+   those cores and large elongated regions into the two particle images their second
+   moments imply; ignore views dominated by noise;
 2. group the centroids of each particle across views by k-means on projected refocus
-   planes (:mod:`~plenoptrack.locate.cluster`);
+   planes, finished by a density sweep (:mod:`~plenoptrack.locate.cluster`); large
+   regions and split halves wait until particles are located and join the pool only
+   where no located particle accounts for them;
 3. solve each particle's (x, y, z) through the Direct Light Field Calibration with
    outlier rejection (:mod:`~plenoptrack.locate.triangulate`);
 4. from the most confident particle down, add unassigned centroids that the particle's
    position predicts in views where it has none, and solve again; cluster whatever
-   remains unassigned and repeat;
+   remains unassigned and repeat; drop particles that fail the consistency checks;
 5. measure in-plane size and shape from the member regions, converted to mm with the
    local magnification of the calibration.
 
