@@ -40,7 +40,8 @@ from ..errors import NoParticlesWarning
 from ..lightfield.decode import LightField, decode
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
-from .triangulate import TriangulationFlag, predict_detection, triangulate_clusters
+from .triangulate import (TriangulationFlag, predict_detection, triangulate_cluster,
+                          triangulate_clusters)
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult"]
 
@@ -590,10 +591,21 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     # views, or residuals far above the typical one; release their centroids to the
     # others and solve once more.
     owner, positions, table = solve(owner, initial)
-    for _check in range(2):
-        bad = _inconsistent(positions, table, owner, view, views, st, radius_px,
-                            lf.view_mask, lf.u, lf.v, dlfc, locator)
-        if not bad.any():
+    tried = np.zeros(len(positions), dtype=bool)
+    for _check in range(3):
+        bad, refit = _inconsistent(positions, table, owner, view, views, st, radius_px,
+                                   lf.view_mask, lf.u, lf.v, dlfc, locator)
+        # A particle seen in many views whose only fault is a high residual has part of
+        # its centroids pulled by overlapping images: refit it on its best half first.
+        refit &= ~tried
+        if refit.any():
+            tried |= refit
+            owner, positions = _trim_refit(dlfc, st, view, views, owner, positions,
+                                           np.flatnonzero(refit), locator.min_views,
+                                           locator.add_tolerance_px)
+            table.loc[refit, "residual_px"] = np.nan   # grow within add_tolerance_px only
+            bad &= ~refit
+        if not bad.any() and not refit.any():
             break
         owner = np.where(bad[np.maximum(owner, 0)] & (owner >= 0), -1, owner)
         positions = np.where(bad[:, None], np.nan, positions)
@@ -721,12 +733,57 @@ def _inconsistent(positions, table, owner, view, views, st, radius_px, view_mask
     bad |= ok & (spread < locator.min_aperture_spread * full)
     res = table["residual_px"].to_numpy()
     typical = np.nanmedian(res[ok]) if ok.any() else np.nan
-    bad |= ok & (res > max(locator.max_residual_ratio * typical, locator.add_tolerance_px))
+    res_bad = ok & (res > max(locator.max_residual_ratio * typical, locator.add_tolerance_px))
     pred = _predict_all(dlfc, positions, views)
-    frac = _explained_by_others(pred, st, view, owner, radius_px, ok & ~bad)
+    frac = _explained_by_others(pred, st, view, owner, radius_px, ok & ~bad & ~res_bad)
     strong = n_v >= 0.25 * view_mask.sum()
     bad |= ok & (frac > np.where(strong, locator.max_explained_strong, locator.max_explained))
-    return bad
+    return bad | res_bad, res_bad & ~bad & strong
+
+
+def _trim_refit(dlfc, st, view, views, owner, positions, particles, min_views: int,
+                tolerance_px: float):
+    """Refit particles on the better half of their centroids (least trimmed squares).
+
+    From the current position, the half of a particle's centroids (at least
+    ``min_views``) nearest their predictions are solved for a new position, and the
+    step is repeated until the position settles. Centroids farther than
+    ``tolerance_px`` from the final predictions are released (owner -1).
+
+    Returns
+    -------
+    owner : (M,) int ndarray
+    positions : (P, 3) float ndarray
+        Updated copies.
+    """
+    owner = owner.copy()
+    positions = positions.copy()
+    for k in particles:
+        rows = np.flatnonzero(owner == k)
+        pos = positions[k].copy()
+        if len(rows) < 2 * min_views or not np.all(np.isfinite(pos)):
+            continue
+        uv = views[view[rows]]
+        n_keep = max(min_views, len(rows) // 2)
+        for _ in range(8):
+            s, t = dlfc.predict(pos[0], pos[1], pos[2], uv[:, 0], uv[:, 1])
+            best = np.argsort(np.hypot(st[rows, 0] - s, st[rows, 1] - t))[:n_keep]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", NoParticlesWarning)
+                tri = triangulate_cluster(dlfc, uv[best, 0], uv[best, 1], st[rows[best], 0],
+                                          st[rows[best], 1], pos, reject_k=np.inf,
+                                          min_views=min_views)
+            new = tri.positions[0]
+            if not np.all(np.isfinite(new)):
+                break
+            settled = np.max(np.abs(new - pos)) < 1e-4
+            pos = new
+            if settled:
+                break
+        s, t = dlfc.predict(pos[0], pos[1], pos[2], uv[:, 0], uv[:, 1])
+        owner[rows[np.hypot(st[rows, 0] - s, st[rows, 1] - t) > tolerance_px]] = -1
+        positions[k] = pos
+    return owner, positions
 
 
 def _initial_frame(initial: np.ndarray, owner: np.ndarray) -> pd.DataFrame:
