@@ -211,6 +211,7 @@ def calibrate_from_white(white, camera: CameraSpec, *, progress: bool = False):
     check_image_shape(white, camera.sensor_shape_px, source=source)
     measurement = measure_grid(white, grid_type=camera.grid_type,
                                pitch_px=camera.pixels_per_lenslet, progress=progress)
-    lf = decode(white, measurement.grid)
-    vignetting = lf.valid_fraction
+    # Decoding the white image against itself limits each view's valid fraction by its
+    # measured brightness: views a smaller-than-matched aperture leaves dark drop out.
+    vignetting = decode(white, measurement.grid, white=white).valid_fraction
     return Calibration(camera=camera, grid=measurement.grid, vignetting=vignetting), measurement

@@ -159,3 +159,22 @@ def test_hall2019_full_sensor_accuracy():
     assert ev.recall >= 0.99 and ev.precision >= 0.99, ev
     assert ev.std_error_z <= 0.2 and abs(ev.mean_error_z) <= 0.05, ev
     assert ev.rms_error_lateral <= 0.05, ev
+
+
+def test_views_vignetted_in_the_white_image_are_not_searched(small):
+    import dataclasses
+
+    optics, calib = small
+    scene = make_scene(calib.camera, n_particles=6, seed=21)
+    raw = _frame(optics, scene.truth, 21)
+    vignetting = np.array(calib.vignetting, copy=True)
+    n_u = vignetting.shape[1]
+    vignetting[:, : n_u // 2] = 0.0          # as if the aperture hid every u < 0 view
+    half = dataclasses.replace(calib, vignetting=vignetting)
+    result = locate_frame(raw, half)
+    assert (result.detections["u"] >= 0).all()
+    full = locate_frame(raw, calib)
+    assert (full.detections["u"] < 0).any()
+    # fewer views, still the same particles
+    ev = evaluate_particles(result.particles, scene.truth, tolerance_mm=1.0)
+    assert ev.recall >= 0.8 and ev.precision >= 0.8

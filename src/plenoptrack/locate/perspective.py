@@ -27,6 +27,7 @@ Opt. Express 27 (2019).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 import warnings
@@ -514,6 +515,10 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         image = np.asarray(raw_or_lf)
         calibration.check_image(image)
         lf = decode(image, calibration.grid)
+    if calibration.vignetting is not None and calibration.vignetting.shape == lf.valid_fraction.shape:
+        # Views the white image showed to be vignetted are not searched.
+        lf = dataclasses.replace(lf, valid_fraction=np.minimum(lf.valid_fraction,
+                                                               calibration.vignetting))
 
     lap("decode")
     detections = _segment(lf, frame, locator)
