@@ -177,7 +177,6 @@ class PerspectiveLocator:
     max_view_ratio: float | None = 2.0
     solver: str = "lm"
     seed: int = 0
-    extra: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         if self.window < 3:
@@ -202,9 +201,7 @@ class PerspectiveLocator:
 
     def settings(self) -> dict:
         """The settings as a plain dict (for provenance in output metadata)."""
-        d = asdict(self)
-        d.pop("extra")
-        return d
+        return asdict(self)
 
     def locate(self, raw_or_lf, calibration, *, frame: int = 0) -> LocateResult:
         """Locate the particles of one frame; see :func:`locate_frame`."""
@@ -812,8 +809,3 @@ def _finish_empty(detections: pd.DataFrame, frame: int, clock=None) -> LocateRes
                                    inlier=np.zeros(len(detections), dtype=bool))
     return LocateResult(particles=_empty_particles(), detections=detections,
                         stage_seconds=dict(clock or {}))
-
-
-def flags_text(flags: int) -> str:
-    """Names of the :class:`TriangulationFlag` bits set in ``flags``."""
-    return "|".join(f.name for f in TriangulationFlag if flags & f) or "-"
