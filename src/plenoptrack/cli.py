@@ -67,6 +67,26 @@ def _camera_from_options(preset_name: str, camera_file: Optional[Path]):
     return load_camera(camera_file) if camera_file is not None else preset(preset_name)
 
 
+def _quantity_table(title: str) -> Table:
+    """An empty two-column (quantity, value) table."""
+    table = Table(title=title)
+    table.add_column("quantity")
+    table.add_column("value", justify="right")
+    return table
+
+
+def _grid_table(title: str, grid, measurement) -> Table:
+    """Summary of a measured lenslet grid (a :class:`GridMeasurement` gives the fit)."""
+    table = _quantity_table(title)
+    table.add_row("grid type", grid.grid_type)
+    table.add_row("lenslets (rows x cols)", f"{grid.shape[0]} x {grid.shape[1]}")
+    table.add_row("pitch, px", f"{grid.pitch_px:.4f}")
+    table.add_row("rotation, deg", f"{grid.rotation_deg:.4f}")
+    table.add_row("centres detected", f"{measurement.n_detected}")
+    table.add_row("grid fit residual RMS, px", f"{measurement.rms_residual_px:.4f}")
+    return table
+
+
 @app.command()
 @_reports_errors
 def simulate(
@@ -119,16 +139,7 @@ def calibrate_grid_cmd(
     t0 = time.perf_counter()
     calib, report = calibrate_from_white(white, camera)
     save_calibration(calib, out_file)
-    g = calib.grid
-    table = Table(title=f"lenslet grid ({time.perf_counter() - t0:.2f} s)")
-    table.add_column("quantity")
-    table.add_column("value", justify="right")
-    table.add_row("grid type", g.grid_type)
-    table.add_row("lenslets (rows x cols)", f"{g.shape[0]} x {g.shape[1]}")
-    table.add_row("pitch, px", f"{g.pitch_px:.4f}")
-    table.add_row("rotation, deg", f"{g.rotation_deg:.4f}")
-    table.add_row("centres detected", f"{report.n_detected}")
-    table.add_row("fit residual RMS, px", f"{report.rms_residual_px:.4f}")
+    table = _grid_table(f"lenslet grid ({time.perf_counter() - t0:.2f} s)", calib.grid, report)
     out.print(table)
     console.print(f"wrote {out_file}")
 
@@ -151,15 +162,8 @@ def calibrate_cmd(
     cards = read_dotcards(dotcards)
     calib, report = calibrate(white, cards, camera, order=order, progress=True)
     save_calibration(calib, out_file)
-    g, fit = calib.grid, report.fit
-    summary = Table(title=f"calibration ({report.seconds['total']:.1f} s)")
-    summary.add_column("quantity")
-    summary.add_column("value", justify="right")
-    summary.add_row("grid type", g.grid_type)
-    summary.add_row("lenslets (rows x cols)", f"{g.shape[0]} x {g.shape[1]}")
-    summary.add_row("pitch, px", f"{g.pitch_px:.4f}")
-    summary.add_row("rotation, deg", f"{g.rotation_deg:.4f}")
-    summary.add_row("grid fit residual RMS, px", f"{report.grid.rms_residual_px:.4f}")
+    fit = report.fit
+    summary = _grid_table(f"calibration ({report.seconds['total']:.1f} s)", calib.grid, report.grid)
     summary.add_row("DLFC order", f"{report.order}")
     summary.add_row("dot cards", f"{len(cards)}")
     summary.add_row("points used", f"{fit.n_points}")
@@ -333,9 +337,7 @@ def evaluate(
     if as_json:
         print(json.dumps(ev.to_dict()))
         return
-    table = Table(title=f"{particles_file} against {truth_file} (tolerance {tolerance:g} mm)")
-    table.add_column("quantity")
-    table.add_column("value", justify="right")
+    table = _quantity_table(f"{particles_file} against {truth_file} (tolerance {tolerance:g} mm)")
     table.add_row("true / measured / matched", f"{ev.n_true} / {ev.n_measured} / {ev.n_matched}")
     table.add_row("recall", f"{ev.recall:.4f}")
     table.add_row("precision", f"{ev.precision:.4f}")
