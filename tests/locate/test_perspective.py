@@ -13,7 +13,7 @@ import pytest
 from plenoptrack import preset
 from plenoptrack.calibration import calibrate_from_white
 from plenoptrack.errors import NoParticlesWarning
-from plenoptrack.evaluate import evaluate_particles
+from plenoptrack.evaluate import evaluate_particles, match_particles
 from plenoptrack.lightfield import decode
 from plenoptrack.locate.dlfc import fit_dlfc
 from plenoptrack.locate.dotcards import dotcard_points
@@ -120,8 +120,8 @@ def test_split_pairs_places_halves_from_moments():
     r, a, theta = 4.0, 3.0, 0.4
     single = dict(frame=0, u=0.0, v=0.0, s=10.0, t=10.0, area=50, diameter_px=8.0,
                   major_axis_px=8.2, minor_axis_px=7.9, orientation=0.0, eccentricity=0.2,
-                  darkness=1.0)
-    pair = dict(single, s=40.0, t=30.0, area=90, diameter_px=10.7,
+                  darkness=1.0, dark_area=48.0)
+    pair = dict(single, s=40.0, t=30.0, area=90, diameter_px=10.7, dark_area=88.0,
                 major_axis_px=4 * np.sqrt(r ** 2 / 4 + a ** 2), minor_axis_px=2 * r,
                 orientation=theta, eccentricity=0.8)
     det = pd.DataFrame([single, single, pair])
@@ -134,6 +134,8 @@ def test_split_pairs_places_halves_from_moments():
     np.testing.assert_allclose(halves["t"], expected_t, atol=1e-9)
     np.testing.assert_allclose(halves["major_axis_px"], 2 * r)
     assert (halves["area"] == 45).all()
+    np.testing.assert_allclose(halves["dark_area"], 44.0)
+    assert not halves["whole"].any()
     # Nothing large and elongated: unchanged apart from the flag column.
     kept = _split_pairs(det.iloc[:2], 1.3, 1.25)
     assert len(kept) == 2 and not kept["split_pair"].any()
@@ -159,6 +161,27 @@ def test_hall2019_full_sensor_accuracy():
     assert ev.recall >= 0.99 and ev.precision >= 0.99, ev
     assert ev.std_error_z <= 0.2 and abs(ev.mean_error_z) <= 0.05, ev
     assert ev.rms_error_lateral <= 0.05, ev
+    _assert_sizes(result.particles, scene.truth, rel=0.05)
+
+
+def _assert_sizes(particles, truth, *, rel):
+    """Median measured diameter within ``rel`` of the truth, axes of a round particle."""
+    pairs = match_particles(particles, truth, tolerance_mm=1.0)
+    measured = particles.loc[pairs["measured_index"]]
+    true_d = truth.loc[pairs["truth_index"], "diameter"].to_numpy()
+    ratio = measured["diameter"].to_numpy() / true_d
+    assert abs(np.median(ratio) - 1) <= rel, np.percentile(ratio, [10, 50, 90])
+    assert np.percentile(ratio, 10) >= 1 - 3 * rel, np.percentile(ratio, [10, 50, 90])
+    # spheres: the axes bracket the diameter, the minor axis no longer than the major
+    assert (measured["minor_axis"] <= measured["major_axis"] + 1e-9).all()
+    assert abs(np.median(measured["major_axis"].to_numpy() / true_d) - 1) <= 3 * rel
+
+
+def test_particle_sizes_from_shadow_areas(small):
+    optics, calib = small
+    scene = make_scene(calib.camera, n_particles=20, seed=1)
+    result = locate_frame(_frame(optics, scene.truth, 1), calib)
+    _assert_sizes(result.particles, scene.truth, rel=0.06)
 
 
 def test_views_vignetted_in_the_white_image_are_not_searched(small):

@@ -434,29 +434,48 @@ def _split_merged(coarse: pd.DataFrame, cores: pd.DataFrame) -> pd.DataFrame:
     if not merged.any():
         return coarse
     replacement = cores[inside & merged[np.minimum(nearest, len(coarse) - 1)]]
-    out = pd.concat([coarse[~merged], replacement], ignore_index=True)
+    out = pd.concat([coarse[~merged], replacement.assign(whole=False)], ignore_index=True)
+    out["whole"] = out["whole"].fillna(True).astype(bool)
     return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)
 
 
 def _region_shape(detections: pd.DataFrame, owner: np.ndarray, n: int) -> pd.DataFrame:
-    """Median equivalent diameter and axes (view pixels) and mean orientation per particle."""
+    """In-plane size and shape per particle from its member regions, view pixels.
+
+    The diameter is the median over members of the equivalent diameter of the region's
+    shadow, ``sqrt(4 dark_area / pi)`` (summed relative darkness: an opaque object's
+    area, nearly independent of defocus blur and of the threshold); the axes are the
+    members' second-moment axes scaled by the same shadow-to-threshold ratio; the
+    orientation is the axial mean of the members'. Whole regions are preferred over the
+    cores and halves that merged images were split into, which under-size a particle.
+    """
+    empty = pd.DataFrame({"diameter_px": np.full(n, np.nan), "major_px": np.full(n, np.nan),
+                          "minor_px": np.full(n, np.nan), "orientation": np.full(n, np.nan)})
     mask = owner >= 0
     if not mask.any():
-        return pd.DataFrame({"diameter_px": np.full(n, np.nan), "major_px": np.full(n, np.nan),
-                             "minor_px": np.full(n, np.nan), "orientation": np.full(n, np.nan)})
-    d = detections.loc[mask, ["diameter_px", "major_axis_px", "minor_axis_px", "orientation"]].copy()
+        return empty
+    d = detections.loc[mask, ["diameter_px", "major_axis_px", "minor_axis_px", "orientation",
+                              "dark_area"]].copy()
     d["owner"] = owner[mask]
+    d["whole"] = (detections.loc[mask, "whole"].to_numpy(bool) if "whole" in detections.columns
+                  else True)
+    shadow = np.sqrt(4.0 * np.maximum(d["dark_area"].to_numpy(float), 0.0) / math.pi)
+    ratio = shadow / np.maximum(d["diameter_px"].to_numpy(float), 1e-9)
+    d["diameter_px"] = shadow
+    d["major_axis_px"] *= ratio
+    d["minor_axis_px"] *= ratio
     # Orientation is axial (theta ~ theta + pi): average the doubled angle.
     d["c2"] = np.cos(2 * d["orientation"])
     d["s2"] = np.sin(2 * d["orientation"])
-    g = d.groupby("owner")
+    has_whole = d.groupby("owner")["whole"].transform("any").to_numpy(bool)
+    g = d[d["whole"].to_numpy(bool) | ~has_whole].groupby("owner")
     med = g[["diameter_px", "major_axis_px", "minor_axis_px"]].median()
-    ang = 0.5 * np.arctan2(g["s2"].mean(), g["c2"].mean())
-    out = pd.DataFrame(index=np.arange(n))
-    out["diameter_px"] = med["diameter_px"]
-    out["major_px"] = med["major_axis_px"]
-    out["minor_px"] = med["minor_axis_px"]
-    out["orientation"] = ang
+    out = empty.copy()
+    idx = med.index.to_numpy()
+    out.loc[idx, "diameter_px"] = med["diameter_px"].to_numpy()
+    out.loc[idx, "major_px"] = med["major_axis_px"].to_numpy()
+    out.loc[idx, "minor_px"] = med["minor_axis_px"].to_numpy()
+    out.loc[idx, "orientation"] = 0.5 * np.arctan2(g["s2"].mean(), g["c2"].mean()).to_numpy()
     return out
 
 
@@ -680,6 +699,8 @@ def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
     major axis and ``2 r`` its minor axis. Each half gets half the area and a round
     shape of the minor-axis diameter.
     """
+    if "whole" not in detections.columns:
+        detections = detections.assign(whole=True)
     area = detections["area"].to_numpy(float)
     major = detections["major_axis_px"].to_numpy(float)
     minor = detections["minor_axis_px"].to_numpy(float)
@@ -700,7 +721,9 @@ def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
         h["diameter_px"] = np.sqrt(4.0 * h["area"].to_numpy(float) / math.pi)
         h["major_axis_px"] = minor[pair]
         h["eccentricity"] = 0.0
+        h["dark_area"] = src["dark_area"].to_numpy(float) / 2
         h["split_pair"] = True
+        h["whole"] = False
         halves.append(h)
     out = pd.concat([detections[~pair].assign(split_pair=False), *halves], ignore_index=True)
     return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)

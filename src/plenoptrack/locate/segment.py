@@ -32,12 +32,12 @@ from ..errors import NoParticlesWarning
 __all__ = ["DETECTION_COLUMNS", "segment_view", "segment_array", "segment_views"]
 
 DETECTION_COLUMNS = (T_COLUMN, "u", "v", "s", "t", "area", "diameter_px", "major_axis_px",
-                     "minor_axis_px", "orientation", "eccentricity", "darkness")
+                     "minor_axis_px", "orientation", "eccentricity", "darkness", "dark_area")
 """Columns of a detections table, in order (see :func:`segment_array` for units)."""
 
 # Per-region accumulator layout written by the kernel.
-_N, _SW, _SWS, _SWT, _SS, _ST, _SSS, _STT, _SST, _DARK, _EDGE, _S0, _T0 = range(13)
-_N_STATS = 13
+_N, _SW, _SWS, _SWT, _SS, _ST, _SSS, _STT, _SST, _DARK, _EDGE, _S0, _T0, _SD = range(14)
+_N_STATS = 14
 _INITIAL_CAPACITY = 512
 
 
@@ -256,6 +256,7 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, conn8, out):  # pragm
             out[k, _SSS] += ds * ds
             out[k, _STT] += dt * dt
             out[k, _SST] += ds * dt
+            out[k, _SD] += rel_dark[i, j]
             if rel_dark[i, j] > out[k, _DARK]:
                 out[k, _DARK] = rel_dark[i, j]
             if out[k, _EDGE] == 0.0:
@@ -324,7 +325,7 @@ def _region_properties(stats: np.ndarray) -> dict[str, np.ndarray]:
         "diameter_px": np.sqrt(4.0 * n / math.pi),
         "major_axis_px": 4.0 * np.sqrt(l1), "minor_axis_px": 4.0 * np.sqrt(l2),
         "orientation": 0.5 * np.arctan2(2.0 * cst, css - ctt),
-        "eccentricity": ecc, "darkness": stats[:, _DARK],
+        "eccentricity": ecc, "darkness": stats[:, _DARK], "dark_area": stats[:, _SD],
     }
 
 
@@ -384,7 +385,10 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
         lengths of the ellipse with the region's second moments (as
         ``skimage.measure.regionprops``); ``orientation`` angle of the major axis from
         the +s axis towards +t, radians in [-pi/2, pi/2]; ``eccentricity`` in [0, 1];
-        ``darkness`` peak relative darkness ``max (background - value) / background``.
+        ``darkness`` peak relative darkness ``max (background - value) / background``;
+        ``dark_area`` the region's summed relative darkness, pixels: the area of an opaque
+        object of the same shadow, little changed by defocus blur (unlike ``area``, which
+        grows with blur and with a lower ``contrast``).
         Rows are ordered by view (v, then u) and by first pixel in raster order.
 
     Notes
