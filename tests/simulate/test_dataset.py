@@ -64,3 +64,14 @@ def test_scene_camera_must_match(tmp_path):
     scene = make_scene(preset("small-rect"), n_particles=1)
     with pytest.raises(SceneError, match="pass scene.camera"):
         simulate_dataset("small", tmp_path, scene=scene, dotcard_depths=[])
+
+
+def test_rerun_into_the_same_folder_leaves_no_stale_frames_or_cards(tmp_path):
+    simulate_dataset("small", tmp_path, seed=1, n_particles=2, frames=3,
+                     dotcard_depths=[-5.0, 0.0, 5.0])
+    (tmp_path / "raw" / "notes.txt").write_text("kept")
+    again = simulate_dataset("small", tmp_path, seed=1, n_particles=2, frames=1,
+                             dotcard_depths=[0.0])
+    assert sorted(p.name for p in (tmp_path / "raw").iterdir()) == ["frame_0000.tif", "notes.txt"]
+    assert sorted(p.name for p in (tmp_path / "dotcards").glob("*.tif")) == ["card_00.tif"]
+    assert read_table(again.truth_path)["frame"].max() == 0

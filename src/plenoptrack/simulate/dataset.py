@@ -192,6 +192,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
             out / "dotcards" / "dotcards.toml",
             "# dot grid: dot (m, n) at world (x, y) = (m, n) * spacing_mm; dot (0, 0) on the axis\n"
             + tomli_w.dumps(cards_doc))
+        _remove_stale(out / "raw", "frame_*.tif", frame_paths)
+        _remove_stale(out / "dotcards", "card_*.tif", card_paths)
         step("done")
     return SimulationResult(out_dir=out, camera=camera, optics=optics, truth=truth,
                             frame_paths=tuple(frame_paths), white_path=white_path,
@@ -199,3 +201,12 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
                             dotcard_depths_mm=tuple(float(z) for z in depths), dotcard=card,
                             camera_path=camera_path, truth_path=truth_path,
                             optics_path=optics_path, dotcards_path=dotcards_path)
+
+
+def _remove_stale(folder: Path, pattern: str, written) -> None:
+    """Delete files of this layout left in ``folder`` by an earlier, larger simulation,
+    so that the folder matches ``truth.parquet`` and ``dotcards.toml``."""
+    keep = {Path(p).name for p in written}
+    for path in folder.glob(pattern):
+        if path.name not in keep:
+            path.unlink()
