@@ -33,9 +33,20 @@ def test_random_particles_inside_non_overlapping_deterministic():
     assert d.min() >= 0.8
 
 
+def test_dense_random_particles_never_overlap():
+    vol = Volume((-5, 5), (-5, 5), (-5, 5))
+    a = random_particles(2000, volume=vol, diameter_mm=0.5, seed=7)   # 13 % of the volume
+    xyz = a[["x", "y", "z"]].to_numpy()
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(xyz).query(xyz, k=2)
+    assert d[:, 1].min() >= 0.5
+    assert vol.contains(xyz).all()
+
+
 def test_random_particles_errors():
     vol = Volume((-1, 1), (-1, 1), (-1, 1))
-    with pytest.raises(SceneError, match="could not place"):
+    with pytest.raises(SceneError, match="would fill 327% of the volume"):
         random_particles(50, volume=vol, diameter_mm=1.0, seed=0)
     with pytest.raises(SceneError, match="diameter_mm must be positive"):
         random_particles(2, volume=vol, diameter_mm=-1.0, seed=0)

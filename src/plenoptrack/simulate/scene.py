@@ -143,6 +143,11 @@ def _empty_truth() -> pd.DataFrame:
                          **{c: pd.Series(dtype=float) for c in (*POS_COLUMNS, DIAMETER_COLUMN)}})
 
 
+MAX_PACKING_FRACTION = 0.3
+"""Largest volume fraction :func:`random_particles` attempts (random sequential placement
+of equal spheres jams near 0.38)."""
+
+
 def random_particles(n: int, *, volume: Volume, diameter_mm: float = 1.0,
                      seed: int | np.random.Generator | None = 0) -> pd.DataFrame:
     """Non-overlapping spheres placed uniformly at random in a volume (frame 0).
@@ -169,17 +174,31 @@ def random_particles(n: int, *, volume: Volume, diameter_mm: float = 1.0,
         raise SceneError(f"diameter_mm must be positive; got {diameter_mm!r}")
     rng = np.random.default_rng(seed)
     b = volume.bounds
-    placed = np.zeros((0, 3))
-    attempts = 0
-    while len(placed) < n:
+    fill = n * math.pi / 6 * diameter_mm ** 3 / max(float(np.prod(b[:, 1] - b[:, 0])), 1e-300)
+    if fill > MAX_PACKING_FRACTION:
+        raise SceneError(f"{n} particles of {diameter_mm} mm would fill {fill:.0%} of the volume; "
+                         f"random placement stops near {MAX_PACKING_FRACTION:.0%}: lower n or "
+                         "the diameter")
+    placed = np.empty((n, 3))
+    # Spatial hash with cells one diameter wide: a new particle can only overlap particles
+    # in its own or the 26 neighbouring cells.
+    cells: dict[tuple[int, int, int], list[int]] = {}
+    d2 = diameter_mm ** 2
+    count = attempts = 0
+    while count < n:
         attempts += 1
         if attempts > 200 * (n + 10):
             raise SceneError(f"could not place {n} non-overlapping {diameter_mm} mm particles "
-                             f"in the volume (placed {len(placed)}); lower n or the diameter")
+                             f"in the volume (placed {count}); lower n or the diameter")
         p = rng.uniform(b[:, 0], b[:, 1])
-        if len(placed) and (((placed - p) ** 2).sum(axis=1) < diameter_mm ** 2).any():
+        ci, cj, ck = (int(math.floor(c / diameter_mm)) for c in p)
+        near = [k for di in (-1, 0, 1) for dj in (-1, 0, 1) for dk in (-1, 0, 1)
+                for k in cells.get((ci + di, cj + dj, ck + dk), ())]
+        if near and (((placed[near] - p) ** 2).sum(axis=1) < d2).any():
             continue
-        placed = np.vstack([placed, p])
+        placed[count] = p
+        cells.setdefault((ci, cj, ck), []).append(count)
+        count += 1
     if n == 0:
         return _empty_truth()
     return pd.DataFrame({T_COLUMN: np.zeros(n, np.int64), ID_COLUMN: np.arange(n, dtype=np.int64),
