@@ -53,9 +53,10 @@ def contract_files(folder: Path, frames: int) -> list[Path]:
     return files
 
 
-def assert_error_line(result, *fragments: str) -> None:
-    """Exit code 1, one ``error: ...`` line on stderr naming ``fragments``, no traceback."""
-    assert result.exit_code == 1, (result.stdout, result.stderr, result.exception)
+def assert_error_line(result, *fragments: str, code: int = 1) -> None:
+    """Exit ``code`` (1 data error, 2 usage error), one ``error: ...`` line on stderr naming
+    ``fragments``, no traceback."""
+    assert result.exit_code == code, (result.stdout, result.stderr, result.exception)
     assert isinstance(result.exception, SystemExit), repr(result.exception)
     lines = result.stderr.strip().splitlines()
     assert len(lines) == 1, result.stderr
@@ -211,6 +212,7 @@ def test_simulate_magnification_and_particle_count(tmp_path):
 SCENE_Z_MM = 6.0
 SCENE_TOML = f"""
 camera = "small"
+seed = {SEED + 1}
 [[particles]]
 x = 0.0
 y = 0.0
@@ -223,7 +225,7 @@ diameter = 0.6
 def scene_sim(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("scene")
     (folder / "scene.toml").write_text(SCENE_TOML)
-    ok("simulate", "--scene", folder / "scene.toml", "--seed", SEED + 1, "--out", folder / "sim")
+    ok("simulate", "--scene", folder / "scene.toml", "--out", folder / "sim")
     return folder / "sim"
 
 
@@ -239,6 +241,18 @@ def test_simulate_scene_file(scene_sim):
 def test_simulate_different_seed_gives_different_images(sim, scene_sim):
     assert (sim / "white.tif").read_bytes() != (scene_sim / "white.tif").read_bytes()
     assert not np.array_equal(read_raw(sim / "white.tif"), read_raw(scene_sim / "white.tif"))
+
+
+def test_simulate_scene_file_seed_governs_the_optics_and_noise(scene_sim, tmp_path):
+    """The scene file's seed seeds everything; --seed may repeat it but not contradict it."""
+    scene = scene_sim.parent / "scene.toml"
+    ok("simulate", "--scene", scene, "--seed", SEED + 1, "--out", tmp_path / "same")
+    assert (tmp_path / "same" / "white.tif").read_bytes() == (scene_sim / "white.tif").read_bytes()
+    ok("simulate", "--preset", "small", "--seed", SEED + 1, "--particles", 0, "--out", tmp_path / "p")
+    assert (tmp_path / "p" / "white.tif").read_bytes() == (scene_sim / "white.tif").read_bytes()
+    result = run("simulate", "--scene", scene, "--seed", SEED, "--out", tmp_path / "other")
+    assert_error_line(result, "--seed", f"seed ({SEED + 1})", code=2)
+    assert not (tmp_path / "other").exists()
 
 
 def test_simulate_scene_for_another_camera_or_magnification(tmp_path):
@@ -451,7 +465,7 @@ def test_simulate_bad_scene(tmp_path, text, fragment):
 def test_simulate_bad_values(tmp_path):
     for args, fragment in ((["--diameter", "0"], "diameter"), (["--magnification", "0"], "magnification")):
         result = run("simulate", *args, "--out", tmp_path / "sim")
-        assert_error_line(result, fragment)
+        assert_error_line(result, fragment, code=2)
         assert not (tmp_path / "sim").exists()
 
 
@@ -465,7 +479,7 @@ def test_output_in_place_of_a_folder(bad_inputs, sim, calib_file):
     (folder / "a_folder").mkdir()
     result = run("views", raw, "--calib", calib_file, "--out", folder / "v.tif",
                  "--mosaic", folder / "a_folder")
-    assert_error_line(result, "a_folder")
+    assert_error_line(result, "a_folder", "is a folder", code=2)
     assert_nothing_written(folder, before | {"a_folder"})
     assert not list((folder / "a_folder").iterdir())
 

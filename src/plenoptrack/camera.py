@@ -158,6 +158,44 @@ class CameraSpec:
         """Return a copy with some fields replaced (validated again)."""
         return replace(self, **changes)
 
+    def with_magnification(self, magnification: float) -> "CameraSpec":
+        """Return the camera refocused to another magnification, aperture re-set to match.
+
+        Changing the magnification moves the main lens away from the sensor, which raises
+        the image-side working f-number ``N (1 + |m|)``; a user re-sets the aperture so
+        that the microlens images still fill their pitch without overlapping. The
+        f-number is scaled so the working f-number stays what it was (rounded to 4
+        decimals).
+
+        Parameters
+        ----------
+        magnification : float
+            New lateral magnification (negative for a real, inverted image).
+
+        Returns
+        -------
+        CameraSpec
+
+        Examples
+        --------
+        >>> cam = preset("small").with_magnification(-0.3)
+        >>> round(cam.image_side_f_number, 2) == round(preset("small").image_side_f_number, 2)
+        True
+        """
+        m = float(magnification)
+        if not (math.isfinite(m) and m != 0):
+            raise CameraSpecError(f"magnification must be a non-zero number; got {magnification!r}")
+        f_number = self.f_number * (1.0 + abs(self.magnification)) / (1.0 + abs(m))
+        return replace(self, magnification=m, f_number=round(f_number, 4))
+
+    @property
+    def microlens_fill(self) -> float:
+        """Microlens-image diameter over the microlens pitch: ``N_microlens / N_working``.
+
+        Above 1 the microlens images overlap and cannot be separated.
+        """
+        return self.microlens_f_number / self.image_side_f_number
+
     def to_dict(self) -> dict:
         d = asdict(self)
         d["sensor_shape_px"] = list(self.sensor_shape_px)

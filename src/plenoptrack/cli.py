@@ -1,15 +1,32 @@
 """The ``plenoptrack`` command: parses arguments, calls the library, reports.
 
 Every command is a thin shell over public library functions; anything done here can be
-done from Python. Library errors (:class:`plenoptrack.errors.PlenoptrackError`) are
-printed as one line on stderr with exit code 1.
+done from Python. Whatever goes wrong is printed as one line on stderr, ``error: ...``,
+and the exit code says what kind of problem it was:
+
+- 2: a usage error (an unknown option, a value out of range, an output that would
+  overwrite an input) - fix the command line;
+- 1: a data error (a missing, corrupt or implausible file; a failed calibration) - fix the
+  data;
+- 130: interrupted with Ctrl-C; nothing half-written is kept.
+
+``plenoptrack --debug COMMAND ...`` (or ``PLENOPTRACK_DEBUG=1``) prints the full traceback
+as well, for bug reports. Warnings are printed as one ``warning: ...`` line each.
+
+No command ever writes over one of its inputs, and a command with several outputs writes
+them all or none: outputs are written beside their targets and renamed into place only
+when the whole command has succeeded.
 """
 
 from __future__ import annotations
 
 import functools
+import math
+import os
 import sys
 import time
+import traceback
+import warnings
 from pathlib import Path
 from typing import Optional
 
@@ -18,47 +35,168 @@ import typer
 from rich.console import Console
 from rich.table import Table
 from rich.text import Text
+from typer.core import TyperGroup
 
-from .errors import PlenoptrackError
+from .errors import PlenoptrackError, UsageError
+
+console = Console(stderr=True)
+out = Console()
+_state = {"debug": False}
+
+
+def _debug() -> bool:
+    return _state["debug"] or os.environ.get("PLENOPTRACK_DEBUG", "") not in ("", "0")
+
+
+def _one_line(prefix: str, message: str, style: str) -> None:
+    """Print ``prefix message`` on stderr as one line (no wrapping, no markup parsing)."""
+    line = Text(prefix, style=style)
+    line.append(" " + " ".join(str(message).split()))
+    console.print(line, soft_wrap=True, highlight=False)
+
+
+def _error_line(message: str) -> None:
+    _one_line("error:", message, "bold red")
+
+
+def _show_warning(message, category, filename, lineno, file=None, line=None) -> None:
+    _one_line("warning:", str(message), "bold yellow")
+
+
+# click's base of usage errors, whether typer bundles click or uses the installed one
+_ClickException = next(c for c in typer.BadParameter.__mro__ if c.__name__ == "ClickException")
+
+
+class _OneLineErrors(TyperGroup):
+    """The command group: usage errors of the parser become one line and exit code 2."""
+
+    def main(self, args=None, prog_name=None, complete_var=None, standalone_mode=True,
+             **extra):
+        try:
+            rv = super().main(args=args, prog_name=prog_name, complete_var=complete_var,
+                              standalone_mode=False, **extra)
+        except _ClickException as exc:
+            ctx = getattr(exc, "ctx", None)
+            hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
+            _error_line(exc.format_message() + hint)
+            sys.exit(exc.exit_code)
+        except typer.Abort:
+            _error_line("interrupted")
+            sys.exit(130)
+        sys.exit(rv if isinstance(rv, int) else 0)
+
 
 app = typer.Typer(
     name="plenoptrack",
+    cls=_OneLineErrors,
     help="3D particle location from plenoptic (light-field) camera images.",
     no_args_is_help=True,
     add_completion=False,
     pretty_exceptions_enable=False,
 )
-console = Console(stderr=True)
-out = Console()
 
 
-def _error_line(message: str) -> None:
-    """Print ``error: message`` on stderr as one line (no wrapping, no markup parsing)."""
-    line = Text("error:", style="bold red")
-    line.append(" " + " ".join(str(message).split()))
-    console.print(line, soft_wrap=True, highlight=False)
+def _version(value: bool) -> None:
+    if value:
+        from . import __version__
+
+        out.print(f"plenoptrack {__version__}", highlight=False)
+        raise typer.Exit()
+
+
+@app.callback()
+def _options(
+    debug: bool = typer.Option(False, "--debug", envvar="PLENOPTRACK_DEBUG",
+                               help="Show the full traceback of an error (for bug reports)."),
+    version: bool = typer.Option(False, "--version", callback=_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
+    """3D particle location from plenoptic (light-field) camera images."""
+    _state["debug"] = debug
+
+
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` is, or was caused by, Ctrl-C (compiled kernels wrap it in SystemError)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def _reports_errors(func):
-    """Turn library and file-system errors into one readable line and exit code 1."""
+    """Turn every failure into one readable line and an exit code (2 usage, 1 data, 130 Ctrl-C)."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
-        try:
-            return func(*args, **kwargs)
-        except PlenoptrackError as exc:
-            _error_line(str(exc))
-            raise typer.Exit(code=1) from None
-        except OSError as exc:
-            name = exc.filename2 or exc.filename  # for a rename, the target is the user's path
-            where = f"{name}: " if name else ""
-            _error_line(f"{where}{exc.strerror or exc}")
-            raise typer.Exit(code=1) from None
-        except KeyboardInterrupt:
-            console.print("[bold red]interrupted[/]; nothing half-written was kept")
-            raise typer.Exit(code=130) from None
+        with warnings.catch_warnings():
+            warnings.showwarning = _show_warning
+            try:
+                return func(*args, **kwargs)
+            except (typer.Exit, typer.Abort):
+                raise
+            except BaseException as exc:
+                code, message = _describe(exc)
+                if _debug() and code != 130:
+                    console.print(Text("".join(traceback.format_exception(exc))), highlight=False)
+                _error_line(message)
+                raise typer.Exit(code=code) from None
 
     return wrapper
+
+
+def _describe(exc: BaseException) -> tuple[int, str]:
+    """Exit code and one-line message for an exception that ended a command."""
+    if _interrupted(exc):
+        return 130, "interrupted; nothing half-written was kept"
+    if isinstance(exc, _ClickException):  # typer.BadParameter raised in a command body
+        hint = ""
+        ctx = getattr(exc, "ctx", None)
+        if ctx is not None:
+            hint = f" (see `{ctx.command_path} --help`)"
+        return exc.exit_code, exc.format_message() + hint
+    if isinstance(exc, PlenoptrackError):
+        return (2 if isinstance(exc, UsageError) else 1), str(exc)
+    if isinstance(exc, MemoryError):
+        return 1, "out of memory; process fewer frames at a time or use a larger machine"
+    if isinstance(exc, OSError):
+        name = exc.filename2 or exc.filename  # for a rename, the target is the user's path
+        where = f"{name}: " if name else ""
+        return 1, f"{where}{exc.strerror or exc}"
+    return 1, (f"internal error ({type(exc).__name__}: {exc}); please report it with the "
+               "output of `plenoptrack --debug ...`")
+
+
+# --- option checks at the boundary --------------------------------------------------------
+
+def _finite(*, positive: bool = False, at_least: float | None = None,
+            below: float | None = None):
+    """A typer callback refusing NaN, infinity and values outside a range."""
+    def check(value):
+        values = value if isinstance(value, (list, tuple)) else [value]
+        for v in values:
+            if v is None:
+                continue
+            if not math.isfinite(v):
+                raise typer.BadParameter(f"must be a finite number; got {v}")
+            if positive and not v > 0:
+                raise typer.BadParameter(f"must be positive; got {v:g}")
+            if at_least is not None and v < at_least:
+                raise typer.BadParameter(f"must be at least {at_least:g}; got {v:g}")
+            if below is not None and not v < below:
+                raise typer.BadParameter(f"must be below {below:g}; got {v:g}")
+        return value
+    return check
+
+
+def _outputs(outputs: dict, inputs: dict, *, folders=()):
+    """Refuse outputs that clash with inputs (before any work), then stage the files."""
+    from .io import check_outputs, staged_outputs
+
+    check_outputs(outputs, inputs, folders=folders)
+    return staged_outputs(*outputs.values())
 
 
 def _camera_from_options(preset_name: str, camera_file: Optional[Path]):
@@ -90,20 +228,25 @@ def _grid_table(title: str, grid, measurement) -> Table:
 @app.command()
 @_reports_errors
 def simulate(
-    out_dir: Path = typer.Option(Path("sim"), "--out", "-o", help="Output folder."),
+    out_dir: Path = typer.Option(Path("sim"), "--out", "-o", help="Output folder; an existing simulated data set there is replaced only when the new one is complete."),
     preset_name: Optional[str] = typer.Option(None, "--preset", help="Camera preset: small (default), small-rect, hall2019; with --scene, the scene's camera is used."),
-    seed: int = typer.Option(0, "--seed", help="Random seed; the same seed gives the same bytes."),
+    seed: Optional[int] = typer.Option(None, "--seed", help="Random seed of optics, particles and noise (default 0, or the scene file's seed); the same seed gives the same bytes."),
     particles: int = typer.Option(20, "--particles", min=0, help="Number of particles (random scene)."),
-    diameter: Optional[float] = typer.Option(None, "--diameter", help="Particle diameter, mm (default per preset: 0.4 on the small presets, 1.0 on hall2019)."),
-    magnification: Optional[float] = typer.Option(None, "--magnification", help="Override the preset magnification (negative, e.g. -0.5)."),
+    diameter: Optional[float] = typer.Option(None, "--diameter", callback=_finite(positive=True), help="Particle diameter, mm (default per preset: 0.4 on the small presets, 1.0 on hall2019)."),
+    magnification: Optional[float] = typer.Option(None, "--magnification", callback=_finite(), help="Override the preset magnification (negative, e.g. -0.5); the f-number is re-set to keep the microlens images filled."),
     frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
-    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification and particles replace --preset, --magnification and the random-scene options."),
-    samples: int = typer.Option(16, "--samples", min=1, help="Ray samples per pixel."),
+    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification, seed and particles replace --preset, --magnification, --seed and the random-scene options."),
+    samples: int = typer.Option(16, "--samples", min=1, max=4096, help="Ray samples per pixel."),
 ) -> None:
     """Simulate a plenoptic data set: raw frames, white image, dot cards and ground truth."""
     from .camera import preset
+    from .io import check_outputs
     from .simulate import load_scene, simulate_dataset
 
+    if magnification == 0:
+        raise typer.BadParameter("must be non-zero (negative for a real, inverted image)",
+                                 param_hint="--magnification")
+    check_outputs({"--out": out_dir}, {"--scene": scene}, folders=["--out"])
     scene_obj = None
     if scene is not None:
         scene_obj = load_scene(scene)
@@ -114,6 +257,9 @@ def simulate(
         if magnification is not None and magnification != camera.magnification:
             raise typer.BadParameter("with --scene, set magnification in the scene file",
                                      param_hint="--magnification")
+        if seed is not None and seed != scene_obj.seed:
+            raise typer.BadParameter(f"the scene file's seed ({scene_obj.seed}) governs the whole "
+                                     "simulation; change it in the file instead", param_hint="--seed")
         magnification = None
     else:
         camera = preset(preset_name or "small")
@@ -121,7 +267,12 @@ def simulate(
     result = simulate_dataset(camera, out_dir, seed=seed, n_particles=particles,
                               diameter_mm=diameter, magnification=magnification, frames=frames,
                               scene=scene_obj, samples_per_pixel=samples, progress=True)
-    console.print(f"wrote {result.out_dir} ({time.perf_counter() - t0:.1f} s)")
+    if magnification is not None:
+        console.print(f"magnification {result.camera.magnification:g}: main lens set to "
+                      f"f/{result.camera.f_number:g} (working f-number "
+                      f"{result.camera.image_side_f_number:.2f}, matched to the microlenses)",
+                      highlight=False)
+    console.print(f"wrote {result.out_dir} ({time.perf_counter() - t0:.1f} s)", highlight=False)
 
 
 @app.command("calibrate-grid")
@@ -135,13 +286,14 @@ def calibrate_grid_cmd(
     from .camera import load_camera
     from .calibration import calibrate_from_white, save_calibration
 
-    camera = load_camera(camera_file)
-    t0 = time.perf_counter()
-    calib, report = calibrate_from_white(white, camera)
-    save_calibration(calib, out_file)
+    with _outputs({"--out": out_file}, {"WHITE": white, "--camera": camera_file}) as (tmp,):
+        camera = load_camera(camera_file)
+        t0 = time.perf_counter()
+        calib, report = calibrate_from_white(white, camera)
+        save_calibration(calib, tmp)
     table = _grid_table(f"lenslet grid ({time.perf_counter() - t0:.2f} s)", calib.grid, report)
     out.print(table)
-    console.print(f"wrote {out_file}")
+    console.print(f"wrote {out_file}", highlight=False)
 
 
 @app.command("calibrate")
@@ -151,17 +303,29 @@ def calibrate_cmd(
     dotcards: Path = typer.Option(..., "--dotcards", "-d", help="Dot-card folder with dotcards.toml and one TIFF per depth."),
     camera_file: Path = typer.Option(..., "--camera", "-c", help="Nominal camera description (camera.toml)."),
     out_file: Path = typer.Option(Path("calib.json"), "--out", "-o", help="Calibration file to write."),
-    order: int = typer.Option(4, "--order", help="DLFC total polynomial order (1-6)."),
+    order: int = typer.Option(4, "--order", min=1, max=6, help="DLFC total polynomial order (1-6)."),
 ) -> None:
-    """Calibrate: lenslet grid from a white image, DLFC from dot cards; write a calibration file."""
+    """Calibrate: lenslet grid from a white image, DLFC from dot cards; write a calibration file.
+
+    The card depths in dotcards.toml are checked against the depths the dots' parallax
+    across views shows; a sign or scale error is refused.
+    """
     from .calibrate import calibrate, read_dotcards
     from .calibration import save_calibration
     from .camera import load_camera
 
-    camera = load_camera(camera_file)
     cards = read_dotcards(dotcards)
-    calib, report = calibrate(white, cards, camera, order=order, progress=True)
-    save_calibration(calib, out_file)
+    inputs = {"--white": white, "--camera": camera_file, "--dotcards": dotcards,
+              "dotcards.toml": cards.source, "a dot-card image": [c.path for c in cards.cards]}
+    with _outputs({"--out": out_file}, inputs) as (tmp,):
+        camera = load_camera(camera_file)
+        calib, report = calibrate(white, cards, camera, order=order, progress=True)
+        save_calibration(calib, tmp)
+    _print_calibration_report(calib, cards, report)
+    console.print(f"wrote {out_file}", highlight=False)
+
+
+def _print_calibration_report(calib, cards, report) -> None:
     fit = report.fit
     summary = _grid_table(f"calibration ({report.seconds['total']:.1f} s)", calib.grid, report.grid)
     summary.add_row("DLFC order", f"{report.order}")
@@ -171,23 +335,27 @@ def calibrate_cmd(
     summary.add_row("DLFC residual RMS, view px", f"{fit.rms_px:.4f}")
     summary.add_row("DLFC residual max, view px", f"{fit.max_px:.4f}")
     out.print(summary)
+    implied = "z_implied_mm" in report.cards.columns
     per_card = Table(title="DLFC residual per dot card")
-    for name in ("card", "z, mm", "views", "points", "rejected", "RMS, view px"):
+    names = ["card", "z, mm"] + (["z from parallax, mm"] if implied else []) + [
+        "views", "points", "rejected", "RMS, view px"]
+    for name in names:
         per_card.add_column(name, justify="left" if name == "card" else "right")
     for row in report.cards.itertuples():
-        per_card.add_row(row.file, f"{row.z_mm:g}", f"{row.n_views}", f"{row.n_points}",
+        depth = [f"{row.z_implied_mm:.2f}"] if implied else []
+        per_card.add_row(row.file, f"{row.z_mm:g}", *depth, f"{row.n_views}", f"{row.n_points}",
                          f"{row.n_rejected}", f"{row.rms_px:.4f}")
-    per_card.add_row("all", "", "", f"{fit.n_points + fit.n_rejected}", f"{fit.n_rejected}",
-                     f"{fit.rms_px:.4f}", style="bold")
+    per_card.add_row("all", "", *([""] if implied else []), "", f"{fit.n_points + fit.n_rejected}",
+                     f"{fit.n_rejected}", f"{fit.rms_px:.4f}", style="bold")
     out.print(per_card)
-    console.print(f"wrote {out_file}")
 
 
 def _load_frame(raw: Path, frame: int, calib):
-    from .io import read_raw
+    from .io import read_raw, warn_exposure
 
     image = read_raw(raw, frame=frame)
     calib.check_image(image, source=str(raw))
+    warn_exposure(image, calib.camera.full_scale, source=f"{raw} frame {frame}")
     return image
 
 
@@ -198,26 +366,25 @@ def views(
     calib_file: Path = typer.Option(..., "--calib", help="Calibration file."),
     out_file: Path = typer.Option(Path("views.tif"), "--out", "-o", help="Multi-page TIFF of all views, page = v * n_u + u."),
     mosaic: Optional[Path] = typer.Option(None, "--mosaic", help="Also write a PNG mosaic of all views."),
-    frame: int = typer.Option(0, "--frame", help="Frame of a multi-page raw TIFF."),
+    frame: int = typer.Option(0, "--frame", help="Frame of a multi-page raw TIFF (negative counts from the end)."),
 ) -> None:
     """Decode a raw image and write every perspective view."""
     from .calibration import load_calibration
     from .lightfield import decode, write_mosaic_png, write_views_tiff
 
-    calib = load_calibration(calib_file)
-    image = _load_frame(raw, frame, calib)
-    t0 = time.perf_counter()
-    lf = decode(image, calib.grid, progress=True)
-    write_views_tiff(out_file, lf)
-    if mosaic is not None:
-        try:
-            write_mosaic_png(mosaic, lf)
-        except BaseException:
-            out_file.unlink(missing_ok=True)  # a failed run leaves neither output
-            raise
+    with _outputs({"--out": out_file, "--mosaic": mosaic},
+                  {"RAW": raw, "--calib": calib_file}) as (views_tmp, mosaic_tmp):
+        calib = load_calibration(calib_file)
+        image = _load_frame(raw, frame, calib)
+        t0 = time.perf_counter()
+        lf = decode(image, calib.grid, progress=True)
+        write_views_tiff(views_tmp, lf)
+        if mosaic is not None:
+            write_mosaic_png(mosaic_tmp, lf)
     console.print(f"decoded {lf.data.shape[0]} x {lf.data.shape[1]} views of "
                   f"{lf.data.shape[2]} x {lf.data.shape[3]} samples in {time.perf_counter() - t0:.2f} s; "
-                  f"wrote {out_file}" + (f" and {mosaic}" if mosaic is not None else ""))
+                  f"wrote {out_file}" + (f" and {mosaic}" if mosaic is not None else ""),
+                  highlight=False)
 
 
 def _check_depths(camera, depths) -> None:
@@ -235,13 +402,13 @@ def _check_depths(camera, depths) -> None:
 def refocus(
     raw: Path = typer.Argument(..., help="Raw plenoptic image (uint16 TIFF)."),
     calib_file: Path = typer.Option(..., "--calib", help="Calibration file."),
-    depth: list[float] = typer.Option([], "--depth", help="Depth z (mm, 0 = focal plane); repeat for several."),
-    alpha: list[float] = typer.Option([], "--alpha", help="Refocus parameter alpha = d / s_i; repeat for several."),
-    stack: int = typer.Option(0, "--stack", help="Focal stack of this many planes evenly over --zmin..--zmax."),
-    zmin: float = typer.Option(-25.0, "--zmin", help="Nearest depth of --stack, mm."),
-    zmax: float = typer.Option(25.0, "--zmax", help="Farthest depth of --stack, mm."),
+    depth: list[float] = typer.Option([], "--depth", callback=_finite(), help="Depth z (mm, 0 = focal plane); repeat for several."),
+    alpha: list[float] = typer.Option([], "--alpha", callback=_finite(positive=True), help="Refocus parameter alpha = d / s_i; repeat for several."),
+    stack: int = typer.Option(0, "--stack", min=0, help="Focal stack of this many planes evenly over --zmin..--zmax."),
+    zmin: float = typer.Option(-25.0, "--zmin", callback=_finite(), help="Nearest depth of --stack, mm."),
+    zmax: float = typer.Option(25.0, "--zmax", callback=_finite(), help="Farthest depth of --stack, mm."),
     out_file: Path = typer.Option(Path("refocused.tif"), "--out", "-o", help="Output TIFF (one page per plane)."),
-    frame: int = typer.Option(0, "--frame", help="Frame of a multi-page raw TIFF."),
+    frame: int = typer.Option(0, "--frame", help="Frame of a multi-page raw TIFF (negative counts from the end)."),
 ) -> None:
     """Refocus a raw image (shift-and-add) at given depths or alphas, or make a focal stack."""
     from .calibration import load_calibration
@@ -250,22 +417,24 @@ def refocus(
 
     if not depth and not alpha and stack <= 0:
         raise typer.BadParameter("give --depth, --alpha or --stack")
-    for a in alpha:
-        if not (np.isfinite(a) and a > 0):
-            raise typer.BadParameter(f"alpha must be a positive number; got {a}", param_hint="--alpha")
-    calib = load_calibration(calib_file)
-    camera = calib.camera
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depths = list(depth) + [float(camera.depth_for_alpha(np.float64(a))) for a in alpha]
-    if stack > 0:
-        depths += list(np.linspace(zmin, zmax, stack))
-    _check_depths(camera, depths)
-    image = _load_frame(raw, frame, calib)
-    t0 = time.perf_counter()
-    lf = decode(image, calib.grid)
-    planes = focal_stack(lf, camera, np.asarray(depths), progress=True)
-    write_tiff(out_file, planes.astype(np.float32), compression=None)
-    console.print(f"{len(depths)} plane(s) in {time.perf_counter() - t0:.2f} s; wrote {out_file}")
+    if stack > 1 and not zmin < zmax:
+        raise typer.BadParameter(f"--zmin ({zmin:g}) must be below --zmax ({zmax:g})",
+                                 param_hint="--zmin/--zmax")
+    with _outputs({"--out": out_file}, {"RAW": raw, "--calib": calib_file}) as (tmp,):
+        calib = load_calibration(calib_file)
+        camera = calib.camera
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depths = list(depth) + [float(camera.depth_for_alpha(np.float64(a))) for a in alpha]
+        if stack > 0:
+            depths += list(np.linspace(zmin, zmax, stack))
+        _check_depths(camera, depths)
+        image = _load_frame(raw, frame, calib)
+        t0 = time.perf_counter()
+        lf = decode(image, calib.grid)
+        planes = focal_stack(lf, camera, np.asarray(depths), progress=True)
+        write_tiff(tmp, planes.astype(np.float32), compression=None)
+    console.print(f"{len(depths)} plane(s) in {time.perf_counter() - t0:.2f} s; wrote {out_file}",
+                  highlight=False)
 
 
 @app.command()
@@ -275,48 +444,87 @@ def locate(
     calib_file: Path = typer.Option(..., "--calib", help="Calibration file with a DLFC (`plenoptrack calibrate`)."),
     out_file: Path = typer.Option(Path("particles.parquet"), "--out", "-o", help="Particle table (.parquet or .csv)."),
     detections_file: Optional[Path] = typer.Option(None, "--detections", help="Also write every centroid found in every view."),
-    window: int = typer.Option(31, "--window", help="Local-threshold window of the segmentation, view pixels."),
-    contrast: float = typer.Option(0.15, "--contrast", help="Relative darkness a particle pixel needs."),
-    planes: int = typer.Option(10, "--planes", help="Refocus planes of the clustering."),
+    window: int = typer.Option(31, "--window", min=3, help="Local-threshold window of the segmentation, view pixels (at least 3)."),
+    contrast: float = typer.Option(0.15, "--contrast", callback=_finite(positive=True, below=1.0), help="Relative darkness a particle pixel needs (between 0 and 1)."),
+    planes: int = typer.Option(10, "--planes", min=2, help="Refocus planes of the clustering (at least 2)."),
+    partial: bool = typer.Option(False, "--partial", help="On Ctrl-C, keep the frames already located (default: write nothing)."),
 ) -> None:
     """Locate particles in 3D (perspective-shift method) and write a particle table."""
-    import warnings
-
-    import pandas as pd
     from rich.progress import Progress
 
     from .calibration import load_calibration
-    from .errors import NoParticlesWarning
-    from .io import read_frames, write_table
-    from .locate.perspective import PerspectiveLocator, locate_frame
+    from .io import count_frames, read_frames
+    from .locate.perspective import PerspectiveLocator
 
-    calib = load_calibration(calib_file)
-    calib.dlfc  # refuse a calibration without a DLFC before any work
     locator = PerspectiveLocator(window=window, contrast=contrast, n_planes=planes)
-    tables, detections, frame, empty = [], [], 0, 0
-    t0 = time.perf_counter()
-    with Progress(console=console, transient=True) as bar:
-        task = bar.add_task("locating", total=len(raw))
-        for path in raw:
-            stack = read_frames(path)
-            calib.check_image(stack, source=str(path))
-            for image in stack:
-                with warnings.catch_warnings(record=True) as caught:
-                    warnings.simplefilter("always", NoParticlesWarning)
-                    result = locate_frame(image, calib, frame=frame, locator=locator)
-                empty += any(issubclass(w.category, NoParticlesWarning) for w in caught)
-                tables.append(result.particles)
-                if detections_file is not None:
-                    detections.append(result.detections)
-                frame += 1
-            bar.advance(task)
-    particles = pd.concat(tables, ignore_index=True)
-    write_table(particles, out_file)
-    if detections_file is not None:
-        write_table(pd.concat(detections, ignore_index=True), detections_file)
+    with _outputs({"--out": out_file, "--detections": detections_file},
+                  {"RAW": raw, "--calib": calib_file}) as (out_tmp, det_tmp):
+        calib = load_calibration(calib_file)
+        calib.dlfc  # refuse a calibration without a DLFC before any work
+        n_frames = sum(count_frames(path) for path in raw)  # every input readable, up front
+        tables, detections, frame, empty = [], [], 0, 0
+        interrupted = False
+        t0 = time.perf_counter()
+        try:
+            with Progress(console=console, transient=True) as bar:
+                task = bar.add_task("locating", total=n_frames)
+                for path in raw:
+                    stack = read_frames(path)
+                    calib.check_image(stack, source=str(path))
+                    for k, image in enumerate(stack):
+                        result, no_particles = _locate_one(image, calib, frame, locator,
+                                                           source=f"{path} frame {k}")
+                        empty += no_particles
+                        tables.append(result.particles)
+                        if det_tmp is not None:
+                            detections.append(result.detections)
+                        frame += 1
+                        bar.advance(task)
+        except BaseException as exc:
+            if not (partial and _interrupted(exc) and tables):
+                raise
+            interrupted = True
+        particles = _write_particles(tables, detections, out_tmp, det_tmp)
+    if interrupted:
+        _error_line(f"interrupted after {frame} of {n_frames} frame(s); --partial: wrote "
+                    f"their {len(particles)} particles to {out_file}")
+        raise typer.Exit(code=130)
     note = f" ({empty} frame(s) without particles)" if empty else ""
     console.print(f"{len(particles)} particles in {frame} frame(s){note}, "
                   f"{time.perf_counter() - t0:.2f} s; wrote {out_file}", highlight=False)
+
+
+def _locate_one(image, calib, frame: int, locator, *, source: str):
+    """Locate one frame; return the result and whether it had no particles.
+
+    Warnings other than "no particles" are shown, prefixed with the file and frame.
+    """
+    from .errors import NoParticlesWarning
+    from .locate.perspective import locate_frame
+
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = locate_frame(image, calib, frame=frame, locator=locator)
+    empty = False
+    for w in caught:
+        if issubclass(w.category, NoParticlesWarning):
+            empty = True
+        else:
+            message = str(w.message).replace(f"frame {frame}: ", "", 1)
+            _show_warning(f"{source}: {message}", w.category, w.filename, w.lineno)
+    return result, empty
+
+
+def _write_particles(tables, detections, out_tmp, det_tmp):
+    import pandas as pd
+
+    from .io import write_table
+
+    particles = pd.concat(tables, ignore_index=True)
+    write_table(particles, out_tmp)
+    if det_tmp is not None:
+        write_table(pd.concat(detections, ignore_index=True), det_tmp)
+    return particles
 
 
 @app.command()
@@ -324,7 +532,7 @@ def locate(
 def evaluate(
     particles_file: Path = typer.Argument(..., help="Measured particle table (.parquet or .csv)."),
     truth_file: Path = typer.Argument(..., help="True particle table, e.g. a simulator's truth.parquet."),
-    tolerance: float = typer.Option(1.0, "--tolerance", help="Largest 3D distance of a match, mm."),
+    tolerance: float = typer.Option(1.0, "--tolerance", callback=_finite(positive=True), help="Largest 3D distance of a match, mm."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
 ) -> None:
     """Match measured particles to the truth (Hungarian, within a tolerance) and report errors."""
@@ -357,6 +565,9 @@ def demo(
     """Run the whole pipeline on a small simulated scene and print a summary."""
     from .demo import run_demo
 
+    from .io import check_outputs
+
+    check_outputs({"--out": out_dir}, {}, folders=["--out"])
     summary = run_demo(out_dir, seed=seed, progress=True)
     table = Table(title="plenoptrack demo (simulated 'small' camera)")
     table.add_column("step")

@@ -1,18 +1,35 @@
 """Exceptions and warnings raised by plenoptrack.
 
 Every error message says what was wrong and what to do about it; the command-line
-interface prints it as one line and exits with a non-zero code. Catch
-:class:`PlenoptrackError` to handle any of them.
+interface prints it as one line and exits with a non-zero code: 2 for a usage error (an
+option out of range, an output that would overwrite an input), 1 for a data error (a
+missing, corrupt or implausible file). Catch :class:`PlenoptrackError` to handle any of
+them. The errors about values also derive from :class:`ValueError`, so code written
+against plain ``ValueError`` keeps working.
 """
 
 __all__ = [
-    "PlenoptrackError", "InputFileError", "CameraSpecError", "CalibrationError",
-    "ImageSizeError", "PlenoptrackWarning", "NoParticlesWarning", "VignettingWarning",
+    "PlenoptrackError", "UsageError", "SettingsError", "OutputConflictError",
+    "InputFileError", "CameraSpecError", "CalibrationError", "ImageSizeError",
+    "PlenoptrackWarning", "NoParticlesWarning", "VignettingWarning", "ExposureWarning",
+    "CardDepthWarning",
 ]
 
 
 class PlenoptrackError(Exception):
     """Base class of all plenoptrack errors."""
+
+
+class UsageError(PlenoptrackError, ValueError):
+    """The request itself is invalid, whatever the data (exit code 2 on the command line)."""
+
+
+class SettingsError(UsageError):
+    """An option or setting is out of range, of the wrong kind or inconsistent."""
+
+
+class OutputConflictError(UsageError):
+    """An output path is one of the inputs, holds an input, or is given twice."""
 
 
 class InputFileError(PlenoptrackError, ValueError):
@@ -41,3 +58,11 @@ class NoParticlesWarning(PlenoptrackWarning):
 
 class VignettingWarning(PlenoptrackWarning):
     """Part of the data is vignetted more than expected."""
+
+
+class ExposureWarning(PlenoptrackWarning):
+    """A raw frame is black (no light) or saturated, so it cannot show particles."""
+
+
+class CardDepthWarning(PlenoptrackWarning):
+    """A dot card's stated depth disagrees with the depth its parallax across views shows."""

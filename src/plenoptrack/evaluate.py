@@ -16,7 +16,7 @@ from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
 from ._columns import POS_COLUMNS, T_COLUMN
-from .errors import InputFileError
+from .errors import InputFileError, SettingsError
 
 __all__ = ["match_particles", "evaluate_particles", "Evaluation"]
 
@@ -73,7 +73,7 @@ def match_particles(measured: pd.DataFrame, truth: pd.DataFrame, *, tolerance_mm
     _check_columns(measured, "measured")
     _check_columns(truth, "truth")
     if not tolerance_mm > 0:
-        raise ValueError(f"tolerance_mm must be positive; got {tolerance_mm}")
+        raise SettingsError(f"tolerance_mm must be positive; got {tolerance_mm}")
     m_frames = measured[T_COLUMN] if T_COLUMN in measured else pd.Series(0, index=measured.index)
     t_frames = truth[T_COLUMN] if T_COLUMN in truth else pd.Series(0, index=truth.index)
     rows = []

@@ -11,39 +11,290 @@ from __future__ import annotations
 
 import contextlib
 import os
+import shutil
+import signal
 import tempfile
+import threading
+import warnings
+from collections.abc import Iterable, Iterator, Mapping
 from pathlib import Path
-from typing import Iterator
 
 import numpy as np
 import pandas as pd
 
-from .errors import ImageSizeError, InputFileError
+from .errors import ExposureWarning, ImageSizeError, InputFileError, OutputConflictError
 
 __all__ = [
-    "atomic_path", "atomic_write_text", "read_raw", "read_frames", "count_frames",
+    "check_outputs", "staged_outputs", "atomic_path", "atomic_folder", "atomic_write_text",
+    "default_file_mode", "interrupts_deferred", "exposure_problem", "warn_exposure", "read_raw", "read_frames", "count_frames",
     "write_tiff", "read_table", "write_table", "check_image_shape",
 ]
+
+
+# --- safe writing -------------------------------------------------------------------
+#
+# A user's data is never destroyed: an output may not be one of the inputs, a file is
+# written beside its target and renamed over it only when complete, several outputs of
+# one command are committed together, and a folder (a simulated data set) is built beside
+# its target and swapped in whole. Ctrl-C is held back during the renames themselves.
+
+
+def _umask() -> int:
+    mask = os.umask(0o022)  # the only way to read it is to set it
+    os.umask(mask)
+    return mask
+
+
+def default_file_mode() -> int:
+    """Permission bits a newly created file gets from the process umask (e.g. 0o644)."""
+    return 0o666 & ~_umask()
+
+
+@contextlib.contextmanager
+def interrupts_deferred() -> Iterator[None]:
+    """Hold back Ctrl-C (SIGINT) for the body, then raise the ``KeyboardInterrupt``.
+
+    Used around the few renames that commit an output, so that an interrupt cannot leave
+    a half-committed set of files. Only possible in the main thread; elsewhere the body
+    runs unprotected.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: received.append(signum))
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if received:
+            if callable(previous):
+                previous(signal.SIGINT, None)
+            elif previous == signal.SIG_DFL:
+                raise KeyboardInterrupt
+
+
+def _same_path(a: Path, b: Path) -> bool:
+    """Whether ``a`` and ``b`` name the same file (symbolic and hard links included)."""
+    try:
+        if os.path.samefile(a, b):
+            return True
+    except OSError:
+        pass
+    return Path(os.path.realpath(a)) == Path(os.path.realpath(b))
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether ``path`` lies inside ``folder`` (after resolving links)."""
+    path, folder = Path(os.path.realpath(path)), Path(os.path.realpath(folder))
+    return folder in path.parents
+
+
+def _as_paths(value) -> list[Path]:
+    if value is None:
+        return []
+    if isinstance(value, (str, os.PathLike)):
+        return [Path(value)]
+    return [Path(v) for v in value if v is not None]
+
+
+def check_outputs(outputs: Mapping[str, str | Path | None],
+                  inputs: Mapping[str, object] | None = None, *,
+                  folders: Iterable[str] = ()) -> None:
+    """Refuse outputs that would overwrite an input, each other, or a folder.
+
+    Parameters
+    ----------
+    outputs : mapping of str to path or None
+        Output paths by the name the user knows them under (e.g. ``"--out"``); None
+        entries are skipped.
+    inputs : mapping of str to path, sequence of paths or None, optional
+        Input files or folders by name.
+    folders : iterable of str
+        Names in ``outputs`` that are folders written as a unit (e.g. a simulated data
+        set): no input may lie inside them.
+
+    Raises
+    ------
+    OutputConflictError
+        An output is the same file as an input (symbolic and hard links included), two
+        outputs are the same file, a folder output holds an input, or a file output is
+        an existing folder.
+    """
+    folders = set(folders)
+    named_inputs = [(name, p) for name, value in (inputs or {}).items() for p in _as_paths(value)]
+    seen: list[tuple[str, Path]] = []
+    for name, value in outputs.items():
+        if value is None:
+            continue
+        out = Path(value)
+        for in_name, inp in named_inputs:
+            if _same_path(out, inp):
+                raise OutputConflictError(
+                    f"{out}: {name} is also the input {in_name}; writing it would destroy the "
+                    "input. Give the output another name")
+            if name in folders and _inside(inp, out):
+                raise OutputConflictError(
+                    f"{out}: {name} would replace a folder holding the input {in_name} "
+                    f"({inp}); write the output to another folder")
+        for other_name, other in seen:
+            if _same_path(out, other):
+                raise OutputConflictError(f"{out}: given for both {other_name} and {name}; "
+                                          "give each output its own file")
+        if name not in folders and out.is_dir():
+            raise OutputConflictError(f"{out}: {name} is a folder; give a file name for the output")
+        if name in folders and out.exists() and not out.is_dir():
+            raise OutputConflictError(f"{out}: {name} is a file; give a folder for the output")
+        seen.append((name, out))
+
+
+def _make_parents(path: Path) -> list[Path]:
+    """Create the missing parent folders of ``path``; return those created, outermost first."""
+    missing = []
+    parent = path.parent
+    while not parent.exists() and parent != parent.parent:
+        missing.append(parent)
+        parent = parent.parent
+    created = []
+    for folder in reversed(missing):
+        folder.mkdir()
+        created.append(folder)
+    return created
+
+
+def _remove_empty(folders: Iterable[Path]) -> None:
+    for folder in sorted(folders, key=lambda f: len(f.parts), reverse=True):
+        with contextlib.suppress(OSError):
+            folder.rmdir()
+
+
+def _temporary_beside(path: Path) -> Path:
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
+    os.close(fd)
+    return Path(tmp)
+
+
+def _commit(pairs: list[tuple[Path, Path]]) -> None:
+    """Rename every temporary onto its target; on any failure restore every old target."""
+    mode = default_file_mode()
+    backups: list[tuple[Path, Path | None]] = []
+    with interrupts_deferred():
+        try:
+            for tmp, target in pairs:
+                os.chmod(tmp, mode)
+                backup = None
+                if target.exists():
+                    backup = _temporary_beside(target)
+                    os.replace(target, backup)
+                backups.append((target, backup))
+                os.replace(tmp, target)
+        except BaseException:
+            for target, backup in reversed(backups):
+                if backup is not None:
+                    os.replace(backup, target)
+                else:
+                    target.unlink(missing_ok=True)
+            raise
+        for _, backup in backups:
+            if backup is not None:
+                backup.unlink(missing_ok=True)
+
+
+@contextlib.contextmanager
+def staged_outputs(*targets: str | Path | None) -> Iterator[list[Path | None]]:
+    """Write several output files as one: all are replaced, or none is touched.
+
+    Yields one temporary path beside each target (None for a None target) after creating
+    them, so an unwritable location fails before any work. When the body succeeds every
+    temporary is renamed onto its target (old targets are restored if a rename fails);
+    when it raises, or on Ctrl-C, the temporaries and any folder created for them are
+    removed and existing targets stay as they were. Files get the umask's usual mode.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> with staged_outputs(folder / "a.txt", None, folder / "b.txt") as (a, none, b):
+    ...     _ = a.write_text("A"); _ = b.write_text("B")
+    >>> sorted(p.name for p in folder.iterdir())
+    ['a.txt', 'b.txt']
+    """
+    paths = [None if t is None else Path(t) for t in targets]
+    created: list[Path] = []
+    temporaries: list[Path] = []
+    try:
+        for path in paths:
+            if path is not None:
+                created += _make_parents(path)
+                temporaries.append(_temporary_beside(path))
+        staged = iter(temporaries)
+        yield [None if p is None else next(staged) for p in paths]
+        _commit([(tmp, p) for tmp, p in zip(temporaries, [p for p in paths if p is not None])])
+    finally:
+        with interrupts_deferred():
+            for tmp in temporaries:
+                tmp.unlink(missing_ok=True)
+            _remove_empty(created)  # only those left empty by a failure
 
 
 @contextlib.contextmanager
 def atomic_path(path: str | Path) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
 
-    The parent folder is created if needed. If the body raises, the temporary file is
-    removed and ``path`` is left as it was.
+    The parent folder is created if needed. If the body raises, the temporary file (and
+    any folder created for it) is removed and ``path`` is left as it was. The file gets
+    the usual mode of the process umask.
+    """
+    with staged_outputs(path) as (tmp,):
+        yield tmp
+
+
+@contextlib.contextmanager
+def atomic_folder(path: str | Path) -> Iterator[Path]:
+    """Build a folder beside ``path`` and swap it in whole when the body succeeds.
+
+    Parameters
+    ----------
+    path : str or Path
+        Folder to write. An existing folder is replaced as a unit, only on success: the
+        caller must have checked that nothing else in it needs keeping.
+
+    Yields
+    ------
+    Path
+        An empty temporary folder beside ``path`` to write into.
+
+    Notes
+    -----
+    On failure or Ctrl-C the temporary folder is removed and ``path`` is untouched. The
+    swap is two renames with Ctrl-C held back between them.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp" + path.suffix, dir=path.parent)
-    os.close(fd)
-    tmp = Path(tmp)
+    created = _make_parents(path)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent))
+    committed = False
     try:
+        os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it 0700
         yield tmp
-        os.replace(tmp, path)
+        with interrupts_deferred():
+            old = None
+            if path.exists():
+                old = Path(tempfile.mkdtemp(prefix=f".{path.name}.", suffix=".old", dir=path.parent))
+                os.replace(path, old / path.name)
+            try:
+                os.replace(tmp, path)
+            except BaseException:
+                if old is not None:
+                    os.replace(old / path.name, path)
+                raise
+            committed = True
+            if old is not None:
+                shutil.rmtree(old, ignore_errors=True)
     finally:
-        if tmp.exists():
-            tmp.unlink()
+        if not committed:
+            with interrupts_deferred():
+                shutil.rmtree(tmp, ignore_errors=True)
+                _remove_empty(created)
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
@@ -67,6 +318,22 @@ def _open_tiff(path: Path):
                              "save raw images as single-channel uint16 TIFF") from None
 
 
+def _refuse_colour(tif, path: Path) -> None:
+    """Raise :class:`InputFileError` for a colour (RGB, palette, several samples) TIFF."""
+    page = tif.pages[0] if len(tif.pages) else None
+    if page is None:
+        raise InputFileError(f"{path}: TIFF holds no image; save raw images as single-channel "
+                             "uint16 TIFF")
+    samples = int(getattr(page, "samplesperpixel", 1) or 1)
+    photometric = getattr(getattr(page, "photometric", None), "name", "")
+    if samples > 1 or photometric in ("RGB", "PALETTE", "YCBCR", "CIELAB"):
+        kind = {"PALETTE": "palette"}.get(photometric, f"{samples}-channel ({photometric or 'colour'})")
+        raise InputFileError(
+            f"{path}: is a {kind} colour image; plenoptrack needs the camera's raw "
+            "single-channel (greyscale) uint16 sensor image, not a colour rendering: export "
+            "the raw frame from the camera software")
+
+
 def read_frames(path: str | Path) -> np.ndarray:
     """Read every frame of a raw TIFF.
 
@@ -82,6 +349,7 @@ def read_frames(path: str | Path) -> np.ndarray:
     """
     path = Path(path)
     with _open_tiff(path) as tif:
+        _refuse_colour(tif, path)
         try:
             data = tif.asarray()
         except Exception as exc:  # tifffile raises many kinds on truncated data
@@ -121,6 +389,57 @@ def write_tiff(path: str | Path, image: np.ndarray, *, compression: str | None =
     with atomic_path(path) as tmp:
         tifffile.imwrite(tmp, image, compression=compression, photometric="minisblack")
     return Path(path)
+
+
+BLACK_FRACTION = 0.02
+"""A raw frame whose 99th percentile is below this fraction of full scale is black."""
+
+SATURATED_FRACTION = 0.5
+"""A raw frame with more than this fraction of its pixels at full scale is saturated."""
+
+
+def exposure_problem(image: np.ndarray, full_scale: int) -> str | None:
+    """Say whether a raw frame is black or saturated, and so cannot show particles.
+
+    Parameters
+    ----------
+    image : (rows, cols) ndarray
+        Raw sensor counts.
+    full_scale : int
+        Largest raw value of the camera, counts (``CameraSpec.full_scale``).
+
+    Returns
+    -------
+    str or None
+        ``"black"`` when the 99th percentile is below :data:`BLACK_FRACTION` of full
+        scale (no back-light, lens cap, missed trigger), ``"saturated"`` when more than
+        :data:`SATURATED_FRACTION` of the pixels are at full scale (over-exposed), else
+        None. A back-lit particle image is bright almost everywhere, so neither happens
+        in a usable frame.
+    """
+    sample = np.asarray(image)[::3, ::3]  # a lattice of pixels is enough for a percentile
+    if sample.size == 0:
+        return None
+    if np.percentile(sample, 99) < BLACK_FRACTION * full_scale:
+        return "black"
+    if np.count_nonzero(sample >= full_scale) > SATURATED_FRACTION * sample.size:
+        return "saturated"
+    return None
+
+
+def warn_exposure(image: np.ndarray, full_scale: int, *, source: str = "raw frame") -> str | None:
+    """Issue an :class:`ExposureWarning` if :func:`exposure_problem` finds one; return it."""
+    problem = exposure_problem(image, full_scale)
+    if problem == "black":
+        warnings.warn(f"{source}: the frame is black (99 % of pixels below "
+                      f"{BLACK_FRACTION:.0%} of full scale): no back-light reached the sensor, "
+                      "so no particle can be found; check the light source and trigger",
+                      ExposureWarning, stacklevel=2)
+    elif problem == "saturated":
+        warnings.warn(f"{source}: the frame is saturated (over {SATURATED_FRACTION:.0%} of "
+                      f"pixels at full scale {full_scale}): particles are washed out; shorten "
+                      "the exposure or dim the back-light", ExposureWarning, stacklevel=2)
+    return problem
 
 
 def check_image_shape(image: np.ndarray, expected: tuple[int, int], *, source: str = "image",

@@ -28,6 +28,7 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Rectangle
 
 from ._columns import POS_COLUMNS
+from .errors import SettingsError
 from .evaluate import match_particles
 from .lightfield.decode import LightField
 from .lightfield.refocus import best_focus_depth, sharpness
@@ -46,18 +47,18 @@ _V_LABEL = "v (sensor px from microlens-image centre)"
 
 def _check_lf(lf) -> LightField:
     if not isinstance(lf, LightField):
-        raise ValueError("lf must be a LightField (see plenoptrack.lightfield.decode); "
+        raise SettingsError("lf must be a LightField (see plenoptrack.lightfield.decode); "
                          f"got {type(lf).__name__}")
     return lf
 
 
 def _check_table(df, name: str, columns) -> pd.DataFrame:
     if not isinstance(df, pd.DataFrame):
-        raise ValueError(f"{name} must be a pandas DataFrame with columns {list(columns)}; "
+        raise SettingsError(f"{name} must be a pandas DataFrame with columns {list(columns)}; "
                          f"got {type(df).__name__}")
     missing = [c for c in columns if c not in df.columns]
     if missing:
-        raise ValueError(f"{name} has no column(s) {missing}; expected {list(columns)}")
+        raise SettingsError(f"{name} has no column(s) {missing}; expected {list(columns)}")
     return df
 
 
@@ -222,15 +223,15 @@ def plot_focal_stack_sharpness(stack: np.ndarray, depths_mm, *,
     stack = np.asarray(stack)
     depths = np.asarray(depths_mm, dtype=float)
     if stack.ndim != 3:
-        raise ValueError(f"stack must be 3-D (n, n_t, n_s); got shape {stack.shape}")
+        raise SettingsError(f"stack must be 3-D (n, n_t, n_s); got shape {stack.shape}")
     if depths.ndim != 1 or len(depths) != len(stack):
-        raise ValueError(f"depths_mm must have one depth per image ({len(stack)}); "
+        raise SettingsError(f"depths_mm must have one depth per image ({len(stack)}); "
                          f"got shape {depths.shape}")
     if len(stack) < 2:
-        raise ValueError(f"stack must hold at least 2 images; got {len(stack)}")
+        raise SettingsError(f"stack must hold at least 2 images; got {len(stack)}")
     n_images = int(n_images)
     if n_images < 1:
-        raise ValueError(f"n_images must be at least 1; got {n_images}")
+        raise SettingsError(f"n_images must be at least 1; got {n_images}")
     order = np.argsort(depths)
     stack, depths = stack[order], depths[order]
     curve = sharpness(stack, center=center, half_width=half_width, method=method)
@@ -394,10 +395,10 @@ def plot_errors_vs_depth(particles: pd.DataFrame, truth: pd.DataFrame, *,
     particles = _check_table(particles, "particles", POS_COLUMNS)
     truth = _check_table(truth, "truth", POS_COLUMNS)
     if not (np.isfinite(tolerance_mm) and tolerance_mm > 0):
-        raise ValueError(f"tolerance_mm must be positive; got {tolerance_mm!r}")
+        raise SettingsError(f"tolerance_mm must be positive; got {tolerance_mm!r}")
     pairs = match_particles(particles, truth, tolerance_mm=tolerance_mm)
     if len(pairs) == 0:
-        raise ValueError(f"no measured particle lies within tolerance_mm = {tolerance_mm:g} mm "
+        raise SettingsError(f"no measured particle lies within tolerance_mm = {tolerance_mm:g} mm "
                          "of a true one; nothing to plot (raise the tolerance or check the "
                          "tables use the same frame and units)")
     z_true = truth.loc[pairs["truth_index"], "z"].to_numpy(float)
@@ -405,7 +406,7 @@ def plot_errors_vs_depth(particles: pd.DataFrame, truth: pd.DataFrame, *,
     if np.ndim(bins) == 0:
         n_bins = int(bins)
         if n_bins < 1:
-            raise ValueError(f"bins must be a positive number of bins or bin edges; got {bins!r}")
+            raise SettingsError(f"bins must be a positive number of bins or bin edges; got {bins!r}")
         lo, hi = float(z_true.min()), float(z_true.max())
         if hi <= lo:
             lo, hi = lo - 0.5, hi + 0.5
@@ -413,7 +414,7 @@ def plot_errors_vs_depth(particles: pd.DataFrame, truth: pd.DataFrame, *,
     else:
         edges = np.asarray(bins, dtype=float)
         if edges.ndim != 1 or len(edges) < 2 or not np.all(np.diff(edges) > 0):
-            raise ValueError("bins as edges must be a 1-D increasing sequence of at least 2 "
+            raise SettingsError("bins as edges must be a 1-D increasing sequence of at least 2 "
                              f"depths, mm; got {np.asarray(bins).tolist()!r}")
     which = np.digitize(z_true, edges[1:-1])
     inside = (z_true >= edges[0]) & (z_true <= edges[-1])

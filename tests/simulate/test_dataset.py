@@ -33,7 +33,8 @@ def test_writes_every_file(dataset):
 
 def test_camera_and_cards_files(dataset):
     camera = load_camera(dataset.camera_path)
-    assert camera == preset("small").with_changes(magnification=-0.45)
+    assert camera == preset("small").with_magnification(-0.45)
+    assert camera.image_side_f_number == pytest.approx(preset("small").image_side_f_number, rel=1e-4)
     cards = tomllib.loads(dataset.dotcards_path.read_text())
     assert cards["spacing_mm"] == dataset.dotcard.spacing_mm
     assert [c["z_mm"] for c in cards["cards"]] == [-5.0, 0.0, 5.0]
@@ -66,12 +67,73 @@ def test_scene_camera_must_match(tmp_path):
         simulate_dataset("small", tmp_path, scene=scene, dotcard_depths=[])
 
 
-def test_rerun_into_the_same_folder_leaves_no_stale_frames_or_cards(tmp_path):
+def test_rerun_into_the_same_folder_replaces_the_data_set_as_a_whole(tmp_path):
     simulate_dataset("small", tmp_path, seed=1, n_particles=2, frames=3,
                      dotcard_depths=[-5.0, 0.0, 5.0])
-    (tmp_path / "raw" / "notes.txt").write_text("kept")
     again = simulate_dataset("small", tmp_path, seed=1, n_particles=2, frames=1,
                              dotcard_depths=[0.0])
-    assert sorted(p.name for p in (tmp_path / "raw").iterdir()) == ["frame_0000.tif", "notes.txt"]
+    assert sorted(p.name for p in (tmp_path / "raw").iterdir()) == ["frame_0000.tif"]
     assert sorted(p.name for p in (tmp_path / "dotcards").glob("*.tif")) == ["card_00.tif"]
     assert read_table(again.truth_path)["frame"].max() == 0
+    assert sorted(p.name for p in tmp_path.parent.iterdir() if p.name.startswith(f".{tmp_path.name}")) == []
+
+
+def test_a_folder_with_other_files_is_refused_untouched(tmp_path):
+    simulate_dataset("small", tmp_path, seed=1, n_particles=1, dotcard_depths=[0.0])
+    (tmp_path / "raw" / "notes.txt").write_text("mine")
+    before = {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()}
+    with pytest.raises(SceneError, match=r"not part of a simulated data set \(raw/notes.txt\)"):
+        simulate_dataset("small", tmp_path, seed=2, n_particles=1, dotcard_depths=[0.0])
+    assert {p: p.read_bytes() for p in tmp_path.rglob("*") if p.is_file()} == before
+
+
+def test_a_failed_simulation_keeps_the_old_data_set_whole(tmp_path, monkeypatch):
+    old = simulate_dataset("small", tmp_path / "sim", seed=1, n_particles=1, frames=2,
+                           dotcard_depths=[0.0])
+    before = {p: p.read_bytes() for p in (tmp_path / "sim").rglob("*") if p.is_file()}
+    import plenoptrack.simulate.dataset as dataset
+
+    def broken(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(dataset, "render_dotcard", broken)
+    with pytest.raises(KeyboardInterrupt):
+        simulate_dataset("small", tmp_path / "sim", seed=2, n_particles=3, frames=1,
+                         dotcard_depths=[0.0])
+    assert {p: p.read_bytes() for p in (tmp_path / "sim").rglob("*") if p.is_file()} == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["sim"]  # no temporary left
+    assert old.truth_path.is_file()
+
+
+def test_files_get_the_umask_mode(tmp_path):
+    import os
+
+    previous = os.umask(0o022)
+    try:
+        out = simulate_dataset("small", tmp_path / "sim", seed=1, n_particles=0,
+                               dotcard_depths=[0.0])
+    finally:
+        os.umask(previous)
+    for path in (out.white_path, out.truth_path, out.camera_path, out.dotcard_paths[0]):
+        assert path.stat().st_mode & 0o777 == 0o644, path
+    for folder in (out.out_dir, out.out_dir / "raw", out.out_dir / "dotcards"):
+        assert folder.stat().st_mode & 0o777 == 0o755, folder
+
+
+def test_overlapping_microlens_images_are_refused_with_the_f_number_that_works(tmp_path):
+    camera = preset("small").with_changes(magnification=-0.3)  # f-number not re-set
+    with pytest.raises(SceneError, match=r"overlap.*use f/\d"):
+        simulate_dataset(camera, tmp_path / "sim", n_particles=0, dotcard_depths=[0.0])
+    assert not (tmp_path / "sim").exists()
+
+
+def test_another_magnification_still_gives_a_measurable_lenslet_grid(tmp_path):
+    """The f-number follows the magnification, so the microlens images stay separate."""
+    from plenoptrack.calibration import calibrate_from_white
+
+    out = simulate_dataset("small", tmp_path / "sim", seed=2, n_particles=0,
+                           magnification=-0.3, dotcard_depths=[])
+    assert out.camera.microlens_fill == pytest.approx(1.0, abs=1e-3)
+    calib, report = calibrate_from_white(out.white_path, load_camera(out.camera_path))
+    assert calib.grid.shape == out.camera.grid_shape
+    assert report.rms_residual_px < 0.2

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from ..errors import CalibrationError, ImageSizeError, InputFileError
+from ..errors import CalibrationError, ImageSizeError, InputFileError, SettingsError
 from ..io import check_image_shape
 from .lattice import LensletGrid
 
@@ -95,20 +95,20 @@ class LightField:
     def __post_init__(self) -> None:
         data = self.data
         if not isinstance(data, np.ndarray) or data.ndim != 4:
-            raise ValueError("LightField data must be a 4-D array (v, u, t, s); got "
+            raise SettingsError("LightField data must be a 4-D array (v, u, t, s); got "
                              f"{getattr(data, 'shape', type(data).__name__)}")
         n_v, n_u, n_t, n_s = data.shape
         u = np.asarray(self.u, dtype=float)
         v = np.asarray(self.v, dtype=float)
         if u.shape != (n_u,) or v.shape != (n_v,):
-            raise ValueError(f"LightField u and v must have {n_u} and {n_v} entries to match "
+            raise SettingsError(f"LightField u and v must have {n_u} and {n_v} entries to match "
                              f"data {data.shape}; got {u.shape} and {v.shape}")
         vf = np.asarray(self.valid_fraction, dtype=float)
         if vf.shape != (n_v, n_u):
-            raise ValueError(f"LightField valid_fraction must be ({n_v}, {n_u}); got {vf.shape}")
+            raise SettingsError(f"LightField valid_fraction must be ({n_v}, {n_u}); got {vf.shape}")
         sm = np.asarray(self.spatial_mask, dtype=bool)
         if sm.shape != (n_t, n_s):
-            raise ValueError(f"LightField spatial_mask must be ({n_t}, {n_s}); got {sm.shape}")
+            raise SettingsError(f"LightField spatial_mask must be ({n_t}, {n_s}); got {sm.shape}")
         object.__setattr__(self, "u", u)
         object.__setattr__(self, "v", v)
         object.__setattr__(self, "valid_fraction", vf)
@@ -169,7 +169,7 @@ class LightField:
         iu = np.flatnonzero(np.isclose(self.u, u))
         iv = np.flatnonzero(np.isclose(self.v, v))
         if len(iu) != 1 or len(iv) != 1:
-            raise ValueError(f"no view at (u, v) = ({u}, {v}); u and v run over "
+            raise SettingsError(f"no view at (u, v) = ({u}, {v}); u and v run over "
                              f"{self.u.min():g} ... {self.u.max():g} in steps of 1")
         return int(iv[0]), int(iu[0])
 
@@ -448,7 +448,7 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: np.ndarray | None = Non
     if white is not None:
         white = _check_raw(white, grid, "white image")
     if not 0.0 < white_floor < 1.0:
-        raise ValueError(f"white_floor must be between 0 and 1; got {white_floor!r}")
+        raise SettingsError(f"white_floor must be between 0 and 1; got {white_floor!r}")
     rad = int(math.floor(grid.pitch_px / 2.0))
     if rad < 1:
         raise CalibrationError(f"lenslet pitch {grid.pitch_px:.2f} px is too small to decode; "

@@ -29,7 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 from ..camera import CameraSpec
-from ..errors import CameraSpecError, ImageSizeError
+from ..errors import CameraSpecError, ImageSizeError, SettingsError
 from .decode import LightField
 from .views import _view_selection
 
@@ -131,12 +131,12 @@ def _shift_add(data, mask, sel, dts, ax_t, ax_s, inv_alpha, out):  # pragma: no 
 
 def _resolve_alpha(camera: CameraSpec, alpha, depth_mm) -> float:
     if (alpha is None) == (depth_mm is None):
-        raise ValueError("give exactly one of alpha or depth_mm")
+        raise SettingsError("give exactly one of alpha or depth_mm")
     if alpha is None:
         alpha = float(camera.alpha_for_depth(float(depth_mm)))
     alpha = float(alpha)
     if not (math.isfinite(alpha) and alpha > 0):
-        raise ValueError(f"alpha must be a positive finite number; got {alpha!r}"
+        raise SettingsError(f"alpha must be a positive finite number; got {alpha!r}"
                          + ("" if depth_mm is None else f" (from depth_mm={depth_mm!r})"))
     return alpha
 
@@ -148,7 +148,7 @@ def _selection(lf: LightField, views) -> np.ndarray:
         show = _view_selection(lf, views)
     sel = np.argwhere(show).astype(np.int64)
     if len(sel) == 0:
-        raise ValueError("no views selected for refocusing (all valid fractions are 0 or the "
+        raise SettingsError("no views selected for refocusing (all valid fractions are 0 or the "
                          "selection is empty)")
     return sel
 
@@ -234,7 +234,7 @@ def focal_stack(lf: LightField, camera: CameraSpec, depths_mm, *, views: str | n
     _check(lf, camera)
     depths = np.atleast_1d(np.asarray(depths_mm, dtype=float))
     if depths.ndim != 1:
-        raise ValueError(f"depths_mm must be 1-D; got shape {depths.shape}")
+        raise SettingsError(f"depths_mm must be 1-D; got shape {depths.shape}")
     alphas = [_resolve_alpha(camera, None, z) for z in depths]
     sel = _selection(lf, views)
     mask = lf.spatial_mask.astype(np.float32)
@@ -277,21 +277,21 @@ def sharpness(images: np.ndarray, *, center: tuple[float, float] | None = None,
     """
     img = np.asarray(images, dtype=np.float64)
     if img.ndim < 2:
-        raise ValueError(f"images must be at least 2-D (..., t, s); got shape {img.shape}")
+        raise SettingsError(f"images must be at least 2-D (..., t, s); got shape {img.shape}")
     if (center is None) != (half_width is None):
-        raise ValueError("give both center and half_width, or neither")
+        raise SettingsError("give both center and half_width, or neither")
     lead = img.shape[:-2]
     img = img.reshape(-1, *img.shape[-2:])
     if center is not None:
         hw = int(half_width)
         if hw < 1:
-            raise ValueError(f"half_width must be >= 1; got {half_width!r}")
+            raise SettingsError(f"half_width must be >= 1; got {half_width!r}")
         s_c, t_c = (int(round(c)) for c in center)
         # one extra sample each side so the filter sees real neighbours at the window edge
         t0, t1 = max(t_c - hw - 1, 0), min(t_c + hw + 2, img.shape[1])
         s0, s1 = max(s_c - hw - 1, 0), min(s_c + hw + 2, img.shape[2])
         if t1 - t0 < 3 or s1 - s0 < 3:
-            raise ValueError(f"window centred at (s, t) = {center} lies outside the "
+            raise SettingsError(f"window centred at (s, t) = {center} lies outside the "
                              f"{img.shape[1]} x {img.shape[2]} image")
         img = img[:, t0:t1, s0:s1]
     if method == "laplacian":
@@ -303,7 +303,7 @@ def sharpness(images: np.ndarray, *, center: tuple[float, float] | None = None,
                       for im in img])
         out = g[:, 1:-1, 1:-1].reshape(len(g), -1).mean(axis=1)
     else:
-        raise ValueError(f"method must be 'laplacian' or 'gradient'; got {method!r}")
+        raise SettingsError(f"method must be 'laplacian' or 'gradient'; got {method!r}")
     return out.reshape(lead)
 
 
@@ -315,7 +315,7 @@ def best_focus_depth(stack: np.ndarray, depths_mm, *, center: tuple[float, float
     depths = np.asarray(depths_mm, dtype=float)
     stack = np.asarray(stack)
     if stack.ndim != 3 or len(depths) != len(stack):
-        raise ValueError(f"stack must be (n, n_t, n_s) with n = len(depths_mm) = {len(depths)}; "
+        raise SettingsError(f"stack must be (n, n_t, n_s) with n = len(depths_mm) = {len(depths)}; "
                          f"got shape {stack.shape}")
     curve = sharpness(stack, center=center, half_width=half_width, method=method)
     k = int(np.argmax(curve))

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..io import atomic_path, write_tiff
+from ..errors import SettingsError
 from .decode import LightField
 
 __all__ = ["perspective_views", "view", "view_mosaic", "scale_to_uint8",
@@ -70,7 +71,7 @@ def view_mosaic(lf: LightField, *, views: str | np.ndarray = "all", gap: int = 0
     show = _view_selection(lf, views)
     gap = int(gap)
     if gap < 0:
-        raise ValueError(f"gap must be >= 0; got {gap}")
+        raise SettingsError(f"gap must be >= 0; got {gap}")
     n_v, n_u, n_t, n_s = lf.data.shape
     tiles = np.full((n_v, n_t + gap, n_u, n_s + gap), fill, dtype=np.float32)
     tiles[:, :n_t, :, :n_s] = lf.data.transpose(0, 2, 1, 3)
@@ -88,10 +89,10 @@ def _view_selection(lf: LightField, views) -> np.ndarray:
             return np.ones((lf.n_v, lf.n_u), dtype=bool)
         if views == "valid":
             return lf.view_mask
-        raise ValueError(f"views must be 'all', 'valid' or a boolean (n_v, n_u) array; got {views!r}")
+        raise SettingsError(f"views must be 'all', 'valid' or a boolean (n_v, n_u) array; got {views!r}")
     sel = np.asarray(views)
     if sel.shape != (lf.n_v, lf.n_u) or sel.dtype != bool:
-        raise ValueError(f"views must be a boolean array of shape ({lf.n_v}, {lf.n_u}); "
+        raise SettingsError(f"views must be a boolean array of shape ({lf.n_v}, {lf.n_u}); "
                          f"got {sel.dtype} array of shape {sel.shape}")
     return sel
 

@@ -25,7 +25,7 @@ import numba
 import numpy as np
 import pandas as pd
 
-from ..errors import NoParticlesWarning
+from ..errors import NoParticlesWarning, SettingsError
 
 __all__ = ["ProjectionGeometry", "Clustering", "plane_alphas", "size_thresholds",
            "project", "cluster_detections"]
@@ -71,15 +71,15 @@ class ProjectionGeometry:
         for name in ("mm_per_sample", "aperture_diameter_mm"):
             value = float(getattr(self, name))
             if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{name} must be a positive number; got {value!r}")
+                raise SettingsError(f"{name} must be a positive number; got {value!r}")
             object.__setattr__(self, name, value)
         g = float(self.aperture_mm_per_u)
         if not (math.isfinite(g) and g != 0):
-            raise ValueError(f"aperture_mm_per_u must be a non-zero number; got {g!r}")
+            raise SettingsError(f"aperture_mm_per_u must be a non-zero number; got {g!r}")
         object.__setattr__(self, "aperture_mm_per_u", g)
         axis = tuple(float(x) for x in self.axis_st)
         if len(axis) != 2:
-            raise ValueError(f"axis_st must be a pair (s, t); got {self.axis_st!r}")
+            raise SettingsError(f"axis_st must be a pair (s, t); got {self.axis_st!r}")
         object.__setattr__(self, "axis_st", axis)
 
     @classmethod
@@ -168,9 +168,9 @@ def plane_alphas(camera, depth_range_mm: tuple[float, float], n_planes: int = 10
     """
     z0, z1 = (float(z) for z in depth_range_mm)
     if not z1 > z0:
-        raise ValueError(f"depth_range_mm must be (near, far) with far > near; got {depth_range_mm!r}")
+        raise SettingsError(f"depth_range_mm must be (near, far) with far > near; got {depth_range_mm!r}")
     if n_planes < 1:
-        raise ValueError(f"n_planes must be at least 1; got {n_planes!r}")
+        raise SettingsError(f"n_planes must be at least 1; got {n_planes!r}")
     a = camera.alpha_for_depth(np.array([z1, z0]))
     return np.linspace(a[0], a[1], int(n_planes))
 
@@ -208,7 +208,7 @@ def size_thresholds(alphas, aperture_diameter_mm: float, *, margin: float = 1.2,
     """
     a = np.asarray(alphas, dtype=float)
     if a.ndim != 1 or len(a) == 0 or np.any(np.diff(a) <= 0):
-        raise ValueError("alphas must be a non-empty, strictly ascending 1-D array")
+        raise SettingsError("alphas must be a non-empty, strictly ascending 1-D array")
     t = np.zeros(len(a))
     if len(a) > 1:
         half = 0.5 * (a[1:] + a[:-1])
@@ -668,14 +668,14 @@ def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, a
     needed = ["u", "v", "s", "t"] + (["area"] if area_factor > 0 else [])
     missing = [c for c in needed if c not in detections.columns]
     if missing:
-        raise ValueError(f"detections lacks column(s) {missing}; it needs {needed}")
+        raise SettingsError(f"detections lacks column(s) {missing}; it needs {needed}")
     if "frame" in detections.columns and detections["frame"].nunique() > 1:
-        raise ValueError("detections must hold one frame; cluster each frame separately")
+        raise SettingsError("detections must hold one frame; cluster each frame separately")
     alphas = np.asarray(alphas, dtype=float)
     if min_members < 2:
-        raise ValueError(f"min_members must be at least 2; got {min_members!r}")
+        raise SettingsError(f"min_members must be at least 2; got {min_members!r}")
     if not 0 <= max_trim < 1:
-        raise ValueError(f"max_trim must be in [0, 1); got {max_trim!r}")
+        raise SettingsError(f"max_trim must be in [0, 1); got {max_trim!r}")
     rng = seed if isinstance(seed, np.random.Generator) else np.random.default_rng(seed)
     g = geometry
     n = len(detections)

@@ -37,7 +37,8 @@ import numpy as np
 import pandas as pd
 
 from .._columns import POS_COLUMNS, T_COLUMN
-from ..errors import NoParticlesWarning
+from ..errors import NoParticlesWarning, SettingsError
+from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
@@ -180,24 +181,24 @@ class PerspectiveLocator:
 
     def __post_init__(self) -> None:
         if self.window < 3:
-            raise ValueError(f"window must be at least 3 view pixels; got {self.window}")
+            raise SettingsError(f"window must be at least 3 view pixels; got {self.window}")
         if not 0 < self.contrast < 1:
-            raise ValueError(f"contrast must be between 0 and 1; got {self.contrast}")
+            raise SettingsError(f"contrast must be between 0 and 1; got {self.contrast}")
         if self.core_contrast is not None and not self.contrast < self.core_contrast < 1:
-            raise ValueError(f"core_contrast must be None or between contrast "
+            raise SettingsError(f"core_contrast must be None or between contrast "
                              f"({self.contrast}) and 1; got {self.core_contrast}")
         if self.n_planes < 2:
-            raise ValueError(f"n_planes must be at least 2; got {self.n_planes}")
+            raise SettingsError(f"n_planes must be at least 2; got {self.n_planes}")
         if self.min_views < 2:
-            raise ValueError(f"min_views must be at least 2; got {self.min_views}")
+            raise SettingsError(f"min_views must be at least 2; got {self.min_views}")
         if self.solver not in ("lm", "scipy"):
-            raise ValueError(f"solver must be 'lm' or 'scipy'; got {self.solver!r}")
+            raise SettingsError(f"solver must be 'lm' or 'scipy'; got {self.solver!r}")
         if self.max_view_ratio is not None and not self.max_view_ratio > 1:
-            raise ValueError(f"max_view_ratio must be None or above 1; got {self.max_view_ratio}")
+            raise SettingsError(f"max_view_ratio must be None or above 1; got {self.max_view_ratio}")
         if self.passes < 1:
-            raise ValueError(f"passes must be at least 1; got {self.passes}")
+            raise SettingsError(f"passes must be at least 1; got {self.passes}")
         if self.depth_range_mm is not None and not self.depth_range_mm[1] > self.depth_range_mm[0]:
-            raise ValueError(f"depth_range_mm must be (near, far) with far > near; got {self.depth_range_mm}")
+            raise SettingsError(f"depth_range_mm must be (near, far) with far > near; got {self.depth_range_mm}")
 
     def settings(self) -> dict:
         """The settings as a plain dict (for provenance in output metadata)."""
@@ -511,7 +512,8 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     -------
     LocateResult
         ``particles`` (columns :data:`PARTICLE_COLUMNS`, mm) and ``detections``. An image
-        with no particles gives an empty table and a :class:`NoParticlesWarning`.
+        with no particles gives an empty table and a :class:`NoParticlesWarning`; a black
+        or saturated raw frame also an :class:`~plenoptrack.errors.ExposureWarning`.
     """
     locator = PerspectiveLocator() if locator is None else locator
     dlfc = calibration.dlfc
@@ -530,6 +532,7 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     else:
         image = np.asarray(raw_or_lf)
         calibration.check_image(image)
+        warn_exposure(image, camera.full_scale, source=f"frame {frame}")
         lf = decode(image, calibration.grid)
     if calibration.vignetting is not None and calibration.vignetting.shape == lf.valid_fraction.shape:
         # Views the white image showed to be vignetted are not searched.

@@ -27,7 +27,7 @@ import numpy as np
 import pandas as pd
 
 from .._columns import T_COLUMN
-from ..errors import NoParticlesWarning
+from ..errors import NoParticlesWarning, SettingsError
 
 __all__ = ["DETECTION_COLUMNS", "segment_view", "segment_array", "segment_views"]
 
@@ -287,7 +287,7 @@ def _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, conn8, out,
 def _background_blocks(window) -> tuple[int, int]:
     """Block size ``b`` (px) and half-width ``rb`` (blocks) approximating a box window."""
     if not (isinstance(window, (int, np.integer)) and window >= 3):
-        raise ValueError(f"window must be an integer of at least 3 px; got {window!r}")
+        raise SettingsError(f"window must be an integer of at least 3 px; got {window!r}")
     b = max(1, int(window) // 8)
     rb = max(1, int(round((window / b - 1) / 2)))
     return b, rb
@@ -297,9 +297,9 @@ def _check_range(name, value) -> tuple[float, float]:
     try:
         lo, hi = (float(x) for x in value)
     except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a pair (min, max); got {value!r}") from None
+        raise SettingsError(f"{name} must be a pair (min, max); got {value!r}") from None
     if not (lo >= 0 and hi >= lo):
-        raise ValueError(f"{name} must satisfy 0 <= min <= max; got {value!r}")
+        raise SettingsError(f"{name} must satisfy 0 <= min <= max; got {value!r}")
     return lo, hi
 
 
@@ -411,29 +411,29 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
     """
     data = np.asarray(data)
     if data.ndim != 4:
-        raise ValueError(f"data must be 4-D (v, u, t, s); got shape {data.shape}")
+        raise SettingsError(f"data must be 4-D (v, u, t, s); got shape {data.shape}")
     if not np.issubdtype(data.dtype, np.floating):
         data = data.astype(np.float32)
     n_v, n_u, n_t, n_s = data.shape
     u = np.asarray(u, dtype=float)
     v = np.asarray(v, dtype=float)
     if u.shape != (n_u,) or v.shape != (n_v,):
-        raise ValueError(f"u and v must have {n_u} and {n_v} entries to match data "
+        raise SettingsError(f"u and v must have {n_u} and {n_v} entries to match data "
                          f"{data.shape}; got {u.shape} and {v.shape}")
     use = (np.ones((n_v, n_u), bool) if view_mask is None
            else np.asarray(view_mask, dtype=bool))
     if use.shape != (n_v, n_u):
-        raise ValueError(f"view_mask must be ({n_v}, {n_u}); got {use.shape}")
+        raise SettingsError(f"view_mask must be ({n_v}, {n_u}); got {use.shape}")
     smask = (np.ones((n_t, n_s), bool) if spatial_mask is None
              else np.ascontiguousarray(spatial_mask, dtype=bool))
     if smask.shape != (n_t, n_s):
-        raise ValueError(f"spatial_mask must be ({n_t}, {n_s}); got {smask.shape}")
+        raise SettingsError(f"spatial_mask must be ({n_t}, {n_s}); got {smask.shape}")
     b, rb = _background_blocks(window)
     if not 0.0 < contrast < 1.0:
-        raise ValueError(f"contrast must be between 0 and 1; got {contrast!r}")
+        raise SettingsError(f"contrast must be between 0 and 1; got {contrast!r}")
     a_lo, a_hi = _check_range("area_range", area_range)
     if connectivity not in (1, 2):
-        raise ValueError(f"connectivity must be 1 or 2; got {connectivity!r}")
+        raise SettingsError(f"connectivity must be 1 or 2; got {connectivity!r}")
 
     stack = np.ascontiguousarray(data).reshape(n_v * n_u, n_t, n_s)
     flat_use = np.ascontiguousarray(use.ravel())
@@ -490,7 +490,7 @@ def segment_view(image: np.ndarray, *, mask=None, u: float = 0.0, v: float = 0.0
     """
     image = np.asarray(image)
     if image.ndim != 2:
-        raise ValueError(f"image must be 2-D (t, s); got shape {image.shape}")
+        raise SettingsError(f"image must be 2-D (t, s); got shape {image.shape}")
     return segment_array(image[None, None], [u], [v], spatial_mask=mask, frame=frame,
                          window=window, contrast=contrast, area_range=area_range,
                          max_eccentricity=max_eccentricity, exclude_edge=exclude_edge,

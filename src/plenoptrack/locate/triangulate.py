@@ -37,7 +37,7 @@ import pandas as pd
 from scipy.optimize import least_squares
 
 from .._columns import LF_COLUMNS, POS_COLUMNS
-from ..errors import NoParticlesWarning
+from ..errors import NoParticlesWarning, SettingsError
 from .dlfc import DLFC
 
 __all__ = [
@@ -160,7 +160,7 @@ def predict_detection(dlfc: DLFC, xyz, u, v) -> tuple[np.ndarray, np.ndarray]:
     """
     xyz = np.asarray(xyz, dtype=float)
     if xyz.shape[-1:] != (3,):
-        raise ValueError(f"xyz must have shape (..., 3) (x, y, z in mm); got {xyz.shape}")
+        raise SettingsError(f"xyz must have shape (..., 3) (x, y, z in mm); got {xyz.shape}")
     return dlfc.predict(xyz[..., 0], xyz[..., 1], xyz[..., 2], u, v)
 
 
@@ -242,7 +242,7 @@ def triangulate_cluster(dlfc: DLFC, u, v, s, t, x0, *, n_possible_views: int | N
     _check_same_length(u=u, v=v, s=s, t=t)
     x0 = np.asarray(x0, dtype=float)
     if x0.shape != (3,):
-        raise ValueError(f"x0 must be 3 numbers (x, y, z in mm); got shape {x0.shape}")
+        raise SettingsError(f"x0 must be 3 numbers (x, y, z in mm); got shape {x0.shape}")
     labels = np.zeros(len(u), dtype=np.int64)
     return _triangulate(dlfc, u, v, s, t, labels, np.array([0]), x0[None], n_possible_views,
                         volume_depth_mm, reject_k, min_views, min_threshold_px, max_iter, solver)
@@ -300,7 +300,7 @@ def triangulate_clusters(dlfc: DLFC, detections: pd.DataFrame, initial_xyz, *,
     """
     missing = [c for c in (*LF_COLUMNS, cluster_column) if c not in detections.columns]
     if missing:
-        raise ValueError(f"detections lack column(s) {missing}; need u, v, s, t and "
+        raise SettingsError(f"detections lack column(s) {missing}; need u, v, s, t and "
                          f"{cluster_column!r}")
     raw_labels = detections[cluster_column].to_numpy()
     usable = pd.notna(raw_labels)
@@ -323,7 +323,7 @@ def triangulate_clusters(dlfc: DLFC, detections: pd.DataFrame, initial_xyz, *,
 def _check_same_length(**arrays) -> None:
     lengths = {k: len(a) for k, a in arrays.items()}
     if len(set(lengths.values())) != 1:
-        raise ValueError(f"u, v, s and t must have the same length; got {lengths}")
+        raise SettingsError(f"u, v, s and t must have the same length; got {lengths}")
 
 
 def _initial_positions(initial_xyz, labels: np.ndarray) -> np.ndarray:
@@ -331,12 +331,12 @@ def _initial_positions(initial_xyz, labels: np.ndarray) -> np.ndarray:
     if isinstance(initial_xyz, pd.DataFrame):
         absent = [lab for lab in labels.tolist() if lab not in initial_xyz.index]
         if absent:
-            raise ValueError(f"initial_xyz has no row for cluster(s) {absent[:10]}; index it "
+            raise SettingsError(f"initial_xyz has no row for cluster(s) {absent[:10]}; index it "
                              "by cluster label")
         return initial_xyz.loc[labels, list(POS_COLUMNS)].to_numpy(dtype=float)
     x0 = np.asarray(initial_xyz, dtype=float)
     if x0.shape != (len(labels), 3):
-        raise ValueError(f"initial_xyz must have shape ({len(labels)}, 3), one row per "
+        raise SettingsError(f"initial_xyz must have shape ({len(labels)}, 3), one row per "
                          f"cluster in ascending label order; got {x0.shape}")
     return x0
 
@@ -347,16 +347,16 @@ def _triangulate(dlfc, u, v, s, t, labels, cluster_ids, x0, n_possible_views,
                  volume_depth_mm, reject_k, min_views, min_threshold_px, max_iter, solver):
     """Solve, reject outliers and re-solve until stable; then uncertainty and flags."""
     if solver not in ("lm", "scipy"):
-        raise ValueError(f"solver must be 'lm' or 'scipy'; got {solver!r}")
+        raise SettingsError(f"solver must be 'lm' or 'scipy'; got {solver!r}")
     if min_views < 2:
-        raise ValueError(f"min_views must be at least 2 (3 unknowns, 2 equations per view); "
+        raise SettingsError(f"min_views must be at least 2 (3 unknowns, 2 equations per view); "
                          f"got {min_views}")
     if not reject_k > 0:
-        raise ValueError(f"reject_k must be positive (np.inf disables rejection); got {reject_k!r}")
+        raise SettingsError(f"reject_k must be positive (np.inf disables rejection); got {reject_k!r}")
     n_k = len(cluster_ids)
     bad_start = ~np.all(np.isfinite(x0), axis=1)
     if bad_start.any():
-        raise ValueError(f"initial position is NaN or infinite for cluster(s) "
+        raise SettingsError(f"initial position is NaN or infinite for cluster(s) "
                          f"{np.asarray(cluster_ids)[bad_start][:10].tolist()}; give a finite "
                          "starting guess (x, y, z in mm) for every cluster")
     if n_k == 0:

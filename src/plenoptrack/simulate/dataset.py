@@ -27,14 +27,14 @@ import pandas as pd
 
 from .._columns import T_COLUMN
 from ..camera import CameraSpec, preset, save_camera
-from ..io import atomic_write_text, write_table, write_tiff
+from ..io import atomic_folder, atomic_write_text, write_table, write_tiff
 from .dotcard import DotCard, default_dotcard, default_dotcard_depths, render_dotcard
 from .optics import SimOptics, make_optics
 from .render import DEFAULT_SAMPLES_PER_PIXEL, render_frame, render_white
 from .scene import Scene, SceneError, make_scene
 from .sensor import SensorModel
 
-__all__ = ["SimulationResult", "simulate_dataset"]
+__all__ = ["SimulationResult", "simulate_dataset", "foreign_files", "DATASET_LAYOUT"]
 
 
 @dataclass(frozen=True)
@@ -87,7 +87,70 @@ def _progress(enabled: bool):
                     TextColumn("{task.completed}/{task.total}"), TimeElapsedColumn())
 
 
-def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int = 0,
+DATASET_LAYOUT = {
+    ".": ("raw", "white.tif", "dotcards", "camera.toml", "truth.parquet", "truth_optics.json"),
+    "raw": ("frame_*.tif",),
+    "dotcards": ("card_*.tif", "dotcards.toml"),
+}
+"""Names a simulated data set consists of, per sub-folder (glob patterns)."""
+
+MAX_MICROLENS_FILL = 1.05
+"""Largest microlens-image diameter over pitch that still gives a measurable lenslet grid."""
+
+
+def foreign_files(folder: str | Path) -> list[Path]:
+    """Files and folders in ``folder`` that are not part of a simulated data set.
+
+    Parameters
+    ----------
+    folder : str or Path
+        An existing folder (a missing one has none).
+
+    Returns
+    -------
+    list of Path
+        Everything that :data:`DATASET_LAYOUT` does not name, sorted.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return []
+    foreign = []
+    for sub, patterns in DATASET_LAYOUT.items():
+        base = folder / sub
+        if not base.is_dir():
+            continue
+        for entry in base.iterdir():
+            if sub == "." and entry.name in DATASET_LAYOUT and not entry.is_dir():
+                foreign.append(entry)
+            elif not any(entry.match(pattern) for pattern in patterns) or (
+                    sub != "." and entry.is_dir()):
+                foreign.append(entry)
+    return sorted(foreign)
+
+
+def _check_out_dir(out: Path) -> None:
+    if out.exists() and not out.is_dir():
+        raise SceneError(f"{out}: is a file; give a folder for the simulated data set")
+    foreign = foreign_files(out)
+    if foreign:
+        names = ", ".join(str(p.relative_to(out)) for p in foreign[:3])
+        more = f" and {len(foreign) - 3} more" if len(foreign) > 3 else ""
+        raise SceneError(f"{out}: holds files that are not part of a simulated data set "
+                         f"({names}{more}); it would be replaced as a whole, so choose a new "
+                         "or empty folder, or move those files out")
+
+
+def _check_fill(camera: CameraSpec) -> None:
+    fill = camera.microlens_fill
+    if fill > MAX_MICROLENS_FILL:
+        matched = camera.f_number * fill
+        raise SceneError(
+            f"at f/{camera.f_number:g} and magnification {camera.magnification:g} the microlens "
+            f"images are {fill:.2f} times their pitch and overlap, so no lenslet grid could be "
+            f"measured; use f/{matched:.2f} or a larger f-number")
+
+
+def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int | None = None,
                      n_particles: int = 20, diameter_mm: float | None = None,
                      magnification: float | None = None, frames: int = 1,
                      velocity_mm_per_frame=(0.0, 0.0, 0.0), scene: Scene | None = None,
@@ -102,16 +165,23 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     camera : CameraSpec or str
         Nominal camera or preset name (``hall2019``, ``small``, ``small-rect``).
     out_dir : str or Path
-        Output folder (created; existing files of the layout are replaced).
-    seed : int
+        Output folder. The data set is built in a temporary folder beside it and swapped
+        in whole at the end: an existing data set there is replaced only when the new one
+        is complete (on an error or Ctrl-C it stays as it was). A folder holding anything
+        else (:func:`foreign_files`) is refused.
+    seed : int, optional
         Master seed: the optics are ``make_optics(camera, seed)``; particle positions and
-        every noise draw use generators seeded from ``[seed, purpose, index]``.
+        every noise draw use generators seeded from ``[seed, purpose, index]``. Default:
+        the scene's seed when ``scene`` is given (so a scene file's seed governs the whole
+        simulation), else 0.
     n_particles, diameter_mm : int, float
         Random scene (ignored when ``scene`` is given): particles and their diameter, mm
         (default per camera preset, :func:`~plenoptrack.simulate.scene.default_diameter_mm`:
         0.4 mm on the small presets, 1 mm otherwise).
     magnification : float, optional
-        Replaces the camera's magnification (also in ``camera.toml``).
+        Replaces the camera's magnification (also in ``camera.toml``), with the f-number
+        re-set to keep the working f-number (:meth:`CameraSpec.with_magnification`), as a
+        user re-sets the aperture after refocusing.
     frames : int
         Number of frames of the random scene.
     velocity_mm_per_frame : (3,) array-like
@@ -134,12 +204,23 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     Returns
     -------
     SimulationResult
+
+    Raises
+    ------
+    SceneError
+        ``out_dir`` holds other files, is a file, or the camera's microlens images would
+        overlap (main-lens f-number too small for the magnification).
     """
     camera = preset(camera) if isinstance(camera, str) else camera
     if not isinstance(camera, CameraSpec):
         raise TypeError(f"camera must be a CameraSpec or a preset name; got {type(camera).__name__}")
     if magnification is not None:
-        camera = camera.with_changes(magnification=float(magnification))
+        camera = camera.with_magnification(magnification)
+    _check_fill(camera)
+    if seed is None:
+        seed = scene.seed if scene is not None else 0
+    out = Path(out_dir)
+    _check_out_dir(out)
     if scene is None:
         scene = make_scene(camera, n_particles=n_particles, diameter_mm=diameter_mm,
                            frames=frames, velocity_mm_per_frame=velocity_mm_per_frame, seed=seed)
@@ -149,64 +230,55 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     depths = default_dotcard_depths(camera) if dotcard_depths is None else np.asarray(
         dotcard_depths, dtype=float).reshape(-1)
     card = default_dotcard(camera) if dotcard is None else dotcard
-    out = Path(out_dir)
     optics = make_optics(camera, seed)
     truth = scene.truth.reset_index(drop=True)
     n_frames = scene.frames
+    frame_names = [Path("raw") / f"frame_{f:04d}.tif" for f in range(n_frames)]
+    card_names = [Path("dotcards") / f"card_{k:02d}.tif" for k in range(len(depths))]
 
-    with _progress(progress) as bar:
+    with _progress(progress) as bar, atomic_folder(out) as tmp:
         task = bar.add_task("simulating", total=2 + n_frames + len(depths)) if bar else None
 
         def step(description: str) -> None:
             if bar is not None:
                 bar.update(task, advance=1, description=description)
 
-        camera_path = save_camera(camera, out / "camera.toml")
+        save_camera(camera, tmp / "camera.toml")
         optics_doc = optics.to_dict() | {"samples_per_pixel": samples_per_pixel,
                                          "sensor": asdict(sensor)}
-        optics_path = atomic_write_text(out / "truth_optics.json", json.dumps(optics_doc, indent=2))
-        truth_path = write_table(truth, out / "truth.parquet")
-        white_path = write_tiff(out / "white.tif", render_white(
+        atomic_write_text(tmp / "truth_optics.json", json.dumps(optics_doc, indent=2))
+        write_table(truth, tmp / "truth.parquet")
+        write_tiff(tmp / "white.tif", render_white(
             optics, seed=np.random.default_rng([seed, 2]), samples_per_pixel=samples_per_pixel,
             sensor=sensor))
         step("white image")
-        frame_paths = []
+        (tmp / "raw").mkdir()
         for f in range(n_frames):
             particles = truth[truth[T_COLUMN] == f]
             image = render_frame(optics, particles, seed=np.random.default_rng([seed, 3, f]),
                                  samples_per_pixel=samples_per_pixel, sensor=sensor)
-            frame_paths.append(write_tiff(out / "raw" / f"frame_{f:04d}.tif", image))
+            write_tiff(tmp / frame_names[f], image)
             step(f"frame {f + 1}/{n_frames}")
-        card_paths = []
         for k, z in enumerate(depths):
             image = render_dotcard(optics, float(z), card=card,
                                    seed=np.random.default_rng([seed, 4, k]),
                                    samples_per_pixel=samples_per_pixel, sensor=sensor)
-            card_paths.append(write_tiff(out / "dotcards" / f"card_{k:02d}.tif", image))
+            write_tiff(tmp / card_names[k], image)
             step(f"dot card {k + 1}/{len(depths)}")
         import tomli_w
 
         cards_doc = {"spacing_mm": card.spacing_mm, "dot_diameter_mm": card.dot_diameter_mm,
-                     "cards": [{"file": p.name, "z_mm": float(z)} for p, z in zip(card_paths, depths)]}
-        dotcards_path = atomic_write_text(
-            out / "dotcards" / "dotcards.toml",
+                     "cards": [{"file": p.name, "z_mm": float(z)} for p, z in zip(card_names, depths)]}
+        atomic_write_text(
+            tmp / "dotcards" / "dotcards.toml",
             "# dot grid: dot (m, n) at world (x, y) = (m, n) * spacing_mm; dot (0, 0) on the axis\n"
             + tomli_w.dumps(cards_doc))
-        _remove_stale(out / "raw", "frame_*.tif", frame_paths)
-        _remove_stale(out / "dotcards", "card_*.tif", card_paths)
         step("done")
     return SimulationResult(out_dir=out, camera=camera, optics=optics, truth=truth,
-                            frame_paths=tuple(frame_paths), white_path=white_path,
-                            dotcard_paths=tuple(card_paths),
+                            frame_paths=tuple(out / p for p in frame_names),
+                            white_path=out / "white.tif",
+                            dotcard_paths=tuple(out / p for p in card_names),
                             dotcard_depths_mm=tuple(float(z) for z in depths), dotcard=card,
-                            camera_path=camera_path, truth_path=truth_path,
-                            optics_path=optics_path, dotcards_path=dotcards_path)
-
-
-def _remove_stale(folder: Path, pattern: str, written) -> None:
-    """Delete files of this layout left in ``folder`` by an earlier, larger simulation,
-    so that the folder matches ``truth.parquet`` and ``dotcards.toml``."""
-    keep = {Path(p).name for p in written}
-    for path in folder.glob(pattern):
-        if path.name not in keep:
-            path.unlink()
+                            camera_path=out / "camera.toml", truth_path=out / "truth.parquet",
+                            optics_path=out / "truth_optics.json",
+                            dotcards_path=out / "dotcards" / "dotcards.toml")

@@ -34,6 +34,7 @@ from .._columns import DIAMETER_COLUMN, POS_COLUMNS, T_COLUMN
 from . import _kernels
 from .optics import SimOptics
 from .scene import SceneError
+from ..errors import SettingsError
 from .sensor import SensorModel, expose
 
 __all__ = ["render_irradiance", "render_white", "render_frame", "background_irradiance",
@@ -52,7 +53,7 @@ def _check_optics(optics) -> None:
 
 def _check_samples(samples_per_pixel) -> int:
     if not (isinstance(samples_per_pixel, (int, np.integer)) and 1 <= samples_per_pixel <= 4096):
-        raise ValueError(f"samples_per_pixel must be an integer in [1, 4096]; got {samples_per_pixel!r}")
+        raise SettingsError(f"samples_per_pixel must be an integer in [1, 4096]; got {samples_per_pixel!r}")
     return int(samples_per_pixel)
 
 

@@ -11,7 +11,9 @@ Scene files (TOML)
 
     camera = "small"                    # preset name, or a [camera] table (CameraSpec fields)
     magnification = -0.5                # optional override of the camera's magnification
-    seed = 7                            # optional, default 0
+                                        # (f-number re-set to keep the working f-number)
+    seed = 7                            # optional, default 0: governs the whole simulation
+                                        # (particles, optics, noise)
     frames = 3                          # optional, default 1
     velocity_mm_per_frame = [0.1, 0.0, 0.2]   # optional, default [0, 0, 0]
 
@@ -346,7 +348,10 @@ def load_scene(path: str | Path) -> Scene:
     else:
         raise InputFileError(f"{path}: 'camera' must be a preset name or a [camera] table")
     if "magnification" in data:
-        camera = camera.with_changes(magnification=float(data["magnification"]))
+        try:
+            camera = camera.with_magnification(float(data["magnification"]))
+        except (TypeError, ValueError) as exc:
+            raise InputFileError(f"{path}: magnification: {exc}") from None
     seed = data.get("seed", 0)
     frames = data.get("frames", 1)
     velocity = data.get("velocity_mm_per_frame", [0.0, 0.0, 0.0])
