@@ -80,8 +80,8 @@ class _OneLineErrors(TyperGroup):
             hint = f" (see `{ctx.command_path} --help`)" if ctx is not None else ""
             _error_line(exc.format_message() + hint)
             sys.exit(exc.exit_code)
-        except typer.Abort:
-            _error_line("interrupted")
+        except (typer.Abort, KeyboardInterrupt):
+            _error_line("interrupted; nothing half-written was kept")
             sys.exit(130)
         sys.exit(rv if isinstance(rv, int) else 0)
 

@@ -326,7 +326,10 @@ def _refuse_colour(tif, path: Path) -> None:
                              "uint16 TIFF")
     samples = int(getattr(page, "samplesperpixel", 1) or 1)
     photometric = getattr(getattr(page, "photometric", None), "name", "")
-    if samples > 1 or photometric in ("RGB", "PALETTE", "YCBCR", "CIELAB"):
+    # Samples stored as separate planes are how tifffile writes a stack of 3 or 4 greyscale
+    # frames by default; they are read as frames. Interleaved samples are a colour image.
+    planar = getattr(getattr(page, "planarconfig", None), "name", "") == "SEPARATE"
+    if (samples > 1 and not planar) or photometric in ("PALETTE", "YCBCR", "CIELAB"):
         kind = {"PALETTE": "palette"}.get(photometric, f"{samples}-channel ({photometric or 'colour'})")
         raise InputFileError(
             f"{path}: is a {kind} colour image; plenoptrack needs the camera's raw "
