@@ -1,11 +1,15 @@
+import os
+from pathlib import Path
+
 import numpy as np
 import pandas as pd
 import pytest
 import tifffile
 
-from plenoptrack.errors import ImageSizeError, InputFileError
-from plenoptrack.io import (atomic_path, check_image_shape, count_frames, read_frames, read_raw,
-                            read_table, write_table, write_tiff)
+from plenoptrack.errors import ImageSizeError, InputFileError, OutputConflictError
+from plenoptrack.io import (atomic_path, check_image_shape, check_outputs, count_frames,
+                            exposure_problem, interrupts_deferred, read_frames, read_raw,
+                            read_table, staged_outputs, write_table, write_tiff)
 
 
 def test_tiff_round_trip_single_and_multi(tmp_path):
@@ -84,3 +88,192 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path):
             raise RuntimeError("boom")
     assert target.read_text() == "old"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["result.txt"]
+
+
+# --------------------------------------------------------------------------- safe outputs
+
+
+def test_staged_outputs_replace_all_targets_or_none(tmp_path):
+    a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+    a.write_text("old a")
+    with pytest.raises(RuntimeError):
+        with staged_outputs(a, b) as (ta, tb):
+            ta.write_text("new a")  # complete
+            raise RuntimeError("the second output failed")
+    assert a.read_text() == "old a" and not b.exists()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt"]
+    with staged_outputs(a, None, b) as (ta, none, tb):
+        assert none is None
+        ta.write_text("new a")
+        tb.write_text("new b")
+    assert (a.read_text(), b.read_text()) == ("new a", "new b")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
+
+
+def test_a_failed_rename_restores_every_old_target(tmp_path, monkeypatch):
+    import plenoptrack.io
+
+    a, b = tmp_path / "a.txt", tmp_path / "b.txt"
+    a.write_text("old a")
+    b.write_text("old b")
+    real_replace = os.replace
+    onto_b = []
+
+    def replace(src, dst):
+        if Path(dst) == b:
+            onto_b.append(src)
+            if len(onto_b) == 1:  # committing the new b fails; restoring the old one works
+                raise OSError(28, "No space left on device", str(dst))
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(plenoptrack.io.os, "replace", replace)
+    with pytest.raises(OSError, match="No space"):
+        with staged_outputs(a, b) as (ta, tb):
+            ta.write_text("new a")
+            tb.write_text("new b")
+    monkeypatch.undo()
+    assert (a.read_text(), b.read_text()) == ("old a", "old b")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.txt", "b.txt"]
+
+
+def test_staged_outputs_remove_the_folders_they_created_on_failure(tmp_path):
+    with pytest.raises(RuntimeError):
+        with staged_outputs(tmp_path / "new" / "deeper" / "a.txt"):
+            raise RuntimeError
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_files_get_the_umask_mode(tmp_path):
+    previous = os.umask(0o002)
+    try:
+        write_table(pd.DataFrame({"x": [1.0]}), tmp_path / "t.parquet")
+        write_tiff(tmp_path / "i.tif", np.zeros((2, 2), np.uint16))
+    finally:
+        os.umask(previous)
+    for name in ("t.parquet", "i.tif"):
+        assert (tmp_path / name).stat().st_mode & 0o777 == 0o664
+
+
+def test_check_outputs_refuses_inputs_links_duplicates_and_folders(tmp_path):
+    raw = tmp_path / "raw.tif"
+    raw.write_bytes(b"raw")
+    (tmp_path / "soft.tif").symlink_to(raw)
+    os.link(raw, tmp_path / "hard.tif")
+    (tmp_path / "dir").mkdir()
+    inputs = {"RAW": [raw], "--calib": None}
+    check_outputs({"--out": tmp_path / "new.parquet", "--detections": None}, inputs)
+    for target in (raw, tmp_path / "soft.tif", tmp_path / "hard.tif", tmp_path / "dir" / ".." / "raw.tif"):
+        with pytest.raises(OutputConflictError, match="--out is also the input RAW"):
+            check_outputs({"--out": target}, inputs)
+    with pytest.raises(OutputConflictError, match="both --out and --mosaic"):
+        check_outputs({"--out": tmp_path / "v.tif", "--mosaic": tmp_path / "v.tif"}, inputs)
+    with pytest.raises(OutputConflictError, match="is a folder"):
+        check_outputs({"--out": tmp_path / "dir"}, inputs)
+    with pytest.raises(OutputConflictError, match="would replace a folder holding the input"):
+        check_outputs({"--out": tmp_path}, inputs, folders=["--out"])
+    assert raw.read_bytes() == b"raw"
+
+
+def test_interrupts_are_deferred_to_the_end_of_the_block():
+    import signal
+
+    done = []
+    with pytest.raises(KeyboardInterrupt):
+        with interrupts_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            done.append("finished the block first")
+    assert done == ["finished the block first"]
+
+
+def test_colour_tiff_is_refused_and_a_stack_of_three_frames_read(tmp_path):
+    grey = np.arange(4 * 5, dtype=np.uint16).reshape(4, 5)
+    tifffile.imwrite(tmp_path / "rgb.tif", np.stack([grey] * 3, axis=-1), photometric="rgb")
+    with pytest.raises(InputFileError, match="rgb.tif: is a 3-channel \\(RGB\\) colour image"):
+        read_raw(tmp_path / "rgb.tif")
+    stack = np.stack([grey, grey + 1, grey + 2])
+    tifffile.imwrite(tmp_path / "planes.tif", stack, photometric="rgb", planarconfig="separate")
+    np.testing.assert_array_equal(read_frames(tmp_path / "planes.tif"), stack)
+
+
+def test_exposure_problem():
+    rng = np.random.default_rng(0)
+    lit = rng.integers(1500, 3000, size=(60, 80)).astype(np.uint16)
+    assert exposure_problem(lit, 4095) is None
+    assert exposure_problem(np.zeros((60, 80), np.uint16), 4095) == "black"
+    assert exposure_problem(rng.integers(0, 40, size=(60, 80)), 4095) == "black"
+    assert exposure_problem(np.full((60, 80), 4095, np.uint16), 4095) == "saturated"
+    dark_particles = lit.copy()
+    dark_particles[:, :30] = 0  # a third of the frame shadowed is still a usable frame
+    assert exposure_problem(dark_particles, 4095) is None
+
+
+# --------------------------------------------------------------------------- fuzzed readers
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+def _readers(tmp_path_factory):
+    """(suffix, reader) of every reader of the file contract."""
+    from plenoptrack.calibrate import read_dotcards
+    from plenoptrack.calibration import load_calibration
+    from plenoptrack.camera import load_camera
+    from plenoptrack.simulate import load_scene
+
+    return {
+        ".tif": read_frames, ".parquet": read_table, ".csv": read_table,
+        ".json": load_calibration, "camera.toml": load_camera,
+        "dotcards.toml": read_dotcards, "scene.toml": load_scene,
+    }
+
+
+@pytest.fixture(scope="module")
+def valid_files(tmp_path_factory):
+    """One valid file per reader, to be truncated."""
+    from plenoptrack.calibration import calibrate_from_white, save_calibration
+    from plenoptrack.simulate import simulate_dataset
+
+    folder = tmp_path_factory.mktemp("valid")
+    sim = simulate_dataset("small", folder / "sim", seed=0, n_particles=2, dotcard_depths=[0.0])
+    calib, _ = calibrate_from_white(sim.white_path, sim.camera)
+    save_calibration(calib, folder / "c.json")
+    write_table(sim.truth, folder / "t.csv")
+    (folder / "scene.toml").write_text("camera = 'small'\n[random]\nn = 2\n")
+    return {".tif": sim.frame_paths[0], ".parquet": sim.truth_path, ".csv": folder / "t.csv",
+            ".json": folder / "c.json", "camera.toml": sim.camera_path,
+            "dotcards.toml": sim.dotcards_path, "scene.toml": folder / "scene.toml"}
+
+
+KINDS = [".tif", ".parquet", ".csv", ".json", "camera.toml", "dotcards.toml", "scene.toml"]
+
+
+def _only_own_errors(reader, path):
+    from plenoptrack.errors import PlenoptrackError
+
+    try:
+        reader(path)
+    except PlenoptrackError:
+        pass
+
+
+@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(kind=st.sampled_from(KINDS), data=st.binary(max_size=600))
+def test_random_bytes_raise_only_project_errors(tmp_path_factory, kind, data):
+    folder = tmp_path_factory.mktemp("fuzz")
+    path = folder / (f"f{kind}" if kind.startswith(".") else kind)
+    path.write_bytes(data)
+    _only_own_errors(_readers(tmp_path_factory)[kind], path)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(kind=st.sampled_from(KINDS), fraction=st.floats(0.0, 1.0))
+def test_truncated_files_raise_only_project_errors(tmp_path_factory, valid_files, kind, fraction):
+    source = valid_files[kind]
+    full = source.read_bytes()
+    folder = tmp_path_factory.mktemp("cut")
+    path = folder / source.name
+    if kind == "dotcards.toml":  # keep the card images beside it
+        for card in source.parent.glob("*.tif"):
+            (folder / card.name).write_bytes(card.read_bytes())
+    path.write_bytes(full[: int(len(full) * fraction)])
+    _only_own_errors(_readers(tmp_path_factory)[kind], path)

@@ -313,7 +313,7 @@ def _open_tiff(path: Path):
         raise InputFileError(f"{path}: is a folder, expected a TIFF image file")
     try:
         return tifffile.TiffFile(path)
-    except (tifffile.TiffFileError, ValueError, OSError, IndexError, KeyError) as exc:
+    except Exception as exc:  # tifffile raises many kinds (struct.error, ValueError...) on bad bytes
         raise InputFileError(f"{path}: not a readable TIFF image ({exc}); "
                              "save raw images as single-channel uint16 TIFF") from None
 
@@ -352,9 +352,11 @@ def read_frames(path: str | Path) -> np.ndarray:
     """
     path = Path(path)
     with _open_tiff(path) as tif:
-        _refuse_colour(tif, path)
         try:
+            _refuse_colour(tif, path)
             data = tif.asarray()
+        except InputFileError:
+            raise
         except Exception as exc:  # tifffile raises many kinds on truncated data
             raise InputFileError(f"{path}: TIFF data could not be read, the file may be "
                                  f"truncated ({type(exc).__name__}: {exc})") from None
@@ -381,7 +383,15 @@ def count_frames(path: str | Path) -> int:
     """Number of frames (pages) in a TIFF without reading the pixels."""
     path = Path(path)
     with _open_tiff(path) as tif:
-        return len(tif.series[0].shape) == 3 and tif.series[0].shape[0] or 1
+        try:
+            _refuse_colour(tif, path)
+            shape = tif.series[0].shape
+        except InputFileError:
+            raise
+        except Exception as exc:
+            raise InputFileError(f"{path}: TIFF header could not be read, the file may be "
+                                 f"truncated ({type(exc).__name__}: {exc})") from None
+        return shape[0] if len(shape) == 3 else 1
 
 
 def write_tiff(path: str | Path, image: np.ndarray, *, compression: str | None = "zlib") -> Path:
