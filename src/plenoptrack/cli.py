@@ -579,8 +579,20 @@ def demo(
     console.print(f"files in {out_dir}")
 
 
-def main() -> None:  # pragma: no cover - console entry point
-    app()
+def main() -> None:
+    """Console entry point: run a command; a Ctrl-C once it has finished changes nothing."""
+    import signal
+
+    try:
+        app()
+    except SystemExit:
+        # The command is over and its outputs are committed (or it failed cleanly): ignore
+        # a late Ctrl-C so that it cannot end the process by signal during shutdown.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        raise
+    except KeyboardInterrupt:  # between the command's end and the line above
+        _error_line("interrupted; nothing half-written was kept")
+        sys.exit(130)
 
 
 if __name__ == "__main__":  # pragma: no cover
