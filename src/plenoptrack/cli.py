@@ -237,6 +237,7 @@ def simulate(
     frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
     scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification, seed and particles replace --preset, --magnification, --seed and the random-scene options."),
     samples: int = typer.Option(16, "--samples", min=1, max=4096, help="Ray samples per pixel."),
+    optics_mode: Optional[str] = typer.Option(None, "--optics", help="ideal (the exact geometric model; default) or realistic (spec-sheet errors, imperfect dot cards and the other effects of plenoptrack.simulate.realism); a scene file's [optics] table applies when not given."),
 ) -> None:
     """Simulate a plenoptic data set: raw frames, white image, dot cards and ground truth."""
     from .camera import preset
@@ -246,6 +247,9 @@ def simulate(
     if magnification == 0:
         raise typer.BadParameter("must be non-zero (negative for a real, inverted image)",
                                  param_hint="--magnification")
+    if optics_mode not in (None, "ideal", "realistic"):
+        raise typer.BadParameter(f"must be 'ideal' or 'realistic'; got {optics_mode!r}",
+                                 param_hint="--optics")
     check_outputs({"--out": out_dir}, {"--scene": scene}, folders=["--out"])
     scene_obj = None
     if scene is not None:
@@ -266,7 +270,8 @@ def simulate(
     t0 = time.perf_counter()
     result = simulate_dataset(camera, out_dir, seed=seed, n_particles=particles,
                               diameter_mm=diameter, magnification=magnification, frames=frames,
-                              scene=scene_obj, samples_per_pixel=samples, progress=True)
+                              scene=scene_obj, samples_per_pixel=samples, realism=optics_mode,
+                              progress=True)
     if magnification is not None:
         console.print(f"magnification {result.camera.magnification:g}: main lens set to "
                       f"f/{result.camera.f_number:g} (working f-number "

@@ -19,16 +19,20 @@ Examples
 """
 
 from .dataset import SimulationResult, simulate_dataset
-from .dotcard import (DotCard, default_dotcard, default_dotcard_depths, dot_grid,
-                      dotcard_irradiance, render_dotcard)
-from .optics import SimOptics, make_optics
+from .dotcard import (CardPlacement, DotCard, default_dotcard, default_dotcard_depths, dot_grid,
+                      dotcard_irradiance, draw_card_placements, render_dotcard)
+from .optics import SimOptics, make_optics, true_camera
+from .realism import (BlurEffects, IlluminationEffects, Realism, SensorEffects, SpecEffects,
+                      TargetEffects, realism_from_dict)
 from .render import render_frame, render_irradiance, render_white
 from .scene import (Scene, SceneError, Volume, default_diameter_mm, default_volume, load_scene,
                     make_scene, moving_particles, random_particles)
 from .sensor import SensorModel
 
 __all__ = [
-    "SimOptics", "make_optics",
+    "SimOptics", "make_optics", "true_camera",
+    "Realism", "BlurEffects", "IlluminationEffects", "SensorEffects", "TargetEffects",
+    "SpecEffects", "realism_from_dict", "CardPlacement", "draw_card_placements",
     "render_white", "render_frame", "render_irradiance",
     "DotCard", "default_dotcard", "default_dotcard_depths", "dot_grid", "render_dotcard",
     "dotcard_irradiance",

@@ -146,15 +146,61 @@ def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, use_card, lens
                 break
         if blocked:
             continue
-        if use_card:
-            xw = -(hx + dx * card[0])
-            yw = -(hy + dy * card[0])
-            mx = xw - card[1] * math.floor(xw / card[1] + 0.5)
-            my = yw - card[1] * math.floor(yw / card[1] + 0.5)
-            if mx * mx + my * my < card[2]:
-                continue
+        if use_card and _on_dot(hx, hy, dx, dy, card):
+            continue
         lit += 1
     return lit
+
+
+@njit(cache=True)
+def _hash_normal(m, n, seed):
+    """Two deterministic standard-normal numbers for dot (m, n) of a card seed."""
+    h = (int(m) * 73856093) ^ (int(n) * 19349663) ^ (int(seed) * 83492791)
+    h = (h * 6364136223846793005 + 1442695040888963407) & 0xFFFFFFFFFFFF
+    u1 = (h & 0xFFFFFF) / 16777216.0 + 0.5 / 16777216.0
+    u2 = (h >> 24) / 16777216.0 + 0.5 / 16777216.0
+    r = math.sqrt(-2.0 * math.log(u1))
+    return r * math.cos(2.0 * math.pi * u2), r * math.sin(2.0 * math.pi * u2)
+
+
+@njit(cache=True)
+def _card_point(hx, hy, dx, dy, card):
+    """Where the ray H + Z (d, 1) meets the card, in card coordinates (world x, y minus
+    the card centre), mm.
+
+    ``card`` is (Z, spacing, r^2) for a card perpendicular to the axis at Z with dot
+    (0, 0) on it, or (Z, spacing, r^2, ox, oy, ax, ay, print_sigma, seed) for a card
+    whose plane is ``Z = Z0 + ax X + ay Y`` (tilted; camera frame) with dot (0, 0) at
+    world (ox, oy) and dots printed off their lattice points by a normal error of
+    ``print_sigma`` mm (drawn per dot from ``seed``).
+    """
+    z = card[0]
+    if card.shape[0] > 3:
+        z = (card[0] + card[5] * hx + card[6] * hy) / (1.0 - card[5] * dx - card[6] * dy)
+    xw = -(hx + dx * z)
+    yw = -(hy + dy * z)
+    if card.shape[0] > 3:
+        xw -= card[3]
+        yw -= card[4]
+    return xw, yw
+
+
+@njit(cache=True)
+def _on_dot(hx, hy, dx, dy, card):
+    """True if the ray lands inside a dot of the card (see :func:`_card_point`)."""
+    xw, yw = _card_point(hx, hy, dx, dy, card)
+    fm = math.floor(xw / card[1] + 0.5)
+    fn = math.floor(yw / card[1] + 0.5)
+    mx = xw - card[1] * fm
+    my = yw - card[1] * fn
+    if card.shape[0] > 3 and card[7] > 0.0:
+        reach = math.sqrt(card[2]) + 8.0 * card[7]  # print errors stay below 6 sigma
+        if mx * mx + my * my >= reach * reach:
+            return False
+        ex, ey = _hash_normal(fm, fn, card[8])
+        mx -= card[7] * ex
+        my -= card[7] * ey
+    return mx * mx + my * my < card[2]
 
 
 _PER_SAMPLE = -(1 << 41)
@@ -221,11 +267,17 @@ def _card_missed(ex, ey, cx, cy, par, card):
     """True if no ray of the pixel through lens C can land on a dot of the card."""
     h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(ex, ey, cx, cy, par)
     t = card[0] / par[S_O]
-    xw = -(h0x + (qo0x - h0x) * t)
-    yw = -(h0y + (qo0y - h0y) * t)
+    spread = r_h * abs(1.0 - t) + r_q * t
+    margin = 0.0
+    if card.shape[0] > 3:
+        # The card plane is tilted: rays of the bundle meet it at depths that differ by
+        # up to |a| * 2 * (spread + 1 mm); with slopes below 1 that moves them laterally
+        # by as much (a generous bound). Printed dots sit up to 8 sigma off their nodes.
+        margin = (abs(card[5]) + abs(card[6])) * 2.0 * (spread + 1.0) + 8.0 * card[7]
+    xw, yw = _card_point(h0x, h0y, (qo0x - h0x) / par[S_O], (qo0y - h0y) / par[S_O], card)
     mx = xw - card[1] * math.floor(xw / card[1] + 0.5)
     my = yw - card[1] * math.floor(yw / card[1] + 0.5)
-    reach = r_h * abs(1.0 - t) + r_q * t + math.sqrt(card[2]) + 1e-9
+    reach = spread + math.sqrt(card[2]) + margin + 1e-9
     return mx * mx + my * my > reach * reach
 
 

@@ -28,8 +28,10 @@ import pandas as pd
 from .._columns import T_COLUMN
 from ..camera import CameraSpec, preset, save_camera
 from ..io import atomic_folder, atomic_write_text, write_table, write_tiff
-from .dotcard import DotCard, default_dotcard, default_dotcard_depths, render_dotcard
+from .dotcard import (DotCard, default_dotcard, default_dotcard_depths,
+                      draw_card_placements, render_dotcard)
 from .optics import SimOptics, make_optics
+from .realism import Realism
 from .render import DEFAULT_SAMPLES_PER_PIXEL, render_frame, render_white
 from .scene import Scene, SceneError, make_scene
 from .sensor import SensorModel
@@ -157,6 +159,7 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
                      samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
                      dotcard_depths=None, dotcard: DotCard | None = None,
                      sensor: SensorModel = SensorModel(),
+                     realism: Realism | str | None = None,
                      progress: bool = False) -> SimulationResult:
     """Simulate raw frames, a white image and dot cards, with ground truth, into a folder.
 
@@ -198,12 +201,27 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         Dot layout; default :func:`default_dotcard`.
     sensor : SensorModel
         Exposure and noise.
+    realism : Realism, "ideal", "realistic" or None
+        Effects beyond the geometric model (:mod:`.realism`); default the scene's
+        ``[optics]`` when it has one, else ideal. With
+        ``realism.spec`` the true optics differ from ``camera.toml``; with
+        ``realism.target`` the dot cards are tilted, misprinted, off-centre and at depths
+        off their stated ones by a common traverse zero offset and a per-card error.
     progress : bool
         Show progress bars.
 
     Returns
     -------
     SimulationResult
+
+    Notes
+    -----
+    ``truth.parquet`` is in the frame the calibration target defines, as an
+    experimenter's truth would be: x and y from dot (0, 0) of the cards, z from the
+    traverse zero. With perfect cards that is the world frame of the camera (z = 0 at the
+    nominal focal plane); with ``realism.target`` it is shifted by the card centre offset
+    and the traverse zero offset, recorded in ``truth_optics.json`` under
+    ``"target_frame"``.
 
     Raises
     ------
@@ -219,6 +237,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     _check_fill(camera)
     if seed is None:
         seed = scene.seed if scene is not None else 0
+    if realism is None and scene is not None:
+        realism = scene.realism
     out = Path(out_dir)
     _check_out_dir(out)
     if scene is None:
@@ -230,8 +250,14 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     depths = default_dotcard_depths(camera) if dotcard_depths is None else np.asarray(
         dotcard_depths, dtype=float).reshape(-1)
     card = default_dotcard(camera) if dotcard is None else dotcard
-    optics = make_optics(camera, seed)
-    truth = scene.truth.reset_index(drop=True)
+    optics = make_optics(camera, seed, realism=realism)
+    truth = scene.truth.reset_index(drop=True)  # world frame, for rendering
+    zero_mm, centre_mm, placements = 0.0, (0.0, 0.0), [None] * len(depths)
+    if optics.realism.target.enabled:
+        zero_mm, centre_mm, placements = draw_card_placements(
+            optics.realism.target, len(depths), np.random.default_rng([seed, 5]))
+    target_truth = truth.assign(x=truth["x"] - centre_mm[0], y=truth["y"] - centre_mm[1],
+                                z=truth["z"] - zero_mm)
     n_frames = scene.frames
     frame_names = [Path("raw") / f"frame_{f:04d}.tif" for f in range(n_frames)]
     card_names = [Path("dotcards") / f"card_{k:02d}.tif" for k in range(len(depths))]
@@ -244,10 +270,14 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
                 bar.update(task, advance=1, description=description)
 
         save_camera(camera, tmp / "camera.toml")
-        optics_doc = optics.to_dict() | {"samples_per_pixel": samples_per_pixel,
-                                         "sensor": asdict(sensor)}
+        optics_doc = optics.to_dict() | {
+            "samples_per_pixel": samples_per_pixel, "sensor": asdict(sensor),
+            "target_frame": {"origin_world_mm": [centre_mm[0], centre_mm[1], zero_mm],
+                             "note": "truth.parquet = world position - origin_world_mm"},
+            "dotcards": [{"z_stated_mm": float(z), **(p.to_dict() if p is not None else {})}
+                         for z, p in zip(depths, placements)]}
         atomic_write_text(tmp / "truth_optics.json", json.dumps(optics_doc, indent=2))
-        write_table(truth, tmp / "truth.parquet")
+        write_table(target_truth, tmp / "truth.parquet")
         write_tiff(tmp / "white.tif", render_white(
             optics, seed=np.random.default_rng([seed, 2]), samples_per_pixel=samples_per_pixel,
             sensor=sensor))
@@ -262,7 +292,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         for k, z in enumerate(depths):
             image = render_dotcard(optics, float(z), card=card,
                                    seed=np.random.default_rng([seed, 4, k]),
-                                   samples_per_pixel=samples_per_pixel, sensor=sensor)
+                                   samples_per_pixel=samples_per_pixel, sensor=sensor,
+                                   placement=placements[k])
             write_tiff(tmp / card_names[k], image)
             step(f"dot card {k + 1}/{len(depths)}")
         import tomli_w
@@ -274,7 +305,7 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
             "# dot grid: dot (m, n) at world (x, y) = (m, n) * spacing_mm; dot (0, 0) on the axis\n"
             + tomli_w.dumps(cards_doc))
         step("done")
-    return SimulationResult(out_dir=out, camera=camera, optics=optics, truth=truth,
+    return SimulationResult(out_dir=out, camera=camera, optics=optics, truth=target_truth,
                             frame_paths=tuple(out / p for p in frame_names),
                             white_path=out / "white.tif",
                             dotcard_paths=tuple(out / p for p in card_names),

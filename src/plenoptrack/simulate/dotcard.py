@@ -5,6 +5,15 @@ in front of the back-light. Its dots are dark discs of diameter ``dot_diameter_m
 world ``(x, y) = (m * spacing_mm, n * spacing_mm)`` for all integers ``m, n``: dot
 ``(0, 0)`` lies on the optical axis. Each traced ray is intersected with the plane and
 is dark if it lands inside a dot.
+
+A real target is not that perfect (:class:`~.realism.TargetEffects`, drawn per data set
+by :func:`draw_card_placements` into one :class:`CardPlacement` per card): the traverse
+that moves the card has an unknown zero offset (up to 0.5 mm by default) and a position
+error per card (10 um RMS, a typical lead-screw stage); each card is tilted by up to
+0.5 degrees (mounting); dots are printed off their lattice points (5 um RMS, a
+photo-plotted film or laser print); and dot (0, 0) sits up to 0.3 mm from the optical
+axis (the card is centred by eye). The calibration sees none of this: ``dotcards.toml``
+states the nominal depths and the ideal lattice.
 """
 
 from __future__ import annotations
@@ -18,11 +27,12 @@ import pandas as pd
 from ..camera import CameraSpec
 from . import _kernels
 from .optics import SimOptics
+from .realism import TargetEffects
 from .render import DEFAULT_SAMPLES_PER_PIXEL, _check_optics, _check_samples, sample_pattern
 from .scene import SceneError, volume_depth_mm
 from .sensor import SensorModel, expose
 
-__all__ = ["DotCard", "default_dotcard", "default_dotcard_depths", "render_dotcard",
+__all__ = ["DotCard", "CardPlacement", "draw_card_placements", "default_dotcard", "default_dotcard_depths", "render_dotcard",
            "dotcard_irradiance", "dot_grid"]
 
 
@@ -49,6 +59,88 @@ class DotCard:
                              f"({self.spacing_mm}); got {self.dot_diameter_mm!r}")
 
 
+@dataclass(frozen=True)
+class CardPlacement:
+    """Where a dot card really is, against where the traverse and the design say.
+
+    Parameters
+    ----------
+    depth_error_mm : float
+        True depth minus stated depth of the card's centre, mm: the traverse's unknown
+        zero offset (common to every card of a set) plus its position error.
+    tilt : (float, float)
+        Slopes (a_x, a_y) of the card plane in the world frame: the card's depth grows by
+        ``a_x`` per mm of x and ``a_y`` per mm of y (``tan`` of the tilt angles).
+    centre_mm : (float, float)
+        World (x, y) of dot (0, 0), mm (0, 0 on the optical axis).
+    print_sigma_mm : float
+        Standard deviation of each dot's printed position, mm, along x and y.
+    print_seed : int
+        Seed of the per-dot print errors (the card's own: every card is another print).
+    """
+
+    depth_error_mm: float = 0.0
+    tilt: tuple[float, float] = (0.0, 0.0)
+    centre_mm: tuple[float, float] = (0.0, 0.0)
+    print_sigma_mm: float = 0.0
+    print_seed: int = 0
+
+    @property
+    def is_perfect(self) -> bool:
+        """Whether the card is exactly where and as the design says."""
+        return (self.depth_error_mm == 0 and self.tilt == (0.0, 0.0)
+                and self.centre_mm == (0.0, 0.0) and self.print_sigma_mm == 0)
+
+    def to_dict(self) -> dict:
+        return {"depth_error_mm": self.depth_error_mm, "tilt": list(self.tilt),
+                "centre_mm": list(self.centre_mm), "print_sigma_mm": self.print_sigma_mm,
+                "print_seed": self.print_seed}
+
+
+def draw_card_placements(effects: TargetEffects, n_cards: int,
+                         seed: int | np.random.Generator) -> tuple[float, tuple[float, float],
+                                                                  list[CardPlacement]]:
+    """Draw the imperfections of a set of dot cards moved by one traverse.
+
+    Parameters
+    ----------
+    effects : TargetEffects
+        Sizes of the imperfections (:mod:`.realism`).
+    n_cards : int
+        Cards in the set.
+    seed : int or numpy.random.Generator
+        Draws, in order: the traverse zero offset (uniform in +-``zero_offset_mm``), the
+        card centre offset (x, y, uniform in a disc of radius ``centre_offset_mm``), then
+        per card the depth error (normal, ``depth_sigma_um``), the tilt (direction
+        uniform, angle uniform up to ``tilt_deg``) and a print seed.
+
+    Returns
+    -------
+    zero_offset_mm : float
+        The common traverse zero offset, mm (true depth = stated depth + this + error).
+    centre_mm : (float, float)
+        World (x, y) of dot (0, 0), mm.
+    placements : list of CardPlacement
+        One per card.
+    """
+    rng = np.random.default_rng(seed)
+    zero = float(rng.uniform(-1.0, 1.0) * effects.zero_offset_mm)
+    r = effects.centre_offset_mm * math.sqrt(rng.random())
+    phi = rng.uniform(0.0, 2.0 * math.pi)
+    centre = (float(r * math.cos(phi)), float(r * math.sin(phi)))
+    placements = []
+    for _ in range(int(n_cards)):
+        error = float(rng.normal() * effects.depth_sigma_um * 1e-3)
+        direction = rng.uniform(0.0, 2.0 * math.pi)
+        slope = math.tan(math.radians(rng.uniform(0.0, effects.tilt_deg)))
+        placements.append(CardPlacement(
+            depth_error_mm=zero + error,
+            tilt=(float(slope * math.cos(direction)), float(slope * math.sin(direction))),
+            centre_mm=centre, print_sigma_mm=effects.print_sigma_um * 1e-3,
+            print_seed=int(rng.integers(0, 2**31 - 1))))
+    return zero, centre, placements
+
+
 def default_dotcard(camera: CameraSpec) -> DotCard:
     """Dot layout suited to a camera.
 
@@ -72,8 +164,12 @@ def default_dotcard_depths(camera: CameraSpec, n: int = 11) -> np.ndarray:
     return np.linspace(-half, half, n)
 
 
-def dot_grid(optics: SimOptics, z_mm: float, card: DotCard) -> pd.DataFrame:
+def dot_grid(optics: SimOptics, z_mm: float, card: DotCard,
+             placement: CardPlacement | None = None) -> pd.DataFrame:
     """Dots of a card at depth ``z_mm`` whose chief-ray image falls on the sensor.
+
+    With a ``placement`` the dots are where that card really puts them: shifted by its
+    centre and print errors, at the depth of the tilted plane there.
 
     Returns
     -------
@@ -91,30 +187,50 @@ def dot_grid(optics: SimOptics, z_mm: float, card: DotCard) -> pd.DataFrame:
     m, n = np.meshgrid(mx, ny, indexing="xy")
     x = m.ravel() * card.spacing_mm
     y = n.ravel() * card.spacing_mm
-    px = optics.world_to_pixels(np.column_stack([x, y, np.full_like(x, z_mm)]))
+    z = np.full_like(x, z_mm)
+    if placement is not None and not placement.is_perfect:
+        if placement.print_sigma_mm > 0:
+            err = np.array([_kernels._hash_normal(a, b, float(placement.print_seed))
+                            for a, b in zip(m.ravel(), n.ravel())]).reshape(-1, 2)
+            x = x + placement.print_sigma_mm * err[:, 0]
+            y = y + placement.print_sigma_mm * err[:, 1]
+        x = x + placement.centre_mm[0]
+        y = y + placement.centre_mm[1]
+        z = z + placement.depth_error_mm + placement.tilt[0] * x + placement.tilt[1] * y
+    px = optics.world_to_pixels(np.column_stack([x, y, z]))
     on = (px[:, 0] >= 0) & (px[:, 0] <= rows - 1) & (px[:, 1] >= 0) & (px[:, 1] <= cols - 1)
     return pd.DataFrame({"m": m.ravel()[on], "n": n.ravel()[on], "x": x[on], "y": y[on],
-                         "z": float(z_mm), "row": px[on, 0], "col": px[on, 1]})
+                         "z": z[on], "row": px[on, 0], "col": px[on, 1]})
 
 
-def _card_vector(optics: SimOptics, z_mm: float, card: DotCard) -> np.ndarray:
+def _card_vector(optics: SimOptics, z_mm: float, card: DotCard,
+                 placement: CardPlacement | None = None) -> np.ndarray:
     if not math.isfinite(z_mm) or optics.s_o + z_mm <= 0.05 * optics.s_o:
         raise SceneError(f"dot card depth z_mm must be finite and in front of the lens "
                          f"(z > {-0.95 * optics.s_o:.1f} mm); got {z_mm!r}")
-    return np.array([optics.s_o + z_mm, card.spacing_mm, (card.dot_diameter_mm / 2) ** 2])
+    if placement is None or placement.is_perfect:
+        return np.array([optics.s_o + z_mm, card.spacing_mm, (card.dot_diameter_mm / 2) ** 2])
+    # world z = z_c + a_x x + a_y y with x = -X, y = -Y: camera Z = Z_c - a_x X - a_y Y
+    ax, ay = placement.tilt
+    return np.array([optics.s_o + z_mm + placement.depth_error_mm, card.spacing_mm,
+                     (card.dot_diameter_mm / 2) ** 2, placement.centre_mm[0],
+                     placement.centre_mm[1], -ax, -ay, placement.print_sigma_mm,
+                     float(placement.print_seed)])
 
 
 def dotcard_irradiance(optics: SimOptics, z_mm: float, *, card: DotCard | None = None,
                        samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
-                       exact: bool = False) -> np.ndarray:
+                       exact: bool = False,
+                       placement: CardPlacement | None = None) -> np.ndarray:
     """Noise-free irradiance of a dot card at depth ``z_mm``, ``(rows, cols)`` float32.
 
     ``exact`` True traces every sample (reference for tests); the default skips pixels
-    whose rays provably miss every dot, with identical results.
+    whose rays provably miss every dot, with identical results. ``placement`` moves,
+    tilts and misprints the card (:class:`CardPlacement`; default perfect).
     """
     _check_optics(optics)
     card = default_dotcard(optics.camera) if card is None else card
-    vec = _card_vector(optics, float(z_mm), card)
+    vec = _card_vector(optics, float(z_mm), card, placement)
     n = _check_samples(samples_per_pixel)
     rows, cols = optics.camera.sensor_shape_px
     return _kernels.render_all(_kernels.pack_params(optics), sample_pattern(optics, n),
@@ -124,7 +240,8 @@ def dotcard_irradiance(optics: SimOptics, z_mm: float, *, card: DotCard | None =
 def render_dotcard(optics: SimOptics, z_mm: float, *, card: DotCard | None = None,
                    seed: int | np.random.Generator | None = 0, noise: bool = True,
                    samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
-                   sensor: SensorModel = SensorModel()) -> np.ndarray:
+                   sensor: SensorModel = SensorModel(),
+                   placement: CardPlacement | None = None) -> np.ndarray:
     """Raw image of a dot card at depth ``z_mm`` (world frame, mm).
 
     Parameters
@@ -143,12 +260,15 @@ def render_dotcard(optics: SimOptics, z_mm: float, *, card: DotCard | None = Non
         Rays per pixel.
     sensor : SensorModel
         Exposure (``background_level``) and noise.
+    placement : CardPlacement, optional
+        The card's real depth error, tilt, centre and print errors (default perfect).
 
     Returns
     -------
     (rows, cols) uint16 ndarray
         Raw counts.
     """
-    irr = dotcard_irradiance(optics, z_mm, card=card, samples_per_pixel=samples_per_pixel)
+    irr = dotcard_irradiance(optics, z_mm, card=card, samples_per_pixel=samples_per_pixel,
+                             placement=placement)
     return expose(irr, level=sensor.background_level, bit_depth=optics.camera.bit_depth,
                   sensor=sensor, rng=np.random.default_rng(seed), noise=noise)

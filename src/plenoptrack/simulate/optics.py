@@ -31,15 +31,16 @@ focal-plane field of view (equivalently ``|Q|`` over the sensor half-diagonal).
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..camera import CameraSpec
 from ..errors import CalibrationError, CameraSpecError
 from ..lightfield.lattice import LensletGrid
+from .realism import Realism, SpecEffects, realism_from_dict
 
-__all__ = ["SimOptics", "make_optics", "ROTATION_RANGE_DEG", "OFFSET_RANGE_PX",
+__all__ = ["SimOptics", "make_optics", "true_camera", "ROTATION_RANGE_DEG", "OFFSET_RANGE_PX",
            "PITCH_ERROR_RANGE"]
 
 ROTATION_RANGE_DEG = (0.05, 0.5)
@@ -71,7 +72,15 @@ class SimOptics:
     k1, k2 : float
         Radial distortion coefficients of the main lens (see module notes).
     seed : int or None
-        Seed the perturbation was drawn from, recorded for reference only.
+        Seed the perturbation was drawn from; also seeds the fixed patterns of the
+        camera (sensor maps, dust) when ``realism`` enables them.
+    realism : Realism
+        Effects beyond the geometric model that rendering applies (see
+        :mod:`.realism`); default ideal.
+    nominal : CameraSpec or None
+        The spec-sheet camera a user would write into ``camera.toml`` when it differs
+        from the true ``camera`` (focal lengths and f-number off by a few per cent); None
+        when they agree.
     """
 
     camera: CameraSpec
@@ -80,7 +89,9 @@ class SimOptics:
     pitch_scale: float = 1.0
     k1: float = 0.0
     k2: float = 0.0
-    seed: int | None = field(default=None, compare=False)
+    seed: int | None = field(default=None)
+    realism: Realism = field(default_factory=Realism.ideal)
+    nominal: CameraSpec | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.camera, CameraSpec):
@@ -98,6 +109,15 @@ class SimOptics:
             raise CameraSpecError(f"pitch_scale must be within 10 % of 1; got {self.pitch_scale}")
         if abs(self.rotation_deg) > 10:
             raise CameraSpecError(f"rotation_deg must be within +-10 degrees; got {self.rotation_deg}")
+        if not isinstance(self.realism, Realism):
+            raise CameraSpecError(f"realism must be a Realism; got {type(self.realism).__name__}")
+        if self.nominal is not None and not isinstance(self.nominal, CameraSpec):
+            raise CameraSpecError(f"nominal must be a CameraSpec or None; got {type(self.nominal).__name__}")
+
+    @property
+    def nominal_camera(self) -> CameraSpec:
+        """The spec-sheet camera (``camera.toml``): ``nominal`` if set, else ``camera``."""
+        return self.camera if self.nominal is None else self.nominal
 
     # --- first-order optics, mm ---------------------------------------------------------
     @property
@@ -269,7 +289,9 @@ class SimOptics:
             "format": "plenoptrack-sim-optics",
             "version": _FORMAT_VERSION,
             "camera": self.camera.to_dict(),
+            "nominal_camera": self.nominal_camera.to_dict(),
             "seed": self.seed,
+            "realism": self.realism.to_dict(),
             "mla": {
                 "rotation_deg": self.rotation_deg,
                 "offset_mm": list(self.offset_mm),
@@ -298,7 +320,13 @@ class SimOptics:
             optics = cls(camera=CameraSpec.from_dict(data["camera"], source=source),
                          rotation_deg=mla["rotation_deg"], offset_mm=tuple(mla["offset_mm"]),
                          pitch_scale=mla["pitch_scale"], k1=dist["k1"], k2=dist["k2"],
-                         seed=data.get("seed"))
+                         seed=data.get("seed"),
+                         realism=realism_from_dict(data.get("realism", {"mode": "ideal"}),
+                                                   source=f"{source} realism"),
+                         nominal=None if "nominal_camera" not in data else
+                         CameraSpec.from_dict(data["nominal_camera"], source=source))
+            if optics.nominal == optics.camera:
+                optics = replace(optics, nominal=None)
         except (KeyError, TypeError, AttributeError) as exc:
             raise CalibrationError(f"{source}: not a simulator optics description "
                                    f"(missing or bad {exc})") from None
@@ -337,8 +365,29 @@ def _true_grid(optics: SimOptics) -> LensletGrid:
     )
 
 
+def true_camera(nominal: CameraSpec, spec: SpecEffects, rng: np.random.Generator) -> CameraSpec:
+    """Draw the true first-order optics of a camera whose spec sheet says ``nominal``.
+
+    The main-lens and microlens focal lengths are drawn uniformly within the relative
+    errors of ``spec``; the magnification (set by focusing on a target) and everything on
+    the sensor side stay nominal. The aperture is set as a user sets it, by looking at a
+    white image: from the f-number at which the true microlens images just touch, stopped
+    down by up to ``f_number_mismatch`` (never wider: the images would overlap). Draws, in order: focal length and microlens focal length (uniform in [-1, 1)),
+    f-number (uniform in [0, 1)); always three, whatever the sizes.
+    """
+    e = rng.uniform(-1.0, 1.0, size=2)
+    stop = rng.uniform(0.0, 1.0)
+    f_ml = nominal.microlens_focal_length_um * (1.0 + spec.microlens_focal_length_error * e[1])
+    matched = (f_ml / nominal.microlens_pitch_um) / (1.0 + abs(nominal.magnification))
+    return nominal.with_changes(
+        focal_length_mm=nominal.focal_length_mm * (1.0 + spec.focal_length_error * e[0]),
+        microlens_focal_length_um=f_ml,
+        f_number=matched * (1.0 + spec.f_number_mismatch * stop))
+
+
 def make_optics(camera: CameraSpec, seed: int | np.random.Generator | None = 0, *,
-                k1: float = 0.02, k2: float = -0.005) -> SimOptics:
+                k1: float = 0.02, k2: float = -0.005,
+                realism: "Realism | str | None" = None) -> SimOptics:
     """Draw the true optics of a simulated camera.
 
     Parameters
@@ -352,6 +401,10 @@ def make_optics(camera: CameraSpec, seed: int | np.random.Generator | None = 0, 
         error (uniform in +-:data:`PITCH_ERROR_RANGE`).
     k1, k2 : float
         Radial distortion coefficients (not drawn).
+    realism : Realism, "ideal", "realistic" or None
+        Effects beyond the geometric model (default ideal). With ``realism.spec`` on, the
+        true focal lengths and f-number are drawn after the MLA perturbation
+        (:func:`true_camera`) and ``camera`` is kept as ``optics.nominal``.
 
     Returns
     -------
@@ -375,7 +428,12 @@ def make_optics(camera: CameraSpec, seed: int | np.random.Generator | None = 0, 
     offset = rng.uniform(-OFFSET_RANGE_PX, OFFSET_RANGE_PX, size=2) * pp
     pitch_scale = 1.0 + rng.uniform(-PITCH_ERROR_RANGE, PITCH_ERROR_RANGE)
     recorded = seed if isinstance(seed, (int, np.integer)) else None
-    return SimOptics(camera=camera, rotation_deg=sign * magnitude,
+    realism = Realism.of(realism)
+    true = camera
+    if realism.spec.enabled:
+        true = true_camera(camera, realism.spec, rng)
+    return SimOptics(camera=true, rotation_deg=sign * magnitude,
                      offset_mm=(float(offset[0]), float(offset[1])),
                      pitch_scale=float(pitch_scale), k1=k1, k2=k2,
-                     seed=None if recorded is None else int(recorded))
+                     seed=None if recorded is None else int(recorded), realism=realism,
+                     nominal=None if true == camera else camera)

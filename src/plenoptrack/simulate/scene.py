@@ -17,6 +17,9 @@ Scene files (TOML)
     frames = 3                          # optional, default 1
     velocity_mm_per_frame = [0.1, 0.0, 0.2]   # optional, default [0, 0, 0]
 
+    [optics]                            # optional: optics mode and effect sizes
+    mode = "realistic"                  # or "ideal" (see plenoptrack.simulate.realism)
+
     [volume]                            # optional: defaults from the camera (see default_volume)
     depth_mm = 20.0
 
@@ -36,6 +39,7 @@ Positions and diameters are in mm, world frame (see ``docs/conventions.md``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import tomllib
 from dataclasses import dataclass
@@ -46,7 +50,8 @@ import pandas as pd
 
 from .._columns import DIAMETER_COLUMN, ID_COLUMN, POS_COLUMNS, T_COLUMN, TRUTH_COLUMNS
 from ..camera import CameraSpec, preset
-from ..errors import InputFileError, PlenoptrackError
+from ..errors import InputFileError, PlenoptrackError, SettingsError
+from .realism import Realism, realism_from_dict
 
 __all__ = ["SceneError", "Volume", "Scene", "VOLUME_DEPTH_MM", "DIAMETER_MM", "volume_depth_mm",
            "default_diameter_mm", "default_volume", "random_particles", "moving_particles",
@@ -260,12 +265,16 @@ class Scene:
         ``frame, particle, x, y, z, diameter`` (mm) for every frame.
     seed : int
         Seed of the scene (also the default simulation seed).
+    realism : Realism or None
+        Optics mode and effect sizes from the scene file's ``[optics]`` table (see
+        :mod:`.realism`); None when the file has none (the simulation's default applies).
     """
 
     camera: CameraSpec
     volume: Volume
     truth: pd.DataFrame
     seed: int = 0
+    realism: Realism | None = None
 
     @property
     def frames(self) -> int:
@@ -325,7 +334,7 @@ def make_scene(camera: CameraSpec, *, n_particles: int = 20, diameter_mm: float 
 
 
 _SCENE_KEYS = {"camera", "magnification", "seed", "frames", "velocity_mm_per_frame", "volume",
-               "random", "particles"}
+               "random", "particles", "optics"}
 
 
 def load_scene(path: str | Path) -> Scene:
@@ -354,6 +363,11 @@ def load_scene(path: str | Path) -> Scene:
             raise InputFileError(f"{path}: magnification: {exc}") from None
     seed = data.get("seed", 0)
     frames = data.get("frames", 1)
+    try:
+        realism = None if "optics" not in data else realism_from_dict(
+            data["optics"], source=f"{path} [optics]")
+    except SettingsError as exc:
+        raise InputFileError(str(exc)) from None
     velocity = data.get("velocity_mm_per_frame", [0.0, 0.0, 0.0])
     if ("random" in data) == ("particles" in data):
         raise InputFileError(f"{path}: give exactly one of a [random] table or [[particles]]")
@@ -364,9 +378,10 @@ def load_scene(path: str | Path) -> Scene:
             spec = data["random"]
             diameter = float(spec.get("diameter_mm", default_diameter_mm(camera)))
             volume = default_volume(camera, depth_mm=depth, diameter_mm=diameter)
-            return make_scene(camera, n_particles=int(spec["n"]), diameter_mm=diameter,
-                              frames=frames, velocity_mm_per_frame=velocity, volume=volume,
-                              seed=seed)
+            scene = make_scene(camera, n_particles=int(spec["n"]), diameter_mm=diameter,
+                               frames=frames, velocity_mm_per_frame=velocity, volume=volume,
+                               seed=seed)
+            return dataclasses.replace(scene, realism=realism)
         rows = data["particles"]
         first = pd.DataFrame({
             T_COLUMN: np.zeros(len(rows), np.int64), ID_COLUMN: np.arange(len(rows)),
@@ -378,7 +393,7 @@ def load_scene(path: str | Path) -> Scene:
         check_particles(first, volume, where=str(path))
         truth = moving_particles(first, frames=frames,
                                  velocity_mm_per_frame=vel if len(rows) else velocity)
-        return Scene(camera=camera, volume=volume, truth=truth, seed=int(seed))
+        return Scene(camera=camera, volume=volume, truth=truth, seed=int(seed), realism=realism)
     except KeyError as exc:
         raise InputFileError(f"{path}: missing key {exc}") from None
     except (TypeError, ValueError) as exc:
