@@ -5,11 +5,19 @@ sample of every pixel tested against every particle, no bounding boxes or shortc
 measured in the same run. For the full sensor the brute force is timed on a central
 window holding 1/100 of the pixels and scaled by 100.
 
+A last section times a full-sensor frame with the image-domain realism effects
+(back-light, dust, microlens blur and crosstalk, sensor fixed patterns) against the ideal
+frame in the same run, caches warm. Peak memory of each mode: run
+``python benchmarks/bench_simulate.py --memory ideal`` (or ``realistic``), which renders a
+white image and three frames and prints the peak resident set size.
+
 Run: ``python benchmarks/bench_simulate.py``.
 """
 
 from __future__ import annotations
 
+import resource
+import sys
 import time
 
 import numba
@@ -65,10 +73,49 @@ def bench(name, n_particles, brute_side):
     print(f"  speed-up of culling vs brute force  : {t_brute / t_irr:7.1f} x")
 
 
+def bench_realism(name, n_particles, repeats=3):
+    """Frame time, ideal vs realistic image effects (spec and target off: same geometry)."""
+    from dataclasses import replace
+
+    from plenoptrack.simulate.realism import Realism
+
+    camera = preset(name)
+    image = replace(Realism.realistic(), spec=Realism.ideal().spec, target=Realism.ideal().target)
+    particles = random_particles(n_particles, volume=default_volume(camera), diameter_mm=1.0,
+                                 seed=1)
+    times = {}
+    for mode, realism in (("ideal", "ideal"), ("realistic", image)):
+        optics = make_optics(camera, seed=0, realism=realism)
+        render_frame(optics, particles, seed=0)             # caches: background, maps
+        times[mode] = min(_timed(render_frame, optics, particles, seed=s)[1]
+                          for s in range(1, repeats + 1))
+    print(f"{name}: render_frame with {n_particles} particles, best of {repeats}")
+    print(f"  ideal                               : {times['ideal']:7.2f} s")
+    print(f"  realistic (blur, illumination, sensor): {times['realistic']:7.2f} s "
+          f"({times['realistic'] / times['ideal']:.2f} x)")
+
+
+def peak_memory(mode, name="hall2019"):
+    camera = preset(name)
+    optics = make_optics(camera, seed=0, realism=mode)
+    particles = random_particles(100, volume=default_volume(camera), diameter_mm=1.0, seed=1)
+    from plenoptrack.simulate import render_white
+    render_white(optics, seed=0)
+    for s in range(3):
+        render_frame(optics, particles, seed=s + 1)
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    print(f"{name} {mode}: white + 3 frames, peak RSS {rss:.0f} MB")
+
+
 def main():
+    if len(sys.argv) == 3 and sys.argv[1] == "--memory":
+        peak_memory(sys.argv[2])
+        return
     bench("small", 20, 1.0)            # compiles the kernels on a first run
     print()
     bench("hall2019", 100, 0.1)
+    print()
+    bench_realism("hall2019", 100)
 
 
 if __name__ == "__main__":

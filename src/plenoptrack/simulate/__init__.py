@@ -3,7 +3,8 @@
 Renders what a back-lit particle experiment with a plenoptic camera records: raw frames,
 a white (flat-field) image and dot-card calibration images, by back-tracing rays through
 a thin main lens with radial distortion, a perturbed microlens array and a noisy sensor
-(:mod:`.optics`, :mod:`.render`, :mod:`.sensor`, :mod:`.dotcard`); builds ground-truth
+(:mod:`.optics`, :mod:`.render`, :mod:`.sensor`, :mod:`.dotcard`, :mod:`.psf`,
+:mod:`.illumination`, switched by :mod:`.realism`); builds ground-truth
 scenes (:mod:`.scene`) and writes whole data sets (:mod:`.dataset`). Nothing on the
 locating path imports this package.
 
@@ -24,7 +25,7 @@ from .dotcard import (CardPlacement, DotCard, default_dotcard, default_dotcard_d
 from .optics import SimOptics, make_optics, true_camera
 from .realism import (BlurEffects, IlluminationEffects, Realism, SensorEffects, SpecEffects,
                       TargetEffects, realism_from_dict)
-from .render import render_frame, render_irradiance, render_white
+from .render import expose_image, render_dark, render_frame, render_irradiance, render_white
 from .scene import (Scene, SceneError, Volume, default_diameter_mm, default_volume, load_scene,
                     make_scene, moving_particles, random_particles)
 from .sensor import SensorModel
@@ -33,7 +34,7 @@ __all__ = [
     "SimOptics", "make_optics", "true_camera",
     "Realism", "BlurEffects", "IlluminationEffects", "SensorEffects", "TargetEffects",
     "SpecEffects", "realism_from_dict", "CardPlacement", "draw_card_placements",
-    "render_white", "render_frame", "render_irradiance",
+    "render_white", "render_frame", "render_irradiance", "render_dark", "expose_image",
     "DotCard", "default_dotcard", "default_dotcard_depths", "dot_grid", "render_dotcard",
     "dotcard_irradiance",
     "Scene", "SceneError", "Volume", "default_volume", "default_diameter_mm", "random_particles",

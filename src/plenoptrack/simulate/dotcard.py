@@ -28,9 +28,10 @@ from ..camera import CameraSpec
 from . import _kernels
 from .optics import SimOptics
 from .realism import TargetEffects
-from .render import DEFAULT_SAMPLES_PER_PIXEL, _check_optics, _check_samples, sample_pattern
+from .render import (DEFAULT_SAMPLES_PER_PIXEL, _check_optics, _check_samples, expose_image,
+                     sample_pattern)
 from .scene import SceneError, volume_depth_mm
-from .sensor import SensorModel, expose
+from .sensor import SensorModel
 
 __all__ = ["DotCard", "CardPlacement", "draw_card_placements", "default_dotcard", "default_dotcard_depths", "render_dotcard",
            "dotcard_irradiance", "dot_grid"]
@@ -270,5 +271,5 @@ def render_dotcard(optics: SimOptics, z_mm: float, *, card: DotCard | None = Non
     """
     irr = dotcard_irradiance(optics, z_mm, card=card, samples_per_pixel=samples_per_pixel,
                              placement=placement)
-    return expose(irr, level=sensor.background_level, bit_depth=optics.camera.bit_depth,
-                  sensor=sensor, rng=np.random.default_rng(seed), noise=noise)
+    return expose_image(irr, optics, level=sensor.background_level, sensor=sensor, seed=seed,
+                        noise=noise)

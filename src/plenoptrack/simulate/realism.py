@@ -98,6 +98,7 @@ class BlurEffects(_Group):
     microlens_defocus_um : float
         Distance between the sensor and the microlens focal plane, um (assembly
         tolerance); blurs each microlens image by a disc of diameter ``defocus / N``.
+        (Scaling the blur group also scales ``wavelength_nm``, and so the diffraction.)
     microlens_aberration_um : float
         RMS radius of the residual (mostly spherical) aberration blur of a microlens, um.
     crosstalk : float
@@ -105,7 +106,8 @@ class BlurEffects(_Group):
         neighbours (scatter at the lens edges and the sensor cover glass).
     fill_gap : float
         Fraction of each microlens cell's width that is dead (gaps and edge roll-off of the
-        lens profile); light there is lost. A fill factor of 0.98 is ``fill_gap = 0.02``.
+        lens profile); light there is lost: a fraction ``1 - (1 - fill_gap)**2`` of it.
+        A linear fill factor of 0.98 is ``fill_gap = 0.02``.
     """
 
     wavelength_nm: float = 550.0
@@ -186,6 +188,12 @@ class SensorEffects(_Group):
     outputs: float = 4.0
 
     _fixed = ("outputs",)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.outputs not in (1, 2, 4):
+            raise SettingsError(f"SensorEffects.outputs must be 1, 2 or 4 readout outputs; "
+                                f"got {self.outputs!r}")
 
 
 @dataclass(frozen=True)

@@ -20,6 +20,16 @@ microlens plane through the inverse distortion, the enclosing disc is grown by a
 radius and two pitches (a pixel's samples may use a lens next to the one owning the
 pixel centre), and the pixels of the lenses with centres inside are re-traced against
 the particles whose boxes contain them.
+
+Realism. When ``optics.realism`` switches on effects of the ``blur``, ``illumination``
+or ``sensor`` groups, :func:`expose_image` turns the traced irradiance into raw counts in
+the order light meets them: back-light field and dust shadows (:mod:`.illumination`),
+fill-factor loss, microlens point-spread function and crosstalk (:mod:`.psf`), then the
+sensor's fixed patterns with shot and read noise (:mod:`.sensor`). The fill gap also
+shrinks the aperture-cell samples ``Q`` of :func:`sample_pattern` to the live part of
+each cell. With those groups off the output is bit-identical to the ideal model.
+:func:`render_white`, :func:`render_frame`, :func:`render_dark` and
+:func:`.dotcard.render_dotcard` all expose through it.
 """
 
 from __future__ import annotations
@@ -35,10 +45,13 @@ from . import _kernels
 from .optics import SimOptics
 from .scene import SceneError
 from ..errors import SettingsError
-from .sensor import SensorModel, expose
+from .illumination import illuminate, image_rng
+from .psf import blur_image, live_cell_scale
+from .sensor import SensorModel, expose, fixed_pattern
 
-__all__ = ["render_irradiance", "render_white", "render_frame", "background_irradiance",
-           "particle_lenses", "DEFAULT_SAMPLES_PER_PIXEL"]
+__all__ = ["render_irradiance", "render_white", "render_frame", "render_dark",
+           "background_irradiance", "particle_lenses", "expose_image",
+           "DEFAULT_SAMPLES_PER_PIXEL"]
 
 DEFAULT_SAMPLES_PER_PIXEL = 16
 _PATTERN_SEED = 20190601
@@ -67,7 +80,10 @@ def sample_pattern(optics: SimOptics, n: int) -> np.ndarray:
     other half are their point reflections (``u -> 1 - u`` in all four dimensions), and an
     odd ``n`` adds the centre sample; the pattern is therefore symmetric and the
     microlens images have no centroid bias. The ``Q`` part, uniform on a lattice
-    parallelogram, is folded into the lens cell (hexagon or square).
+    parallelogram, is folded into the lens cell (hexagon or square); with
+    ``optics.realism.blur.fill_gap`` it is then scaled by ``1 - fill_gap`` about the lens
+    centre, onto the live part of the cell (:func:`.psf.live_cell_scale`; the lost light
+    fraction is applied by :func:`expose_image`).
     """
     from scipy.stats import qmc
 
@@ -97,6 +113,8 @@ def sample_pattern(optics: SimOptics, n: int) -> np.ndarray:
         better = r2 < best
         best[better] = r2[better]
         folded[better] = d[better]
+    if optics.realism.blur.fill_gap > 0:
+        folded *= live_cell_scale(optics.realism.blur)
     samples = np.column_stack([(u[:, 0] - 0.5) * pp, (u[:, 1] - 0.5) * pp, folded])
     samples.setflags(write=False)
     return samples
@@ -289,8 +307,8 @@ def render_white(optics: SimOptics, *, seed: int | np.random.Generator | None = 
     ((600, 910), dtype('uint16'))
     """
     irr = background_irradiance(optics, _check_samples(samples_per_pixel))
-    return expose(irr, level=sensor.white_level, bit_depth=optics.camera.bit_depth,
-                  sensor=sensor, rng=np.random.default_rng(seed), noise=noise)
+    return expose_image(irr, optics, level=sensor.white_level, sensor=sensor, seed=seed,
+                        noise=noise, white=True)
 
 
 def render_frame(optics: SimOptics, particles: pd.DataFrame | None, *,
@@ -321,6 +339,75 @@ def render_frame(optics: SimOptics, particles: pd.DataFrame | None, *,
         Raw counts.
     """
     irr = render_irradiance(optics, particles, samples_per_pixel=samples_per_pixel)
+    return expose_image(irr, optics, level=sensor.background_level, sensor=sensor, seed=seed,
+                        noise=noise)
+
+
+def render_dark(optics: SimOptics, *, seed: int | np.random.Generator | None = 0,
+                noise: bool = True, sensor: SensorModel = SensorModel()) -> np.ndarray:
+    """Raw dark frame (no light): the sensor's pedestal, offset map, hot pixels and noise.
+
+    Parameters
+    ----------
+    optics : SimOptics
+        True camera optics (``optics.realism.sensor`` gives the fixed patterns).
+    seed : int or numpy.random.Generator
+        Noise seed.
+    noise : bool
+        False gives the rounded dark level.
+    sensor : SensorModel
+        Full well and read noise.
+
+    Returns
+    -------
+    (rows, cols) uint16 ndarray
+        Raw counts; all zero for an ideal sensor without noise.
+    """
+    _check_optics(optics)
+    irr = np.zeros(optics.camera.sensor_shape_px, dtype=np.float32)
     return expose(irr, level=sensor.background_level, bit_depth=optics.camera.bit_depth,
-                  sensor=sensor, rng=np.random.default_rng(seed), noise=noise)
+                  sensor=sensor, rng=np.random.default_rng(seed), noise=noise,
+                  fixed=fixed_pattern(optics) if optics.realism.sensor.enabled else None)
+
+
+def expose_image(irradiance: np.ndarray, optics: SimOptics, *, level: float,
+                 sensor: SensorModel, seed: int | np.random.Generator | None,
+                 noise: bool = True, white: bool = False) -> np.ndarray:
+    """Raw counts of a traced irradiance, with the image-domain effects of ``optics.realism``.
+
+    Parameters
+    ----------
+    irradiance : (rows, cols) float ndarray
+        Ray-traced irradiance relative to the back-light (not changed).
+    optics : SimOptics
+        Camera; ``optics.realism`` groups ``illumination``, ``blur`` and ``sensor`` are
+        applied in that order when enabled (see the module notes).
+    level : float
+        Expected signal of a fully lit pixel as a fraction of full scale.
+    sensor : SensorModel
+        Full well and read noise.
+    seed : int or numpy.random.Generator
+        The image's noise seed; a child of it (:func:`.illumination.image_rng`) draws the
+        back-light change of a frame, so the noise draws do not depend on it.
+    noise : bool
+        False gives the rounded expected counts.
+    white : bool
+        True for the white image: the camera's back-light without a frame change.
+
+    Returns
+    -------
+    (rows, cols) uint16 ndarray
+        Raw counts; bit-identical to :func:`.sensor.expose` of the input when the three
+        groups are off.
+    """
+    real = optics.realism
+    rng = np.random.default_rng(seed)
+    irr = irradiance
+    if real.illumination.enabled:
+        irr = np.array(irr, dtype=np.float32, copy=True)
+        illuminate(irr, optics, None if white else image_rng(rng))
+    if real.blur.enabled:
+        irr = blur_image(irr, optics)
+    return expose(irr, level=level, bit_depth=optics.camera.bit_depth, sensor=sensor, rng=rng,
+                  noise=noise, fixed=fixed_pattern(optics) if real.sensor.enabled else None)
 
