@@ -23,7 +23,8 @@ from .dataset import SimulationResult, simulate_dataset
 from .dotcard import (CardPlacement, DotCard, default_dotcard, default_dotcard_depths, dot_grid,
                       dotcard_irradiance, draw_card_placements, render_dotcard)
 from .optics import SimOptics, make_optics, true_camera
-from .realism import (BlurEffects, IlluminationEffects, Realism, SensorEffects, SpecEffects,
+from .realism import (BlurEffects, IlluminationEffects, LensEffects, Realism, SensorEffects,
+                      SpecEffects,
                       TargetEffects, realism_from_dict)
 from .render import expose_image, render_dark, render_frame, render_irradiance, render_white
 from .scene import (Scene, SceneError, Volume, default_diameter_mm, default_volume, load_scene,
@@ -32,7 +33,7 @@ from .sensor import SensorModel
 
 __all__ = [
     "SimOptics", "make_optics", "true_camera",
-    "Realism", "BlurEffects", "IlluminationEffects", "SensorEffects", "TargetEffects",
+    "Realism", "BlurEffects", "LensEffects", "IlluminationEffects", "SensorEffects", "TargetEffects",
     "SpecEffects", "realism_from_dict", "CardPlacement", "draw_card_placements",
     "render_white", "render_frame", "render_irradiance", "render_dark", "expose_image",
     "DotCard", "default_dotcard", "default_dotcard_depths", "dot_grid", "render_dotcard",

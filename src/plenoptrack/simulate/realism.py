@@ -25,6 +25,10 @@ group                      effects
 ``blur``                   diffraction (Airy pattern at the working f-number), microlens
                            focus error and aberration, light crossing into neighbouring
                            microlens images, microlens fill factor
+``lens``                   main-lens distortion drawn per camera, field curvature,
+                           astigmatism and coma (Seidel terms), off-axis (cat's-eye)
+                           vignetting, optical axis off the sensor centre, tilted
+                           microlens array
 ``illumination``           smooth non-uniform back-light, different for the white image and
                            each frame; dust shadows fixed on the sensor window
 ``sensor``                 pixel gain (PRNU) and offset (DSNU) maps fixed per camera, hot
@@ -48,7 +52,7 @@ from typing import Literal
 
 from ..errors import SettingsError
 
-__all__ = ["BlurEffects", "IlluminationEffects", "SensorEffects", "TargetEffects",
+__all__ = ["BlurEffects", "LensEffects", "IlluminationEffects", "SensorEffects", "TargetEffects",
            "SpecEffects", "Realism", "GROUPS", "realism_from_dict"]
 
 
@@ -115,6 +119,46 @@ class BlurEffects(_Group):
     microlens_aberration_um: float = 1.0
     crosstalk: float = 0.01
     fill_gap: float = 0.02
+
+
+@dataclass(frozen=True)
+class LensEffects(_Group):
+    """Departures of the main lens and the microlens array from the thin-lens model.
+
+    Attributes
+    ----------
+    distortion_k1_sigma, distortion_k2_sigma : float
+        Standard deviations of the radial distortion coefficients drawn per camera seed
+        around the fixed values of :func:`~.optics.make_optics` (the same lens model type
+        differs from copy to copy and with focus).
+    field_curvature_mm : float
+        Petzval field curvature: axial distance of the best-focus surface from the
+        nominal focal plane at the edge of the field, mm (object side).
+    astigmatism_mm : float
+        Axial separation of the sagittal and tangential foci at the field edge, mm.
+    coma_mm : float
+        Transverse coma at the field edge for a ray through the aperture rim, mm
+        (object side, in the focal plane).
+    vignetting_radius_ratio : float
+        Cat's-eye vignetting: 1 - (radius of the front lens opening / radius it would
+        need to pass the whole aperture cone at the field edge); 0 means no
+        vignetting, 0.1 clips the cone of the field-edge points by a tenth.
+    axis_offset_px : float
+        Largest distance of the optical axis from the sensor centre, sensor pixels
+        (drawn per camera seed in a disc).
+    mla_tilt_deg : float
+        Largest tilt of the microlens array about an axis in its plane, degrees (drawn
+        per camera seed): microlens-to-sensor distance varies across the sensor.
+    """
+
+    distortion_k1_sigma: float = 0.01
+    distortion_k2_sigma: float = 0.003
+    field_curvature_mm: float = 0.5
+    astigmatism_mm: float = 0.3
+    coma_mm: float = 0.01
+    vignetting_radius_ratio: float = 0.1
+    axis_offset_px: float = 20.0
+    mla_tilt_deg: float = 0.02
 
 
 @dataclass(frozen=True)
@@ -241,8 +285,8 @@ class SpecEffects(_Group):
     f_number_mismatch: float = 0.05
 
 
-GROUPS = {"blur": BlurEffects, "illumination": IlluminationEffects, "sensor": SensorEffects,
-          "target": TargetEffects, "spec": SpecEffects}
+GROUPS = {"blur": BlurEffects, "lens": LensEffects, "illumination": IlluminationEffects,
+          "sensor": SensorEffects, "target": TargetEffects, "spec": SpecEffects}
 """Effect groups of :class:`Realism` by field name."""
 
 
@@ -264,6 +308,7 @@ class Realism:
     """
 
     blur: BlurEffects = BlurEffects()
+    lens: LensEffects = LensEffects()
     illumination: IlluminationEffects = IlluminationEffects()
     sensor: SensorEffects = SensorEffects()
     target: TargetEffects = TargetEffects()
