@@ -6,8 +6,9 @@ measured in the same run. For the full sensor the brute force is timed on a cent
 window holding 1/100 of the pixels and scaled by 100.
 
 A last section times a full-sensor frame with the image-domain realism effects
-(back-light, dust, microlens blur and crosstalk, sensor fixed patterns) against the ideal
-frame in the same run, caches warm. Peak memory of each mode: run
+(back-light, dust, microlens blur and crosstalk, sensor fixed patterns), with the lens
+group, and with both, against the ideal frame in the same run, caches warm (``--realism``
+runs only that section). Peak memory of each mode: run
 ``python benchmarks/bench_simulate.py --memory ideal`` (or ``realistic``), which renders a
 white image and three frames and prints the peak resident set size.
 
@@ -74,25 +75,39 @@ def bench(name, n_particles, brute_side):
 
 
 def bench_realism(name, n_particles, repeats=3):
-    """Frame time, ideal vs realistic image effects (spec and target off: same geometry)."""
+    """Frame time, ideal vs realistic effects (spec and target off: same first-order optics).
+
+    ``lens`` adds the lens group (drawn distortion, Seidel terms, cat's-eye vignetting, axis
+    offset, MLA tilt) to the geometry, so its background is traced anew; the last row has
+    every image and lens effect.
+    """
     from dataclasses import replace
 
     from plenoptrack.simulate.realism import Realism
 
     camera = preset(name)
-    image = replace(Realism.realistic(), spec=Realism.ideal().spec, target=Realism.ideal().target)
+    off = Realism.ideal()
+    image = replace(Realism.realistic(), spec=off.spec, target=off.target, lens=off.lens)
+    lens = replace(off, lens=Realism.realistic().lens)
+    full = replace(Realism.realistic(), spec=off.spec, target=off.target)
     particles = random_particles(n_particles, volume=default_volume(camera), diameter_mm=1.0,
                                  seed=1)
-    times = {}
-    for mode, realism in (("ideal", "ideal"), ("realistic", image)):
+    times, backgrounds = {}, {}
+    modes = (("ideal", "ideal"), ("image", image), ("lens", lens), ("realistic", full))
+    for mode, realism in modes:
         optics = make_optics(camera, seed=0, realism=realism)
+        backgrounds[mode] = _timed(background_irradiance, optics)[1]
         render_frame(optics, particles, seed=0)             # caches: background, maps
         times[mode] = min(_timed(render_frame, optics, particles, seed=s)[1]
                           for s in range(1, repeats + 1))
-    print(f"{name}: render_frame with {n_particles} particles, best of {repeats}")
-    print(f"  ideal                               : {times['ideal']:7.2f} s")
-    print(f"  realistic (blur, illumination, sensor): {times['realistic']:7.2f} s "
-          f"({times['realistic'] / times['ideal']:.2f} x)")
+    print(f"{name}: render_frame with {n_particles} particles, best of {repeats} "
+          f"(background traced once per optics)")
+    labels = {"ideal": "ideal", "image": "blur, illumination, sensor",
+              "lens": "lens group only", "realistic": "all of them"}
+    for mode, _ in modes:
+        print(f"  {labels[mode]:28s}: frame {times[mode]:6.2f} s "
+              f"({times[mode] / times['ideal']:.2f} x), background {backgrounds[mode]:6.2f} s "
+              f"({backgrounds[mode] / backgrounds['ideal']:.2f} x)")
 
 
 def peak_memory(mode, name="hall2019"):
@@ -110,6 +125,10 @@ def peak_memory(mode, name="hall2019"):
 def main():
     if len(sys.argv) == 3 and sys.argv[1] == "--memory":
         peak_memory(sys.argv[2])
+        return
+    if len(sys.argv) == 2 and sys.argv[1] == "--realism":
+        bench_realism("small", 5, repeats=1)                # compiles the kernels
+        bench_realism("hall2019", 100)
         return
     bench("small", 20, 1.0)            # compiles the kernels on a first run
     print()

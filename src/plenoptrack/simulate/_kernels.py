@@ -8,8 +8,19 @@ force is bit-identical. Geometry and symbols as in :mod:`.optics`.
 ``par`` is a float64 vector holding the optics (indices below). ``samples`` is an
 ``(n, 4)`` float64 array: the sub-pixel offset (dX, dY) of the sensor point P and the
 offset (dX, dY) of the microlens point Q from the lens centre, mm, camera frame.
-``occluders`` is an ``(m, 4)`` float64 array of spheres (X, Y, Z, radius^2) in the
-camera frame, mm.
+``occluders`` is an ``(m, 4)`` float64 array of spheres (X, Y, Z, radius^2) relative to
+the optical axis (``X - a_x``, ``Y - a_y``, ``Z``), mm.
+
+Lens effects (:class:`~.realism.LensEffects`, see :mod:`.optics`). With any of axis offset,
+MLA tilt, Seidel terms or front stop on (``par[LENS_ON]``), every kernel takes a second
+code path, :func:`_lens_ray` for the rays and the general branch of :func:`_bundle` for
+the bounds; with all of them off the original expressions run unchanged, so ideal images
+keep their bytes. The bounds of the general branch: a ray leaving lens ``C`` crosses the
+main-lens plane within ``r_h`` of ``h0`` (thin tilted-microlens model), its point on the
+nominal MLA plane lies within ``r'`` of ``c'``, its distorted conjugate within
+``r' conj lip`` of ``qo0`` (``lip`` bounds the derivative of ``Q g(|Q|)`` over the disc)
+and the Seidel errors add at most ``(F + 1.5 A) rho_m^2 D/2 / s_o + coma rho_m``
+(``|p| <= 1`` for every ray that passes the aperture, ``rho_m`` bounding ``|rho|``).
 """
 
 from __future__ import annotations
@@ -22,7 +33,9 @@ from numba import njit, prange
 PP, ROWS, COLS, SCALE, F_ML, S_I, S_O, R_AP2, K1, K2, INV_RN2 = range(11)
 E1X, E1Y, E2X, E2Y, OFFX, OFFY, SHIFT, PITCH, ROW_STEP, CELL_PX = range(11, 21)
 CELL_R, HALF_DIAG, INRADIUS_IMG, INV_SCALE, INV_P2, INV_RS2, R_AP = range(21, 28)
-N_PAR = 28
+LENS_ON, AXX, AXY, TX, TY, SEID_A, SEID_B, COMA_K, E_DEF, E_COMA = range(28, 38)
+VIG_ON, VIG_L, VIG_R2, VIG_R = range(38, 42)
+N_PAR = 42
 
 
 def pack_params(optics) -> np.ndarray:
@@ -55,6 +68,25 @@ def pack_params(optics) -> np.ndarray:
     par[INV_P2] = 1.0 / optics.pitch ** 2
     par[INV_RS2] = 1.0 / optics.row_step ** 2
     par[R_AP] = optics.aperture_radius
+    lens = optics.realism.lens
+    stop = optics.front_stop
+    seidel = (lens.field_curvature_mm, lens.astigmatism_mm, lens.coma_mm)
+    if (optics.axis_offset_mm != (0.0, 0.0) or optics.mla_tilt != (0.0, 0.0)
+            or any(v != 0 for v in seidel) or stop is not None):
+        fc, ast, coma = seidel
+        par[LENS_ON] = 1.0
+        par[AXX], par[AXY] = optics.axis_offset_mm
+        par[TX], par[TY] = optics.mla_tilt
+        par[SEID_A] = (-fc + 0.5 * ast) / optics.s_o
+        par[SEID_B] = -ast / optics.s_o
+        par[COMA_K] = coma / 3.0 / (optics.distortion_radius_mm * optics.aperture_radius ** 2)
+        par[E_DEF] = (fc + 1.5 * ast) * optics.aperture_radius / optics.s_o
+        par[E_COMA] = coma
+        if stop is not None:
+            par[VIG_ON] = 1.0
+            par[VIG_L] = stop[0]
+            par[VIG_R2] = stop[1] ** 2
+            par[VIG_R] = stop[1]
     return par
 
 
@@ -98,6 +130,59 @@ def _pixel_lens(row, col, par):
 
 
 @njit(cache=True)
+def _lens_geom(cx, cy, par):
+    """Tilted-MLA geometry of lens C (camera frame, mm): (delta, d, s_l).
+
+    ``d = f_ml + delta`` is its distance to the sensor, ``s_l = s_i - delta`` to the main
+    lens, ``delta = t . C``.
+    """
+    delta = par[TX] * cx + par[TY] * cy
+    return delta, par[F_ML] + delta, par[S_I] - delta
+
+
+@njit(cache=True)
+def _lens_ray(px, py, qx, qy, cx, cy, par):
+    """Object-side ray of sensor point P through point Q of lens C with the lens effects.
+
+    Returns (ok, hx, hy, dx, dy): ``ok`` False when the ray is stopped by the aperture or
+    the front stop; otherwise the ray ``H + Z (d, 1)`` relative to the optical axis.
+    """
+    delta, d, s_l = _lens_geom(cx, cy, par)
+    # Thin microlens at distance d from the sensor: slope out = (Q - P) / d - (Q - C) / f.
+    sx = (qx - px) / d - (qx - cx) / par[F_ML]
+    sy = (qy - py) / d - (qy - cy) / par[F_ML]
+    hx = qx + sx * s_l - par[AXX]
+    hy = qy + sy * s_l - par[AXY]
+    h2 = hx * hx + hy * hy
+    if h2 > par[R_AP2]:
+        return False, hx, hy, 0.0, 0.0
+    # Point of the nominal MLA plane (Z = -s_i) on the ray, relative to the axis.
+    w = delta / s_l
+    ux = qx - par[AXX]
+    uy = qy - par[AXY]
+    ux += (ux - hx) * w
+    uy += (uy - hy) * w
+    rho2 = (ux * ux + uy * uy) * par[INV_RN2]
+    g = 1.0 + par[K1] * rho2 + par[K2] * rho2 * rho2
+    conj = -par[S_O] / par[S_I]
+    hu = hx * ux + hy * uy
+    # Seidel transverse errors on the focal plane (module notes of .optics).
+    ex = par[SEID_A] * rho2 * hx + par[SEID_B] * hu * ux * par[INV_RN2]
+    ey = par[SEID_A] * rho2 * hy + par[SEID_B] * hu * uy * par[INV_RN2]
+    ex += par[COMA_K] * (h2 * ux + 2.0 * hu * hx)
+    ey += par[COMA_K] * (h2 * uy + 2.0 * hu * hy)
+    inv_so = 1.0 / par[S_O]
+    dx = (ux * conj * g + ex - hx) * inv_so
+    dy = (uy * conj * g + ey - hy) * inv_so
+    if par[VIG_ON] != 0.0:
+        vx = hx + par[VIG_L] * dx
+        vy = hy + par[VIG_L] * dy
+        if vx * vx + vy * vy > par[VIG_R2]:
+            return False, hx, hy, dx, dy
+    return True, hx, hy, dx, dy
+
+
+@njit(cache=True)
 def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, use_card, lens_i, lens_j):
     """Lit samples of the pixel centred at sensor point (x0, y0) mm.
 
@@ -114,6 +199,7 @@ def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, use_card, lens
     if not per_sample:
         cx, cy = _lens_center(lens_i, lens_j, par)
     lit = 0
+    lens_on = par[LENS_ON] != 0.0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
         py = y0 + samples[k, 1]
@@ -122,6 +208,27 @@ def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, use_card, lens
             cx, cy = _lens_center(i, j, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
+        if lens_on:
+            ok, hx, hy, dx, dy = _lens_ray(px, py, qx, qy, cx, cy, par)
+            if not ok:
+                continue
+            dd = dx * dx + dy * dy + 1.0
+            blocked = False
+            for m in range(nc):
+                q = cand[m]
+                wx = occluders[q, 0] - hx
+                wy = occluders[q, 1] - hy
+                wz = occluders[q, 2]
+                wd = wx * dx + wy * dy + wz
+                if (wx * wx + wy * wy + wz * wz - occluders[q, 3]) * dd < wd * wd:
+                    blocked = True
+                    break
+            if blocked:
+                continue
+            if use_card and _on_dot(hx, hy, dx, dy, card):
+                continue
+            lit += 1
+            continue
         # Main-lens plane: thin microlens, P in its focal plane.
         hx = qx + (cx - px) * tan_s
         hy = qy + (cy - py) * tan_s
@@ -207,15 +314,20 @@ _PER_SAMPLE = -(1 << 41)
 
 
 @njit(cache=True)
-def _bundle(ex, ey, cx, cy, par):
+def _bundle(x0, y0, cx, cy, par):
     """Bounds on the rays of one pixel through lens C.
 
-    (ex, ey) is the pixel centre minus the lens-image centre, sensor mm; (cx, cy) the
-    lens centre, mm. Every such ray leaves the main lens within ``r_h`` of ``h0`` and
-    crosses the focal plane within ``r_q`` of ``qo0``, so at depth Z (t = Z / s_o) it
-    lies within ``r_h |1 - t| + r_q t`` of ``h0 + (qo0 - h0) t``; ``sec`` bounds
-    1 / cos of the ray angle to the axis. Returns (h0x, h0y, qo0x, qo0y, r_h, r_q, sec).
+    (x0, y0) is the pixel centre, sensor mm; (cx, cy) the lens centre, mm. Every such
+    ray that passes the aperture leaves the main lens within ``r_h`` of ``h0`` and
+    crosses the focal plane within ``r_q`` of ``qo0`` (relative to the optical axis), so
+    at depth Z (t = Z / s_o) it lies within ``r_h |1 - t| + r_q t`` of
+    ``h0 + (qo0 - h0) t``; ``sec`` bounds 1 / cos of the ray angle to the axis. Returns
+    (h0x, h0y, qo0x, qo0y, r_h, r_q, sec).
     """
+    if par[LENS_ON] != 0.0:
+        return _bundle_lens(x0, y0, cx, cy, par)
+    ex = x0 - cx * par[SCALE]
+    ey = y0 - cy * par[SCALE]
     tan_s = par[S_I] / par[F_ML]
     conj = par[S_O] / par[S_I]
     r_h = par[HALF_DIAG] * tan_s + par[CELL_R]
@@ -236,13 +348,46 @@ def _bundle(ex, ey, cx, cy, par):
 
 
 @njit(cache=True)
-def _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, nc):
+def _bundle_lens(x0, y0, cx, cy, par):
+    """:func:`_bundle` with the lens effects (module notes)."""
+    delta, d, s_l = _lens_geom(cx, cy, par)
+    # Pixel centre minus the exact image centre a + (C - a) (s_l + d) / s_l.
+    sc = (s_l + d) / s_l
+    ex = x0 - par[AXX] - (cx - par[AXX]) * sc
+    ey = y0 - par[AXY] - (cy - par[AXY]) * sc
+    tan_d = s_l / d
+    h0x = -ex * tan_d
+    h0y = -ey * tan_d
+    # H = h0 + q (1 + s_l/d - s_l/f) - dP s_l/d for q in the cell, dP in the pixel.
+    r_h = (par[HALF_DIAG] * tan_d + par[CELL_R] * abs(1.0 + tan_d - s_l / par[F_ML])) * (1.0 + 1e-12)
+    # Nominal-plane point U = (Q - a)(1 + w) - H w.
+    w = delta / s_l
+    ux = (cx - par[AXX]) * (1.0 + w) - h0x * w
+    uy = (cy - par[AXY]) * (1.0 + w) - h0y * w
+    r_u = par[CELL_R] * (1.0 + abs(w)) + r_h * abs(w)
+    conj = par[S_O] / par[S_I]
+    rc2 = (ux * ux + uy * uy) * par[INV_RN2]
+    g0 = 1.0 + par[K1] * rc2 + par[K2] * rc2 * rc2
+    qo0x = -ux * conj * g0
+    qo0y = -uy * conj * g0
+    rm = math.sqrt(rc2) + r_u * math.sqrt(par[INV_RN2])
+    rm2 = rm * rm
+    lip = 1.0 + 3.0 * abs(par[K1]) * rm2 + 5.0 * abs(par[K2]) * rm2 * rm2
+    r_q = (r_u * conj * lip + par[E_DEF] * rm2 + par[E_COMA] * rm) * (1.0 + 1e-9)
+    slope = (math.sqrt(qo0x * qo0x + qo0y * qo0y) + r_q + math.sqrt(h0x * h0x + h0y * h0y)
+             + r_h) / par[S_O]
+    sec = math.sqrt(1.0 + slope * slope) * (1.0 + 1e-9)
+    return h0x, h0y, qo0x, qo0y, r_h, r_q, sec
+
+
+@njit(cache=True)
+def _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, nc):
     """Append to ``cand[:nc]`` the occluders the pixel's rays through lens C may meet.
 
     A sphere further from the bundle (:func:`_bundle`) than its radius, stretched by
     ``sec``, is never hit. Returns the new count.
     """
-    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(ex, ey, cx, cy, par)
+    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(x0, y0, cx, cy, par)
     s_o = par[S_O]
     for m in range(p0, p1):
         q = idx[m]
@@ -263,9 +408,9 @@ def _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, nc):
 
 
 @njit(cache=True)
-def _card_missed(ex, ey, cx, cy, par, card):
+def _card_missed(x0, y0, cx, cy, par, card):
     """True if no ray of the pixel through lens C can land on a dot of the card."""
-    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(ex, ey, cx, cy, par)
+    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(x0, y0, cx, cy, par)
     t = card[0] / par[S_O]
     spread = r_h * abs(1.0 - t) + r_q * t
     margin = 0.0
@@ -322,26 +467,58 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, kee
                 fx = x0 - lx * par[SCALE]
                 fy = y0 - ly * par[SCALE]
                 if fx * fx + fy * fy <= lim * lim:
-                    nc = _bundle_candidates(fx, fy, lx, ly, par, occluders, idx, p0, p1, cand, nc)
+                    nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1, cand, nc)
         if nc == 0 and no_card and keep:
             return KEEP
         return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card,
                             _PER_SAMPLE, 0)
+    if par[LENS_ON] != 0.0:
+        return _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, idx, p0, p1,
+                                 card, no_card, cand, keep)
     tan_s = par[S_I] / par[F_ML]
     r_h = par[HALF_DIAG] * tan_s + par[CELL_R]          # spread of H about its centre
     h_lo = e * tan_s - r_h
     h_hi = e * tan_s + r_h
     if h_lo > par[R_AP] * (1.0 + 1e-9):
         return 0
-    if not no_card and _card_missed(ex, ey, cx, cy, par, card):
+    if not no_card and _card_missed(x0, y0, cx, cy, par, card):
         no_card = True
     nc = 0
     if p1 > p0:
-        nc = _bundle_candidates(ex, ey, cx, cy, par, occluders, idx, p0, p1, cand, 0)
+        nc = _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, 0)
         if nc == 0 and no_card and keep:
             return KEEP
     if nc == 0 and no_card and h_hi < par[R_AP] * (1.0 - 1e-9):
         return n
+    return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card, i, j)
+
+
+@njit(cache=True)
+def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, idx, p0, p1, card,
+                      no_card, cand, keep):
+    """The in-cell part of :func:`_trace_pixel` with the lens effects: the same
+    shortcuts on the bounds of :func:`_bundle_lens`; a pixel is fully lit only if its
+    whole bundle also passes the front stop."""
+    n = samples.shape[0]
+    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par)
+    h = math.sqrt(h0x * h0x + h0y * h0y)
+    if h - r_h > par[R_AP] * (1.0 + 1e-9):
+        return 0
+    if not no_card and _card_missed(x0, y0, cx, cy, par, card):
+        no_card = True
+    nc = 0
+    if p1 > p0:
+        nc = _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, 0)
+        if nc == 0 and no_card and keep:
+            return KEEP
+    if nc == 0 and no_card and h + r_h < par[R_AP] * (1.0 - 1e-9):
+        if par[VIG_ON] == 0.0:
+            return n
+        t = par[VIG_L] / par[S_O]
+        vx = h0x + (qo0x - h0x) * t
+        vy = h0y + (qo0y - h0y) * t
+        if math.sqrt(vx * vx + vy * vy) + r_h * (1.0 - t) + r_q * t < par[VIG_R] * (1.0 - 1e-9):
+            return n
     return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card, i, j)
 
 

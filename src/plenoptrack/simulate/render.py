@@ -21,6 +21,13 @@ radius and two pitches (a pixel's samples may use a lens next to the one owning 
 pixel centre), and the pixels of the lenses with centres inside are re-traced against
 the particles whose boxes contain them.
 
+Lens effects (``optics.realism.lens``, see :mod:`.optics`) act on the rays themselves:
+the microlens distance of a tilted MLA, the Seidel errors of the aim point, the front
+stop (cat's-eye vignetting) and the axis offset are traced for every sample (in the white
+image, frames and dot cards alike); the footprint discs grow by the largest Seidel error
+(before the inverse distortion) and by the largest gap between a ray's point on the
+tilted MLA and on the nominal MLA plane, so culling stays exact.
+
 Realism. When ``optics.realism`` switches on effects of the ``blur``, ``illumination``
 or ``sensor`` groups, :func:`expose_image` turns the traced irradiance into raw counts in
 the order light meets them: back-light field and dust shadows (:mod:`.illumination`),
@@ -181,6 +188,9 @@ def _footprint_discs(optics: SimOptics, occluders: np.ndarray) -> np.ndarray:
     centre = xy * (s_o / big_z)[:, None]
     blur = optics.aperture_radius * np.maximum(np.abs(1 - s_o / near), np.abs(1 - s_o / far))
     radius = (r * s_o / near + np.hypot(xy[:, 0], xy[:, 1]) * s_o * r / (big_z * near) + blur)
+    seidel, tilt = _lens_margins(optics)
+    if seidel > 0:
+        radius = radius + seidel
     ang = np.linspace(0, 2 * np.pi, 64, endpoint=False)
     ring = np.stack([np.cos(ang), np.sin(ang)], axis=-1)
     pts = centre[:, None, :] + radius[:, None, None] * ring[None]
@@ -190,7 +200,31 @@ def _footprint_discs(optics: SimOptics, occluders: np.ndarray) -> np.ndarray:
     # the pitch added to the growth.
     reach = np.hypot(*(mla_ring - mla_centre[:, None, :]).transpose(2, 0, 1)).max(axis=1)
     grow = optics.cell_radius + 2 * optics.pitch
+    if tilt > 0:
+        grow = grow + tilt
     return np.column_stack([mla_centre, reach * 1.002 + grow])
+
+
+def _lens_margins(optics: SimOptics) -> tuple[float, float]:
+    """Bounds of the lens effects on the footprints (module notes of :mod:`._kernels`).
+
+    Returns ``(seidel, tilt)``: the largest Seidel transverse error on the focal plane of
+    any ray that passes the aperture, mm, and the largest distance between a ray's point
+    ``Q`` on the tilted MLA and its point on the nominal MLA plane, mm.
+    """
+    lens = optics.realism.lens
+    t = math.hypot(*optics.mla_tilt)
+    if not (lens.field_curvature_mm or lens.astigmatism_mm or lens.coma_mm or t):
+        return 0.0, 0.0
+    r_n = optics.distortion_radius_mm
+    q_max = r_n / optics.image_scale + 2 * optics.cell_radius          # |Q| of any sample
+    w = t * q_max / (optics.s_i - t * q_max)                             # |delta| / s_l
+    u_max = (q_max + math.hypot(*optics.axis_offset_mm)) * (1 + w) + optics.aperture_radius * w
+    rho = u_max / r_n
+    seidel = ((lens.field_curvature_mm + 1.5 * lens.astigmatism_mm) * optics.aperture_radius
+              / optics.s_o * rho ** 2 + lens.coma_mm * rho) * 1.001
+    tilt = w * (u_max + optics.aperture_radius) / (1 - w) * 1.001
+    return seidel, tilt
 
 
 def particle_lenses(optics: SimOptics, occluders: np.ndarray):
