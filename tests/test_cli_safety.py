@@ -93,6 +93,8 @@ def work(data, tmp_path):
     cards.mkdir()
     for path in (data / "sim" / "dotcards").iterdir():
         (cards / path.name).write_bytes(path.read_bytes())
+    _write_cards_toml(cards, "reversed.toml", lambda z: -z)
+    _write_cards_toml(cards, "in_cm.toml", lambda z: z / 10)
     raw = read_raw(tmp_path / "white.tif")
     tifffile.imwrite(tmp_path / "rgb.tif", np.stack([raw] * 3, axis=-1), photometric="rgb")
     tifffile.imwrite(tmp_path / "float.tif", raw.astype(np.float32))
@@ -105,6 +107,20 @@ def work(data, tmp_path):
     (tmp_path / "a_folder").mkdir()
     (tmp_path / "a_file").write_text("x")
     return tmp_path
+
+
+def _write_cards_toml(folder: Path, name: str, depth, order=None) -> None:
+    """A dot-card description beside the cards with the depths changed by ``depth``."""
+    import tomllib
+
+    import tomli_w
+
+    doc = tomllib.loads((folder / "dotcards.toml").read_text())
+    cards = doc["cards"]
+    depths = [c["z_mm"] for c in cards]
+    for k, card in enumerate(cards):
+        card["z_mm"] = float(depth(depths[k if order is None else order[k]]))
+    (folder / name).write_text(tomli_w.dumps(doc))
 
 
 # --------------------------------------------------------------------------- bad input table
@@ -165,6 +181,8 @@ BAD_INPUTS = {
     "calibrate-out-is-hardlink-to-calib-input": (["calibrate", "--white", "white.tif", "--dotcards", "dotcards", "--camera", "hardlink_to_calib.json", "--out", "calib.json"], 2, ["input --camera"]),
     "calibrate-missing-dotcards": (["calibrate", "--white", "white.tif", "--dotcards", "nope", "--camera", "camera.toml", "--out", "c.json"], 1, ["nope", "not found"]),
     "calibrate-colour-white": (["calibrate", "--white", "rgb.tif", "--dotcards", "dotcards", "--camera", "camera.toml", "--out", "c.json"], 1, ["rgb.tif", "colour"]),
+    "calibrate-depths-reversed": (["calibrate", "--white", "white.tif", "--dotcards", "dotcards/reversed.toml", "--camera", "camera.toml", "--out", "c.json"], 1, ["reversed.toml", "reversed in sign"]),
+    "calibrate-depths-in-cm": (["calibrate", "--white", "white.tif", "--dotcards", "dotcards/in_cm.toml", "--camera", "camera.toml", "--out", "c.json"], 1, ["in_cm.toml", "times too small", "cm"]),
     # calibrate-grid
     "grid-out-is-white": (GRID + ["--out", "white.tif"], 2, ["input WHITE"]),
     "grid-out-is-camera": (GRID + ["--out", "camera.toml"], 2, ["input --camera"]),
@@ -264,6 +282,29 @@ def test_outputs_are_written_with_the_umask_mode(work):
         os.umask(previous)
     for name in ("p.csv", "d.parquet"):
         assert (work / "new" / name).stat().st_mode & 0o777 == 0o640
+
+
+def test_a_card_listed_at_the_wrong_depth_is_warned_about(work):
+    n = len(list((work / "dotcards").glob("card_*.tif")))
+    order = list(range(n))
+    order[2], order[3] = 3, 2  # two cards' depths swapped in the description
+    _write_cards_toml(work / "dotcards", "swapped.toml", lambda z: z, order=order)
+    result = ok("calibrate", "--white", work / "white.tif", "--dotcards", work / "dotcards" / "swapped.toml",
+                "--camera", work / "camera.toml", "--out", work / "c.json")
+    warnings = [line for line in result.stderr.splitlines() if line.startswith("warning:")]
+    assert len(warnings) == 1, result.stderr
+    import re
+
+    read = {m[0]: (float(m[1]), float(m[2])) for m in
+            re.findall(r"(card_\d+\.tif) z_mm = (-?\d+(?:\.\d+)?) reads as (-?\d+(?:\.\d+)?)", warnings[0])}
+    assert set(read) == {"card_02.tif", "card_03.tif"}
+    # each card reads as the depth of the other (within the 1.7 % scale of the fit)
+    assert abs(read["card_02.tif"][1] - read["card_03.tif"][0]) < 0.1
+    assert abs(read["card_03.tif"][1] - read["card_02.tif"][0]) < 0.1
+    assert (work / "c.json").is_file()
+    result = ok("calibrate", "--white", work / "white.tif", "--dotcards", work / "dotcards" / "reversed.toml",
+                "--camera", work / "camera.toml", "--out", work / "c2.json", "--no-check-depths")
+    assert (work / "c2.json").is_file()
 
 
 # --------------------------------------------------------------------------- exposure, debug

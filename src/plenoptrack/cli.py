@@ -309,6 +309,7 @@ def calibrate_cmd(
     camera_file: Path = typer.Option(..., "--camera", "-c", help="Nominal camera description (camera.toml)."),
     out_file: Path = typer.Option(Path("calib.json"), "--out", "-o", help="Calibration file to write."),
     order: int = typer.Option(4, "--order", min=1, max=6, help="DLFC total polynomial order (1-6)."),
+    check_depths: bool = typer.Option(True, "--check-depths/--no-check-depths", help="Check the card depths of dotcards.toml against the depths the dots' parallax shows (refuse a wrong sign or unit, warn about single cards)."),
 ) -> None:
     """Calibrate: lenslet grid from a white image, DLFC from dot cards; write a calibration file.
 
@@ -324,7 +325,8 @@ def calibrate_cmd(
               "dotcards.toml": cards.source, "a dot-card image": [c.path for c in cards.cards]}
     with _outputs({"--out": out_file}, inputs) as (tmp,):
         camera = load_camera(camera_file)
-        calib, report = calibrate(white, cards, camera, order=order, progress=True)
+        calib, report = calibrate(white, cards, camera, order=order, check_depths=check_depths,
+                                  progress=True)
         save_calibration(calib, tmp)
     _print_calibration_report(calib, cards, report)
     console.print(f"wrote {out_file}", highlight=False)

@@ -8,7 +8,8 @@ The usual entry point is :func:`locate_frame`; the steps it composes are public 
 
 from .cluster import Clustering, ProjectionGeometry, cluster_detections, plane_alphas
 from .dlfc import DLFC, FitReport, fit_dlfc
-from .dotcards import dotcard_points
+from .dotcards import (CardLattice, OriginConsensus, card_lattice, consistent_origins,
+                       dotcard_points, index_dotcard, index_lattice)
 from .perspective import PARTICLE_COLUMNS, LocateResult, PerspectiveLocator, locate_frame
 from .segment import DETECTION_COLUMNS, segment_array, segment_view, segment_views
 from .triangulate import (Triangulation, TriangulationFlag, predict_detection,
@@ -18,7 +19,8 @@ __all__ = [
     "locate_frame", "PerspectiveLocator", "LocateResult", "PARTICLE_COLUMNS",
     "segment_views", "segment_view", "segment_array", "DETECTION_COLUMNS",
     "cluster_detections", "Clustering", "ProjectionGeometry", "plane_alphas",
-    "DLFC", "FitReport", "fit_dlfc", "dotcard_points",
+    "DLFC", "FitReport", "fit_dlfc", "dotcard_points", "index_dotcard", "index_lattice",
+    "card_lattice", "CardLattice", "consistent_origins", "OriginConsensus",
     "triangulate_clusters", "triangulate_cluster", "Triangulation", "TriangulationFlag",
     "predict_detection",
 ]

@@ -5,9 +5,14 @@ grid of known spacing, with dot ``(0, 0)`` on the optical axis. Every view of a 
 image sees the grid shifted by the parallax of that depth (the same shift for every dot:
 the views are images of one plane with one magnification). The dots are segmented in
 every view (:mod:`plenoptrack.locate.segment`), indexed in the most central view by
-walking the lattice from the dot nearest the optical axis, and the indices are carried to
-the other views in order of their distance from the centre with a parallax model
-``shift = P @ (du, dv)`` that is refitted as views are added.
+walking the lattice and putting ``(0, 0)`` at the lattice node nearest the predicted
+optical axis (detected there or not), and the indices are carried to the other views in
+order of their distance from the centre with a parallax model ``shift = P @ (du, dv)``
+that is refitted as views are added.
+
+Across cards, :func:`card_lattice` measures each card's parallax and its lattice at
+``u = v = 0``, and :func:`consistent_origins` makes the cards agree on dot ``(0, 0)``:
+on the optical axis its image at ``u = v = 0`` is the same for every depth.
 
 World frame (``docs/conventions.md``): ``x`` grows with the view column ``s`` and ``y``
 with the row ``t``, so dot ``(i, j)`` sits at ``x = i * spacing``, ``y = j * spacing``.
@@ -17,19 +22,24 @@ from __future__ import annotations
 
 import warnings
 from collections import deque
+from dataclasses import dataclass
 
 import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from ..errors import CalibrationError, NoParticlesWarning
+from ..errors import CalibrationError, NoParticlesWarning, SettingsError
 from .segment import segment_array
 
-__all__ = ["DOTCARD_COLUMNS", "index_lattice", "index_dotcard", "dotcard_points"]
+__all__ = ["DOTCARD_COLUMNS", "CardLattice", "OriginConsensus", "card_lattice",
+           "consistent_origins", "dotcard_points", "fit_lattice", "index_dotcard", "index_lattice"]
 
 DOTCARD_COLUMNS = ("u", "v", "s", "t", "x", "y", "z", "i", "j")
 """Columns of a dot-card table: view, dot centroid (view pixels), dot position (mm) and
 grid index."""
+
+_MISSING = np.iinfo(np.int32).min
+"""Index pair ``(_MISSING, _MISSING)`` marks a dot that could not be indexed."""
 
 
 def _lattice_basis(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -49,6 +59,70 @@ def _lattice_basis(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return np.median(a, axis=0), np.median(b, axis=0)
 
 
+def _walk_lattice(pts: np.ndarray, tree: cKDTree, start: int, steps, tol_px: float,
+                  idx: np.ndarray) -> list[int]:
+    """Breadth-first walk from dot ``start`` (given index (0, 0)) over lattice neighbours.
+
+    Fills ``idx`` in place for the dots reached and returns them in visiting order.
+    """
+    idx[start] = (0, 0)
+    reached, queue = [start], deque([start])
+    while queue:
+        p = queue.popleft()
+        for di, dj, vec in steps:
+            d, q = tree.query(pts[p] + vec)
+            if d <= tol_px and idx[q, 0] == _MISSING:
+                idx[q] = (idx[p, 0] + di, idx[p, 1] + dj)
+                queue.append(q)
+                reached.append(q)
+    return reached
+
+
+def fit_lattice(points, indices, *, near=(0.0, 0.0), n_near: int = 25):
+    """Local affine lattice ``(s, t) = origin + basis @ (i, j)`` around one node.
+
+    Parameters
+    ----------
+    points : (n, 2) float ndarray
+        Dot centroids ``(s, t)``, view pixels.
+    indices : (n, 2) int ndarray
+        Grid index ``(i, j)`` of each dot; rows with the missing marker (``-2**31``) are
+        ignored.
+    near : (float, float)
+        Index ``(i, j)`` around which to fit: the ``n_near`` indexed dots nearest to it in
+        index space are used, so that lens distortion far from it does not bend the fit.
+    n_near : int
+        Number of dots to fit (at least 3 needed).
+
+    Returns
+    -------
+    origin : (2,) float ndarray
+        ``(s, t)`` of lattice node ``(0, 0)``, view pixels, whether or not a dot was
+        detected there.
+    basis : (2, 2) float ndarray
+        Columns are the lattice vectors along ``i`` and along ``j``, view pixels.
+
+    Raises
+    ------
+    CalibrationError
+        Fewer than 3 indexed dots, or all of them on one line.
+    """
+    pts = np.asarray(points, dtype=float)
+    idx = np.asarray(indices)
+    ok = idx[:, 0] != _MISSING
+    pts, idx = pts[ok], idx[ok].astype(float)
+    if len(pts) >= 3:
+        dist = np.hypot(idx[:, 0] - near[0], idx[:, 1] - near[1])
+        sel = np.argsort(dist, kind="stable")[:max(n_near, 3)]
+        design = np.column_stack([np.ones(len(sel)), idx[sel]])
+        if np.linalg.matrix_rank(design) == 3:
+            coef, *_ = np.linalg.lstsq(design, pts[sel], rcond=None)
+            return coef[0], coef[1:].T
+    raise CalibrationError(f"cannot fit a dot lattice: only {len(pts)} indexed dot(s), or "
+                           "all in one row; check the dot-card image and the segmentation "
+                           "settings")
+
+
 def index_lattice(points, origin_st, *, tol: float = 0.3) -> np.ndarray:
     """Grid indices of dots on a roughly square lattice in one view.
 
@@ -57,56 +131,66 @@ def index_lattice(points, origin_st, *, tol: float = 0.3) -> np.ndarray:
     points : (n, 2) float ndarray
         Dot centroids as ``(s, t)``, view pixels.
     origin_st : (float, float)
-        Predicted ``(s, t)`` of dot ``(0, 0)``.
+        Predicted ``(s, t)`` of dot ``(0, 0)``, view pixels.
     tol : float
         Match tolerance as a fraction of the lattice spacing.
 
     Returns
     -------
     (n, 2) int64 ndarray
-        ``(i, j)`` per dot, ``i`` along +s and ``j`` along +t; ``(-2**31, -2**31)`` for
-        dots not reached from the origin dot.
+        ``(i, j)`` per dot, ``i`` along +s and ``j`` along +t, with ``(0, 0)`` the lattice
+        node nearest ``origin_st``; ``(-2**31, -2**31)`` for dots not connected to the
+        main lattice.
 
     Raises
     ------
     CalibrationError
-        No lattice found, or no dot within half a spacing of ``origin_st``.
+        Fewer than 4 dots, or no square lattice found among them.
 
     Notes
     -----
     The lattice vectors are the medians of the nearest-neighbour vectors closer to the
     s axis (``a``) and to the t axis (``b``), so the grid may be rotated by up to about
-    40 degrees. Indices spread breadth-first from the dot nearest ``origin_st``: each
-    indexed dot predicts its four neighbours one lattice vector away (so slow lens
-    distortion does not accumulate) and takes the nearest dot within ``tol`` spacings.
+    40 degrees. Indices spread breadth-first over the lattice: each indexed dot predicts
+    its four neighbours one lattice vector away (so slow lens distortion does not
+    accumulate) and takes the nearest dot within ``tol`` spacings. The walk starts at the
+    dot nearest ``origin_st`` and is repeated from dots it did not reach; the largest
+    connected set of dots is kept (the one found first on a tie). An affine lattice
+    fitted to the indexed dots nearest ``origin_st`` (:func:`fit_lattice`) then gives
+    the fractional index of ``origin_st``; rounding it picks node ``(0, 0)``, so dot
+    ``(0, 0)`` need not have been detected, and ``origin_st`` need only be right to
+    within half a spacing (a card-to-card check of the choice is
+    :func:`consistent_origins`).
     """
     pts = np.asarray(points, dtype=float)
     if pts.ndim != 2 or pts.shape[1] != 2:
-        raise ValueError(f"points must be (n, 2) (s, t); got shape {pts.shape}")
+        raise SettingsError(f"points must be (n, 2) (s, t); got shape {pts.shape}")
     if len(pts) < 4:
         raise CalibrationError(f"need at least 4 dots to index a lattice; got {len(pts)}")
+    origin = np.asarray(origin_st, dtype=float)
     a, b = _lattice_basis(pts)
     spacing = min(np.hypot(*a), np.hypot(*b))
     tree = cKDTree(pts)
-    d0, start = tree.query(np.asarray(origin_st, dtype=float))
-    if d0 > 0.5 * spacing:
-        raise CalibrationError(
-            f"no dot within half a lattice spacing ({0.5 * spacing:.1f} px) of the predicted "
-            f"optical-axis position (s, t) = ({origin_st[0]:.1f}, {origin_st[1]:.1f}); the "
-            f"nearest is {d0:.1f} px away. Check the axis position or pass origin_st")
-    missing = np.iinfo(np.int32).min
-    idx = np.full((len(pts), 2), missing, dtype=np.int64)
-    idx[start] = (0, 0)
-    queue = deque([start])
     steps = ((1, 0, a), (-1, 0, -a), (0, 1, b), (0, -1, -b))
-    while queue:
-        p = queue.popleft()
-        for di, dj, vec in steps:
-            d, q = tree.query(pts[p] + vec)
-            if d <= tol * spacing and idx[q, 0] == missing:
-                idx[q] = (idx[p, 0] + di, idx[p, 1] + dj)
-                queue.append(q)
-    return idx
+    idx = np.full((len(pts), 2), _MISSING, dtype=np.int64)
+    best: list[int] = []
+    n_left = len(pts)
+    for start in np.argsort(np.hypot(*(pts - origin).T), kind="stable"):
+        if len(best) >= n_left:
+            break  # no set still to be walked can be larger
+        if idx[start, 0] != _MISSING:
+            continue
+        part = _walk_lattice(pts, tree, start, steps, tol * spacing, idx)
+        n_left -= len(part)
+        if len(part) > len(best):
+            best = part
+    out = np.full_like(idx, _MISSING)
+    out[best] = idx[best]
+    sel = np.asarray(best)[np.argsort(np.hypot(*(pts[best] - origin).T), kind="stable")[:25]]
+    o, basis = fit_lattice(pts[sel], out[sel], n_near=len(sel))
+    frac = np.linalg.solve(basis, origin - o)
+    out[best] -= np.rint(frac).astype(np.int64)
+    return out
 
 
 def _unique_rows(idx: np.ndarray, ok: np.ndarray) -> np.ndarray:
@@ -129,8 +213,9 @@ def index_dotcard(detections: pd.DataFrame, *, origin_st, parallax_per_u=(0.0, 0
     detections : pandas.DataFrame
         Columns ``u, v, s, t`` (e.g. from :func:`~plenoptrack.locate.segment.segment_views`).
     origin_st : (float, float)
-        ``(s, t)`` of the optical axis; dot ``(0, 0)`` is sought there in the most central
-        view.
+        ``(s, t)`` of the optical axis at ``u = v = 0``; dot ``(0, 0)`` is the lattice node
+        nearest it (plus the predicted parallax) in the most central view
+        (:func:`index_lattice`).
     parallax_per_u : float or (float, float)
         Predicted shift of the card's image per unit ``u`` along ``s`` and per unit ``v``
         along ``t``, view pixels (see
@@ -145,10 +230,16 @@ def index_dotcard(detections: pd.DataFrame, *, origin_st, parallax_per_u=(0.0, 0
     pandas.DataFrame
         The indexed detections: the input columns plus ``i`` and ``j`` (int64); dots that
         could not be indexed unambiguously are dropped.
+
+    Raises
+    ------
+    CalibrationError
+        No dots, no lattice in the central view, or a predicted parallax of more than
+        half the dot spacing per view (neighbouring views would alias).
     """
     missing_cols = [c for c in ("u", "v", "s", "t") if c not in detections.columns]
     if missing_cols:
-        raise ValueError(f"detections lacks column(s) {missing_cols}")
+        raise SettingsError(f"detections lacks column(s) {missing_cols}")
     if len(detections) == 0:
         raise CalibrationError("no dots were detected in any view of the dot card")
     par = np.broadcast_to(np.asarray(parallax_per_u, dtype=float), (2,))
@@ -163,17 +254,24 @@ def index_dotcard(detections: pd.DataFrame, *, origin_st, parallax_per_u=(0.0, 0
     in_c = np.flatnonzero(view_of == centre)
     origin = np.asarray(origin_st, float) + par * (uc, vc)
     idx_c = index_lattice(st[in_c], origin, tol=tol)
-    ok_c = idx_c[:, 0] != np.iinfo(np.int32).min
+    ok_c = idx_c[:, 0] != _MISSING
     ref_idx, ref_pos = idx_c[ok_c], st[in_c][ok_c]
     # affine lattice of the central view, for dots that only other views see
     design = np.column_stack([np.ones(len(ref_idx)), ref_idx])
     coef, *_ = np.linalg.lstsq(design, ref_pos, rcond=None)
     o_c, basis = coef[0], coef[1:].T            # pos = o_c + basis @ (i, j)
     spacing = min(np.hypot(*basis[:, 0]), np.hypot(*basis[:, 1]))
+    if np.abs(par).max() > 0.5 * spacing:
+        raise CalibrationError(
+            f"the card's predicted parallax, ({par[0]:.2f}, {par[1]:.2f}) view px per unit "
+            f"(u, v), is more than half the dot spacing in the central view "
+            f"({0.5 * spacing:.2f} px), so neighbouring views cannot be matched "
+            "unambiguously; check the card depth z_mm (millimetres from the focal plane) "
+            "and the nominal camera, or use a card with a coarser dot grid")
     basis_inv = np.linalg.inv(basis)
     ref_tree = cKDTree(ref_pos)
 
-    out_idx = np.full((len(st), 2), np.iinfo(np.int32).min, dtype=np.int64)
+    out_idx = np.full((len(st), 2), _MISSING, dtype=np.int64)
     out_ok = np.zeros(len(st), dtype=bool)
     out_idx[in_c[ok_c]] = ref_idx
     out_ok[in_c[ok_c]] = True
@@ -249,7 +347,7 @@ def dotcard_points(lf, *, spacing_mm: float, z_mm: float, camera=None,
         frame); ``i, j`` grid index (int). Sorted by view (v, u) and index (j, i).
     """
     if not spacing_mm > 0:
-        raise ValueError(f"spacing_mm must be positive; got {spacing_mm!r}")
+        raise SettingsError(f"spacing_mm must be positive; got {spacing_mm!r}")
     if parallax_per_u is None:
         if camera is not None:
             from .cluster import ProjectionGeometry
@@ -277,3 +375,179 @@ def dotcard_points(lf, *, spacing_mm: float, z_mm: float, camera=None,
         "z": np.full(len(idx), float(z_mm)), "i": idx["i"].to_numpy(np.int64),
         "j": idx["j"].to_numpy(np.int64)})
     return table.sort_values(["v", "u", "j", "i"], kind="stable").reset_index(drop=True)
+
+
+# --- whole cards ------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CardLattice:
+    """The dot lattice of one card, measured over all views (:func:`card_lattice`).
+
+    Attributes
+    ----------
+    origin_st : (2,) float ndarray
+        ``(s, t)`` of dot ``(0, 0)`` extrapolated to view ``u = v = 0``, view pixels
+        (from the dots around it, whether or not it was detected itself).
+    basis : (2, 2) float ndarray
+        Columns: the lattice vectors along ``i`` and along ``j`` at ``u = v = 0``,
+        view pixels per index step.
+    parallax : (2, 2) float ndarray
+        ``d(s, t) / d(u, v)``: shift of the card's image per unit view coordinate, view
+        pixels; ``parallax[0, 0]`` is ``ds/du`` and ``parallax[1, 1]`` is ``dt/dv``.
+    n_dots : int
+        Dots (distinct indices) measured.
+    rms_px : float
+        RMS residual length of the linear parallax model over the kept measurements,
+        view pixels.
+    """
+
+    origin_st: np.ndarray
+    basis: np.ndarray
+    parallax: np.ndarray
+    n_dots: int
+    rms_px: float
+
+    @property
+    def spacing_px(self) -> float:
+        """Shorter of the two lattice vectors, view pixels."""
+        return float(min(np.hypot(*self.basis[:, 0]), np.hypot(*self.basis[:, 1])))
+
+    @property
+    def parallax_per_u(self) -> float:
+        """Mean of ``ds/du`` and ``dt/dv``, view pixels per unit ``u`` (compare
+        :meth:`~plenoptrack.locate.cluster.ProjectionGeometry.parallax_per_u`)."""
+        return float(0.5 * (self.parallax[0, 0] + self.parallax[1, 1]))
+
+
+def card_lattice(table: pd.DataFrame, *, reject_px: float = 0.3) -> CardLattice:
+    """Measure one card's parallax and its dot lattice at ``u = v = 0``.
+
+    Parameters
+    ----------
+    table : pandas.DataFrame
+        Indexed dots of one card in all views: columns ``u, v, s, t, i, j`` (e.g. from
+        :func:`dotcard_points`).
+    reject_px : float
+        Measurements further than ``max(reject_px, median + 5 * 1.4826 * MAD)`` view
+        pixels from the linear model are dropped once and the model refitted.
+
+    Returns
+    -------
+    CardLattice
+
+    Notes
+    -----
+    A card is a plane: every dot ``(i, j)`` is seen at
+    ``(s, t) = c_ij + parallax @ (u, v)`` (first order), with one ``2 x 2`` parallax for
+    the whole card and one intercept ``c_ij`` per dot. The parallax is the pooled
+    least-squares slope (each dot's measurements minus their own means); the intercepts
+    are the dots' positions in a view at ``u = v = 0``, and an affine lattice fitted to
+    the 25 of them nearest ``(0, 0)`` (:func:`fit_lattice`) gives ``origin_st`` and
+    ``basis``.
+    """
+    missing = [c for c in ("u", "v", "s", "t", "i", "j") if c not in table.columns]
+    if missing:
+        raise SettingsError(f"table lacks column(s) {missing}")
+    ij = table[["i", "j"]].to_numpy(np.int64)
+    uv = table[["u", "v"]].to_numpy(float)
+    st = table[["s", "t"]].to_numpy(float)
+    keys, group = np.unique(ij, axis=0, return_inverse=True)
+    group = group.ravel()
+    keep = np.ones(len(table), dtype=bool)
+    for attempt in range(2):
+        count = np.bincount(group[keep], minlength=len(keys)).astype(float)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean_uv = np.column_stack([np.bincount(group[keep], uv[keep, c], len(keys))
+                                       for c in range(2)]) / count[:, None]
+            mean_st = np.column_stack([np.bincount(group[keep], st[keep, c], len(keys))
+                                       for c in range(2)]) / count[:, None]
+        duv, dst = uv - mean_uv[group], st - mean_st[group]
+        if np.linalg.matrix_rank(duv[keep]) < 2:
+            raise CalibrationError("the dot card is seen in too few views to measure its "
+                                   "parallax; check the light field's view mask")
+        coef, *_ = np.linalg.lstsq(duv[keep], dst[keep], rcond=None)  # rows du, dv
+        r = np.hypot(*(dst - duv @ coef).T)
+        if attempt == 0:
+            med = np.median(r)
+            keep = r <= max(reject_px, med + 5.0 * 1.4826 * np.median(np.abs(r - med)))
+    intercept = mean_st - mean_uv @ coef
+    seen = count >= 3
+    origin, basis = fit_lattice(intercept[seen], keys[seen], near=(0, 0), n_near=25)
+    return CardLattice(origin_st=origin, basis=basis, parallax=coef.T,
+                       n_dots=int(seen.sum()), rms_px=float(np.sqrt(np.mean(r[keep] ** 2))))
+
+
+@dataclass(frozen=True)
+class OriginConsensus:
+    """Where the cards agree dot ``(0, 0)`` lies (:func:`consistent_origins`).
+
+    Attributes
+    ----------
+    axis_st : (2,) float ndarray
+        Consensus ``(s, t)`` of dot ``(0, 0)`` at ``u = v = 0``, view pixels.
+    shifts : (n_cards, 2) int64 ndarray
+        Index change per card: subtract it from the card's ``(i, j)`` so that its dot
+        ``(0, 0)`` lies at ``axis_st``; ``(0, 0)`` for cards that already agreed.
+    miss : (n_cards,) float ndarray
+        Distance from ``axis_st`` to the nearest node of each card's lattice, in units of
+        that card's dot spacing (0 for a perfect card; above the tolerance the card has
+        no dot on the axis and cannot be re-indexed).
+    n_agree : int
+        Cards whose dot ``(0, 0)`` was at ``axis_st`` before re-indexing.
+    """
+
+    axis_st: np.ndarray
+    shifts: np.ndarray
+    miss: np.ndarray
+    n_agree: int
+
+
+def consistent_origins(lattices, *, origin_st, tol: float = 0.25) -> OriginConsensus:
+    """Make every card's dot ``(0, 0)`` the same dot: the one on the optical axis.
+
+    Parameters
+    ----------
+    lattices : sequence of CardLattice
+        One per card (:func:`card_lattice`).
+    origin_st : (float, float)
+        Predicted ``(s, t)`` of the optical axis at ``u = v = 0``, view pixels; breaks
+        ties between equally large groups of agreeing cards.
+    tol : float
+        Two cards agree when their dots ``(0, 0)`` are within ``tol`` dot spacings.
+
+    Returns
+    -------
+    OriginConsensus
+
+    Notes
+    -----
+    Dot ``(0, 0)`` lies on the optical axis, and in a view at ``u = v = 0`` the image of a
+    point on the axis is the same for every depth; the other dots move with the
+    magnification of their depth. Each card's index origin was chosen on its own (the
+    lattice node nearest the predicted axis), so when the prediction is off by nearly
+    half a spacing, or the dot there was missed, cards can disagree by a whole step. The
+    largest group of cards whose ``(0, 0)`` coincide (on a tie, the group nearest
+    ``origin_st``) defines ``axis_st``, their median; every card is re-indexed to its
+    lattice node nearest ``axis_st``. ``miss`` above ``tol`` means a card's lattice has
+    no node there: that card does not fit the others.
+    """
+    lattices = list(lattices)
+    if not lattices:
+        raise SettingsError("lattices is empty; measure at least one card")
+    pos = np.array([lat.origin_st for lat in lattices], dtype=float)
+    spacing = np.array([lat.spacing_px for lat in lattices])
+    dist = np.hypot(*(pos[:, None, :] - pos[None, :, :]).transpose(2, 0, 1))
+    agree = dist <= tol * spacing[None, :]          # [k, m]: card m agrees with card k
+    support = agree.sum(axis=1)
+    to_origin = np.hypot(*(pos - np.asarray(origin_st, float)).T)
+    best = np.lexsort((to_origin, -support))[0]
+    axis = np.median(pos[agree[best]], axis=0)
+    shifts = np.zeros((len(lattices), 2), dtype=np.int64)
+    miss = np.zeros(len(lattices))
+    for k, lat in enumerate(lattices):
+        frac = np.linalg.solve(lat.basis, axis - lat.origin_st)
+        node = np.rint(frac)
+        shifts[k] = node.astype(np.int64)
+        miss[k] = np.hypot(*(lat.basis @ (frac - node))) / lat.spacing_px
+    return OriginConsensus(axis_st=axis, shifts=shifts, miss=miss,
+                           n_agree=int(support[best]))
