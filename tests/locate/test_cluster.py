@@ -1,6 +1,5 @@
 """Tests of projected-plane k-means clustering."""
 
-import warnings
 
 import numpy as np
 import pandas as pd

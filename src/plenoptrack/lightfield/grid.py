@@ -405,7 +405,6 @@ def _window_tables(radius: float, taper: float) -> tuple[np.ndarray, np.ndarray,
     counts : (4,) int64 ndarray
     """
     half = int(math.ceil(radius)) + 1
-    inner = radius - taper
     tables = []
     for parity_r in (0, 1):
         for parity_c in (0, 1):

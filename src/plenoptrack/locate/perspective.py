@@ -42,8 +42,7 @@ from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
-from .triangulate import (TriangulationFlag, predict_detection, triangulate_cluster,
-                          triangulate_clusters)
+from .triangulate import triangulate_cluster, triangulate_clusters
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult"]
 
