@@ -108,3 +108,61 @@ def test_load_scene_errors(tmp_path, body, error, match):
     path.write_text(body)
     with pytest.raises(error, match=match):
         load_scene(path)
+
+
+def test_random_particles_log_uniform_diameter_range():
+    vol = default_volume(preset("small"), diameter_mm=1.0)
+    a = random_particles(400, volume=vol, diameter_mm=(0.2, 1.0), seed=3)
+    assert a.equals(random_particles(400, volume=vol, diameter_mm=(0.2, 1.0), seed=3))
+    d = a["diameter"].to_numpy()
+    assert list(a.columns) == list(TRUTH_COLUMNS)
+    assert d.min() >= 0.2 and d.max() <= 1.0 and len(np.unique(d)) == len(d)
+    # Log-uniform: log d is uniform, so its median is the geometric mean of the range
+    # and each half of the log range holds about half the particles.
+    assert abs(np.median(np.log(d)) - np.log(np.sqrt(0.2 * 1.0))) < 0.1
+    assert 0.4 < np.mean(d < np.sqrt(0.2 * 1.0)) < 0.6
+    xyz = a[["x", "y", "z"]].to_numpy()
+    assert vol.contains(xyz).all()
+    gap = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1) + np.eye(len(xyz)) * 1e9
+    assert (gap >= (d[:, None] + d[None]) / 2).all()
+
+
+def test_diameter_range_equal_bounds_matches_single_diameter():
+    vol = default_volume(preset("small"))
+    single = random_particles(30, volume=vol, diameter_mm=0.5, seed=2)
+    assert single.equals(random_particles(30, volume=vol, diameter_mm=(0.5, 0.5), seed=2))
+    assert (single["diameter"] == 0.5).all()
+
+
+def test_make_scene_diameter_range_records_each_diameter():
+    scene = make_scene(preset("small"), n_particles=25, diameter_mm=(0.2, 0.8), frames=2,
+                       velocity_mm_per_frame=(0.1, 0.0, 0.0), seed=5)
+    first = scene.truth[scene.truth.frame == 0]
+    assert first["diameter"].between(0.2, 0.8).all() and first["diameter"].nunique() == 25
+    # Each particle keeps its diameter over the frames.
+    assert (scene.truth.groupby("particle")["diameter"].nunique() == 1).all()
+    # The volume leaves the margin of the largest diameter.
+    assert scene.volume == default_volume(preset("small"), diameter_mm=0.8)
+
+
+@pytest.mark.parametrize("bad, match", [
+    ((1.0, 0.5), "min <= max"), ((0.0, 1.0), "min <= max"), ((0.2, np.inf), "min <= max"),
+    ((0.1, 0.2, 0.3), "number or a \\(min, max\\) pair"), ("big", "number or a \\(min, max\\)"),
+    (-1.0, "must be positive")])
+def test_diameter_range_errors(bad, match):
+    vol = Volume((-5, 5), (-5, 5), (-5, 5))
+    with pytest.raises(SceneError, match=match):
+        random_particles(3, volume=vol, diameter_mm=bad, seed=0)
+
+
+def test_diameter_range_fill_limit_names_the_range():
+    vol = Volume((-1, 1), (-1, 1), (-1, 1))
+    with pytest.raises(SceneError, match="particles of 0.5-2 mm would fill"):
+        random_particles(50, volume=vol, diameter_mm=(0.5, 2.0), seed=0)
+
+
+def test_scene_file_diameter_range(tmp_path):
+    path = tmp_path / "scene.toml"
+    path.write_text('camera = "small"\nseed = 3\n[random]\nn = 10\ndiameter_mm = [0.2, 0.6]\n')
+    truth = load_scene(path).truth
+    assert truth["diameter"].between(0.2, 0.6).all() and truth["diameter"].nunique() == 10

@@ -153,7 +153,8 @@ def _check_fill(camera: CameraSpec) -> None:
 
 
 def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int | None = None,
-                     n_particles: int = 20, diameter_mm: float | None = None,
+                     n_particles: int = 20,
+                     diameter_mm: float | tuple[float, float] | None = None,
                      magnification: float | None = None, frames: int = 1,
                      velocity_mm_per_frame=(0.0, 0.0, 0.0), scene: Scene | None = None,
                      samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
@@ -177,10 +178,11 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         every noise draw use generators seeded from ``[seed, purpose, index]``. Default:
         the scene's seed when ``scene`` is given (so a scene file's seed governs the whole
         simulation), else 0.
-    n_particles, diameter_mm : int, float
+    n_particles, diameter_mm : int, float or (float, float)
         Random scene (ignored when ``scene`` is given): particles and their diameter, mm
         (default per camera preset, :func:`~plenoptrack.simulate.scene.default_diameter_mm`:
-        0.4 mm on the small presets, 1 mm otherwise).
+        0.4 mm on the small presets, 1 mm otherwise), or a ``(min, max)`` range, mm, from
+        which each particle's diameter is drawn log-uniformly (the truth records each).
     magnification : float, optional
         Replaces the camera's magnification (also in ``camera.toml``), with the f-number
         re-set to keep the working f-number (:meth:`CameraSpec.with_magnification`), as a

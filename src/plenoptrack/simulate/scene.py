@@ -2,7 +2,8 @@
 
 A scene is a truth table (columns :data:`plenoptrack._columns.TRUTH_COLUMNS`: ``frame,
 particle, x, y, z, diameter``, world frame, mm) for a camera. Random scenes place
-non-overlapping spheres uniformly in a measurement volume; multi-frame scenes move every
+non-overlapping spheres uniformly in a measurement volume, of one diameter or of diameters
+drawn log-uniformly from a range (a polydisperse scene); multi-frame scenes move every
 particle with a constant velocity so that tracking has ground truth.
 
 Scene files (TOML)
@@ -25,7 +26,8 @@ Scene files (TOML)
 
     [random]                            # either a random set ...
     n = 20
-    diameter_mm = 1.0                   # optional, default per preset (default_diameter_mm)
+    diameter_mm = 1.0                   # optional, default per preset (default_diameter_mm);
+                                        # [min, max] draws each diameter log-uniformly
 
     [[particles]]                       # ... or explicit particles at frame 0
     x = 0.0
@@ -54,8 +56,8 @@ from ..errors import InputFileError, PlenoptrackError, SettingsError
 from .realism import Realism, realism_from_dict
 
 __all__ = ["SceneError", "Volume", "Scene", "VOLUME_DEPTH_MM", "DIAMETER_MM", "volume_depth_mm",
-           "default_diameter_mm", "default_volume", "random_particles", "moving_particles",
-           "make_scene", "load_scene"]
+           "default_diameter_mm", "diameter_range", "default_volume", "random_particles",
+           "moving_particles", "make_scene", "load_scene"]
 
 VOLUME_DEPTH_MM = {"hall2019": 50.0, "small": 20.0, "small-rect": 20.0}
 """Default measurement-volume depth per camera preset, mm."""
@@ -150,12 +152,34 @@ def _empty_truth() -> pd.DataFrame:
                          **{c: pd.Series(dtype=float) for c in (*POS_COLUMNS, DIAMETER_COLUMN)}})
 
 
+def diameter_range(diameter_mm, *, name: str = "diameter_mm") -> tuple[float, float]:
+    """``(min, max)`` diameters of a scene, mm, from one diameter or a ``(min, max)`` pair.
+
+    Raises :class:`SceneError` unless both are finite, positive and ``min <= max``.
+    """
+    if isinstance(diameter_mm, (str, bytes)):
+        raise SceneError(f"{name} must be a number or a (min, max) pair in mm; got {diameter_mm!r}")
+    try:
+        values = [float(v) for v in np.atleast_1d(np.asarray(diameter_mm, dtype=float))]
+    except (TypeError, ValueError):
+        raise SceneError(f"{name} must be a number or a (min, max) pair in mm; "
+                         f"got {diameter_mm!r}") from None
+    if len(values) not in (1, 2) or np.ndim(diameter_mm) > 1:
+        raise SceneError(f"{name} must be a number or a (min, max) pair in mm; got {diameter_mm!r}")
+    lo, hi = values[0], values[-1]
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+        what = "must be positive" if len(values) == 1 else "must be (min, max) with 0 < min <= max"
+        raise SceneError(f"{name} {what}; got {diameter_mm!r}")
+    return lo, hi
+
+
 MAX_PACKING_FRACTION = 0.3
 """Largest volume fraction :func:`random_particles` attempts (random sequential placement
 of equal spheres jams near 0.38)."""
 
 
-def random_particles(n: int, *, volume: Volume, diameter_mm: float = 1.0,
+def random_particles(n: int, *, volume: Volume,
+                     diameter_mm: float | tuple[float, float] = 1.0,
                      seed: int | np.random.Generator | None = 0) -> pd.DataFrame:
     """Non-overlapping spheres placed uniformly at random in a volume (frame 0).
 
@@ -165,52 +189,72 @@ def random_particles(n: int, *, volume: Volume, diameter_mm: float = 1.0,
         Number of particles.
     volume : Volume
         Region for the particle centres, mm.
-    diameter_mm : float
-        Particle diameter, mm.
+    diameter_mm : float or (float, float)
+        Particle diameter, mm; or a ``(min, max)`` range, mm, from which each particle's
+        diameter is drawn log-uniformly (uniform in ``log d``).
     seed : int or numpy.random.Generator
-        Position seed.
+        Seed of the draws: with a range, first the ``n`` diameters, then the positions.
 
     Returns
     -------
     DataFrame
         Columns ``frame`` (0), ``particle`` (0..n-1), ``x, y, z`` (mm), ``diameter`` (mm).
+
+    Notes
+    -----
+    Random sequential placement: each candidate centre is drawn uniformly in the volume
+    and kept when it lies at least ``(d_i + d_j) / 2`` from every placed particle ``j``.
+    With a range, the particles are placed largest first (the small ones fit into the
+    gaps); the table keeps the order in which the diameters were drawn.
     """
     if not (isinstance(n, (int, np.integer)) and n >= 0):
         raise SceneError(f"n must be a non-negative integer; got {n!r}")
-    if not (math.isfinite(diameter_mm) and diameter_mm > 0):
-        raise SceneError(f"diameter_mm must be positive; got {diameter_mm!r}")
+    lo, hi = diameter_range(diameter_mm)
     rng = np.random.default_rng(seed)
+    if lo == hi:
+        diameters = np.full(n, lo)
+        label = f"{lo:g} mm"
+    else:
+        diameters = np.exp(rng.uniform(math.log(lo), math.log(hi), size=n))
+        label = f"{lo:g}-{hi:g} mm"
     b = volume.bounds
-    fill = n * math.pi / 6 * diameter_mm ** 3 / max(float(np.prod(b[:, 1] - b[:, 0])), 1e-300)
+    fill = (math.pi / 6 * float((diameters ** 3).sum())
+            / max(float(np.prod(b[:, 1] - b[:, 0])), 1e-300))
     if fill > MAX_PACKING_FRACTION:
-        raise SceneError(f"{n} particles of {diameter_mm} mm would fill {fill:.0%} of the volume; "
+        raise SceneError(f"{n} particles of {label} would fill {fill:.0%} of the volume; "
                          f"random placement stops near {MAX_PACKING_FRACTION:.0%}: lower n or "
                          "the diameter")
+    order = np.argsort(-diameters, kind="stable")
     placed = np.empty((n, 3))
-    # Spatial hash with cells one diameter wide: a new particle can only overlap particles
-    # in its own or the 26 neighbouring cells.
+    # Spatial hash with cells one largest diameter wide: a new particle can only overlap
+    # particles in its own or the 26 neighbouring cells.
+    cell = hi
     cells: dict[tuple[int, int, int], list[int]] = {}
-    d2 = diameter_mm ** 2
     count = attempts = 0
     while count < n:
         attempts += 1
         if attempts > 200 * (n + 10):
-            raise SceneError(f"could not place {n} non-overlapping {diameter_mm} mm particles "
+            raise SceneError(f"could not place {n} non-overlapping particles of {label} "
                              f"in the volume (placed {count}); lower n or the diameter")
         p = rng.uniform(b[:, 0], b[:, 1])
-        ci, cj, ck = (int(math.floor(c / diameter_mm)) for c in p)
+        d = diameters[order[count]]
+        ci, cj, ck = (int(math.floor(c / cell)) for c in p)
         near = [k for di in (-1, 0, 1) for dj in (-1, 0, 1) for dk in (-1, 0, 1)
                 for k in cells.get((ci + di, cj + dj, ck + dk), ())]
-        if near and (((placed[near] - p) ** 2).sum(axis=1) < d2).any():
-            continue
+        if near:
+            gap2 = (d + diameters[order[near]]) ** 2 / 4
+            if (((placed[near] - p) ** 2).sum(axis=1) < gap2).any():
+                continue
         placed[count] = p
         cells.setdefault((ci, cj, ck), []).append(count)
         count += 1
     if n == 0:
         return _empty_truth()
+    xyz = np.empty((n, 3))
+    xyz[order] = placed
     return pd.DataFrame({T_COLUMN: np.zeros(n, np.int64), ID_COLUMN: np.arange(n, dtype=np.int64),
-                         "x": placed[:, 0], "y": placed[:, 1], "z": placed[:, 2],
-                         DIAMETER_COLUMN: np.full(n, float(diameter_mm))})
+                         "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                         DIAMETER_COLUMN: diameters.astype(float)})
 
 
 def moving_particles(particles: pd.DataFrame, *, frames: int,
@@ -316,17 +360,23 @@ def check_particles(particles: pd.DataFrame, volume: Volume, *, where: str = "sc
                                      f"{int(grp[ID_COLUMN].iloc[b])} overlap")
 
 
-def make_scene(camera: CameraSpec, *, n_particles: int = 20, diameter_mm: float | None = None,
+def make_scene(camera: CameraSpec, *, n_particles: int = 20,
+               diameter_mm: float | tuple[float, float] | None = None,
                frames: int = 1, velocity_mm_per_frame=(0.0, 0.0, 0.0),
                volume: Volume | None = None, seed: int = 0) -> Scene:
     """Random scene: ``n_particles`` spheres in the volume, moving at constant velocity.
 
-    The diameter defaults to :func:`default_diameter_mm` of the camera. The volume
-    (default :func:`default_volume`) bounds the frame-0 positions; later frames may
-    leave it.
+    The diameter defaults to :func:`default_diameter_mm` of the camera; a ``(min, max)``
+    pair draws each particle's diameter log-uniformly in that range (see
+    :func:`random_particles`; the truth records each particle's diameter). The volume
+    (default :func:`default_volume`, with the margin of the largest diameter) bounds the
+    frame-0 positions; later frames may leave it.
     """
-    diameter_mm = default_diameter_mm(camera) if diameter_mm is None else float(diameter_mm)
-    volume = default_volume(camera, diameter_mm=diameter_mm) if volume is None else volume
+    if diameter_mm is None:
+        diameter_mm = default_diameter_mm(camera)
+    lo, hi = diameter_range(diameter_mm)
+    diameter_mm = lo if lo == hi else (lo, hi)
+    volume = default_volume(camera, diameter_mm=hi) if volume is None else volume
     first = random_particles(n_particles, volume=volume, diameter_mm=diameter_mm,
                              seed=np.random.default_rng([seed, 1]))
     truth = moving_particles(first, frames=frames, velocity_mm_per_frame=velocity_mm_per_frame)
@@ -376,8 +426,10 @@ def load_scene(path: str | Path) -> Scene:
         depth = vol.get("depth_mm")
         if "random" in data:
             spec = data["random"]
-            diameter = float(spec.get("diameter_mm", default_diameter_mm(camera)))
-            volume = default_volume(camera, depth_mm=depth, diameter_mm=diameter)
+            lo, hi = diameter_range(spec.get("diameter_mm", default_diameter_mm(camera)),
+                                    name="[random] diameter_mm")
+            diameter = lo if lo == hi else (lo, hi)
+            volume = default_volume(camera, depth_mm=depth, diameter_mm=hi)
             scene = make_scene(camera, n_particles=int(spec["n"]), diameter_mm=diameter,
                                frames=frames, velocity_mm_per_frame=velocity, volume=volume,
                                seed=seed)
