@@ -207,6 +207,19 @@ def test_simulate_magnification_and_particle_count(tmp_path):
     assert not (out / "raw" / "frame_0001.tif").exists()
 
 
+def test_simulate_diameter_range_and_realistic_optics(tmp_path):
+    out = tmp_path / "r"
+    ok("simulate", "--seed", SEED, "--particles", 30, "--diameter", "0.2:0.8", "--samples", 2,
+       "--optics", "realistic", "--out", out)
+    diameters = pd.read_parquet(out / "truth.parquet")["diameter"]
+    assert diameters.between(0.2, 0.8).all() and diameters.max() / diameters.min() > 2
+    optics = json.loads((out / "truth_optics.json").read_text())
+    assert optics["realism"]["sensor"]["gain_sigma"] > 0
+    assert optics["camera"] != optics["nominal_camera"]  # true optics differ from camera.toml
+    result = run("simulate", "--optics", "perfect", "--out", tmp_path / "x")
+    assert_error_line(result, "--optics", "ideal", code=2)
+
+
 # A particle on the optical axis, 6 mm behind the focal plane, in its own data set made
 # from a scene file with another seed.
 SCENE_Z_MM = 6.0

@@ -191,6 +191,23 @@ def _finite(*, positive: bool = False, at_least: float | None = None,
     return check
 
 
+def _diameter(value: str | None):
+    """``--diameter``: one diameter or ``MIN:MAX``, mm, as a float or a (min, max) pair."""
+    if value is None:
+        return None
+    parts = value.split(":")
+    try:
+        numbers = [float(p) for p in parts]
+    except ValueError:
+        raise typer.BadParameter(f"must be a diameter in mm or a range MIN:MAX; got {value!r}") from None
+    if len(numbers) > 2 or not all(math.isfinite(d) and d > 0 for d in numbers):
+        raise typer.BadParameter(f"must be a positive diameter in mm or a range MIN:MAX of "
+                                 f"positive diameters; got {value!r}")
+    if len(numbers) == 2 and numbers[0] > numbers[1]:
+        raise typer.BadParameter(f"range MIN:MAX needs MIN <= MAX; got {value!r}")
+    return numbers[0] if len(numbers) == 1 else (numbers[0], numbers[1])
+
+
 def _outputs(outputs: dict, inputs: dict, *, folders=()):
     """Refuse outputs that clash with inputs (before any work), then stage the files."""
     from .io import check_outputs, staged_outputs
@@ -232,7 +249,7 @@ def simulate(
     preset_name: Optional[str] = typer.Option(None, "--preset", help="Camera preset: small (default), small-rect, hall2019; with --scene, the scene's camera is used."),
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed of optics, particles and noise (default 0, or the scene file's seed); the same seed gives the same bytes."),
     particles: int = typer.Option(20, "--particles", min=0, help="Number of particles (random scene)."),
-    diameter: Optional[float] = typer.Option(None, "--diameter", callback=_finite(positive=True), help="Particle diameter, mm (default per preset: 0.4 on the small presets, 1.0 on hall2019)."),
+    diameter: Optional[str] = typer.Option(None, "--diameter", callback=_diameter, help="Particle diameter, mm (default per preset: 0.4 on the small presets, 1.0 on hall2019), or a range MIN:MAX drawn log-uniformly, e.g. 0.2:2."),
     magnification: Optional[float] = typer.Option(None, "--magnification", callback=_finite(), help="Override the preset magnification (negative, e.g. -0.5); the f-number is re-set to keep the microlens images filled."),
     frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
     scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification, seed and particles replace --preset, --magnification, --seed and the random-scene options."),
