@@ -218,6 +218,18 @@ def test_simulate_diameter_range_and_realistic_optics(tmp_path):
     assert optics["camera"] != optics["nominal_camera"]  # true optics differ from camera.toml
     result = run("simulate", "--optics", "perfect", "--out", tmp_path / "x")
     assert_error_line(result, "--optics", "ideal", code=2)
+    result = run("simulate", "--shape", "cube", "--out", tmp_path / "x")
+    assert_error_line(result, "--shape", "ellipsoid", code=2)
+
+
+def test_simulate_ellipsoids(tmp_path):
+    out = tmp_path / "e"
+    ok("simulate", "--seed", SEED, "--particles", 12, "--shape", "ellipsoid", "--max-aspect", 2.5,
+       "--samples", 2, "--out", out)
+    truth = pd.read_parquet(out / "truth.parquet")
+    assert (truth["shape"] == "ellipsoid").all() and truth["aspect"].between(1, 2.5).all()
+    spheres = np.pi * truth["diameter"] ** 2 / 4
+    assert (truth["projected_area"] != spheres).any()
 
 
 # A particle on the optical axis, 6 mm behind the focal plane, in its own data set made

@@ -28,7 +28,8 @@ from .realism import (BlurEffects, IlluminationEffects, LensEffects, Realism, Se
                       TargetEffects, realism_from_dict)
 from .render import expose_image, render_dark, render_frame, render_irradiance, render_white
 from .scene import (Scene, SceneError, Volume, default_diameter_mm, default_volume, load_scene,
-                    make_scene, moving_particles, random_particles)
+                    make_scene, moving_particles, particle_silhouettes,
+                    random_particles)
 from .sensor import SensorModel
 
 __all__ = [
@@ -39,7 +40,7 @@ __all__ = [
     "DotCard", "default_dotcard", "default_dotcard_depths", "dot_grid", "render_dotcard",
     "dotcard_irradiance",
     "Scene", "SceneError", "Volume", "default_volume", "default_diameter_mm", "random_particles",
-    "moving_particles",
+    "moving_particles", "particle_silhouettes",
     "make_scene", "load_scene",
     "SensorModel", "simulate_dataset", "SimulationResult",
 ]

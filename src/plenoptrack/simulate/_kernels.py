@@ -9,7 +9,22 @@ force is bit-identical. Geometry and symbols as in :mod:`.optics`.
 ``(n, 4)`` float64 array: the sub-pixel offset (dX, dY) of the sensor point P and the
 offset (dX, dY) of the microlens point Q from the lens centre, mm, camera frame.
 ``occluders`` is an ``(m, 4)`` float64 array of spheres (X, Y, Z, radius^2) relative to
-the optical axis (``X - a_x``, ``Y - a_y``, ``Z``), mm.
+the optical axis (``X - a_x``, ``Y - a_y``, ``Z``), mm; for an ellipsoid the row holds its
+centre and its *bounding* sphere (radius = long semi-axis ``a``), which every culling bound
+uses. ``shapes`` is either a zero-row ``(0, 7)`` float64 array (all occluders are spheres)
+or ``(m, 7)``, row ``q`` describing occluder ``q``: column 0 is 1.0 for an ellipsoid (0.0
+for a sphere), columns 1..6 the scaled inverse-shape matrix ``M' = a^2 M`` (dimensionless,
+symmetric; entries ``M'xx, M'yy, M'zz, M'xy, M'xz, M'yz``), with the ellipsoid the set
+``(p - c)^T M (p - c) <= 1``. For a prolate spheroid of aspect ``k = a / b`` and unit long
+axis ``v``: ``M' = k^2 I + (1 - k^2) v v^T``, exactly the identity when ``k = 1``.
+
+Ray-occluder test. A ray ``p(Z) = H + Z d`` with ``H = (hx, hy, 0)``, ``d = (dx, dy, 1)``
+and ``w = c - H`` meets the ellipsoid iff the quadratic
+``Z^2 (d.M'd) - 2 Z (d.M'w) + (w.M'w - a^2) < 0`` has real roots, i.e.
+``(w.M'w - a^2)(d.M'd) < (d.M'w)^2``. For a sphere (``M' = I``, ``a^2 = r^2``) this is the
+sphere test of :func:`_sample_loop`, which spheres keep verbatim; an ellipsoid row with
+``M' = I`` evaluates the same products and sums in the same order, so an aspect-1
+ellipsoid is bit-identical to the sphere.
 
 Lens effects (:class:`~.realism.LensEffects`, see :mod:`.optics`). With any of axis offset,
 MLA tilt, Seidel terms or front stop on (``par[LENS_ON]``), every kernel takes a second
@@ -183,13 +198,40 @@ def _lens_ray(px, py, qx, qy, cx, cy, par):
 
 
 @njit(cache=True)
-def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, use_card, lens_i, lens_j):
+def _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
+    """True if the line ``H + Z (d, 1)`` meets ellipsoid ``q`` (module notes)."""
+    wx = occluders[q, 0] - hx
+    wy = occluders[q, 1] - hy
+    wz = occluders[q, 2]
+    mxx = shapes[q, 1]
+    myy = shapes[q, 2]
+    mzz = shapes[q, 3]
+    mxy = shapes[q, 4]
+    mxz = shapes[q, 5]
+    myz = shapes[q, 6]
+    # M' w and M' d, row by row (for M' = I these are w and d exactly).
+    mwx = mxx * wx + mxy * wy + mxz * wz
+    mwy = mxy * wx + myy * wy + myz * wz
+    mwz = mxz * wx + myz * wy + mzz * wz
+    mdx = mxx * dx + mxy * dy + mxz
+    mdy = mxy * dx + myy * dy + myz
+    mdz = mxz * dx + myz * dy + mzz
+    dmd = dx * mdx + dy * mdy + mdz
+    wmw = wx * mwx + wy * mwy + wz * mwz
+    dmw = dx * mwx + dy * mwy + mwz
+    return (wmw - occluders[q, 3]) * dmd < dmw * dmw
+
+
+@njit(cache=True)
+def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card, lens_i,
+                 lens_j):
     """Lit samples of the pixel centred at sensor point (x0, y0) mm.
 
     ``lens_i`` < -2**40 means "find the lens of every sample"; otherwise every sample
-    uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]``; the dot
-    card ``card`` only if ``use_card``.
+    uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]`` (ellipsoids
+    where ``shapes`` flags them, module notes); the dot card ``card`` only if ``use_card``.
     """
+    has_shapes = shapes.shape[0] > 0
     tan_s = par[S_I] / par[F_ML]
     s_o = par[S_O]
     inv_so = 1.0 / s_o
@@ -216,6 +258,11 @@ def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, use_card, lens
             blocked = False
             for m in range(nc):
                 q = cand[m]
+                if has_shapes and shapes[q, 0] != 0.0:
+                    if _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
+                        blocked = True
+                        break
+                    continue
                 wx = occluders[q, 0] - hx
                 wy = occluders[q, 1] - hy
                 wz = occluders[q, 2]
@@ -243,6 +290,11 @@ def _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, use_card, lens
         blocked = False
         for m in range(nc):
             q = cand[m]
+            if has_shapes and shapes[q, 0] != 0.0:
+                if _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
+                    blocked = True
+                    break
+                continue
             wx = occluders[q, 0] - hx
             wy = occluders[q, 1] - hy
             wz = occluders[q, 2]
@@ -431,7 +483,8 @@ KEEP = -1
 
 
 @njit(cache=True)
-def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, keep):
+def _trace_pixel(row, col, par, samples, occluders, shapes, idx, p0, p1, card, cand,
+                 keep):
     """Number of lit samples of pixel (row, col), with provably exact shortcuts.
 
     Each sample point P uses the microlens whose image centre is nearest to P. Bounds
@@ -457,8 +510,8 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, kee
         # The pixel straddles lens cells: its samples may use any lens whose image
         # centre is within e + 2 * half-diagonal of the pixel centre.
         if p1 == p0:
-            return _sample_loop(x0, y0, par, samples, occluders, cand, 0, card, not no_card,
-                                _PER_SAMPLE, 0)
+            return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, 0, card,
+                                not no_card, _PER_SAMPLE, 0)
         nc = 0
         lim = (e + 2.0 * par[HALF_DIAG]) * (1.0 + 1e-9)
         for ni in range(i - 1, i + 2):
@@ -470,11 +523,11 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, kee
                     nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1, cand, nc)
         if nc == 0 and no_card and keep:
             return KEEP
-        return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card,
-                            _PER_SAMPLE, 0)
+        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
+                            not no_card, _PER_SAMPLE, 0)
     if par[LENS_ON] != 0.0:
-        return _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, idx, p0, p1,
-                                 card, no_card, cand, keep)
+        return _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx,
+                                 p0, p1, card, no_card, cand, keep)
     tan_s = par[S_I] / par[F_ML]
     r_h = par[HALF_DIAG] * tan_s + par[CELL_R]          # spread of H about its centre
     h_lo = e * tan_s - r_h
@@ -490,12 +543,13 @@ def _trace_pixel(row, col, par, samples, occluders, idx, p0, p1, card, cand, kee
             return KEEP
     if nc == 0 and no_card and h_hi < par[R_AP] * (1.0 - 1e-9):
         return n
-    return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card, i, j)
+    return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, not no_card,
+                        i, j)
 
 
 @njit(cache=True)
-def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, idx, p0, p1, card,
-                      no_card, cand, keep):
+def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx, p0, p1,
+                      card, no_card, cand, keep):
     """The in-cell part of :func:`_trace_pixel` with the lens effects: the same
     shortcuts on the bounds of :func:`_bundle_lens`; a pixel is fully lit only if its
     whole bundle also passes the front stop."""
@@ -519,17 +573,54 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, idx, p0, p1
         vy = h0y + (qo0y - h0y) * t
         if math.sqrt(vx * vx + vy * vy) + r_h * (1.0 - t) + r_q * t < par[VIG_R] * (1.0 - 1e-9):
             return n
-    return _sample_loop(x0, y0, par, samples, occluders, cand, nc, card, not no_card, i, j)
+    return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, not no_card,
+                        i, j)
 
 
-@njit(parallel=True, cache=True)
-def render_all(par, samples, occluders, card, r0, r1, c0, c1, exact):
+NO_SHAPES = np.zeros((0, 7))
+"""``shapes`` argument for occluders that are all spheres (module notes). Kept writeable
+so that numba compiles one specialisation for both cases; never written to."""
+
+
+def _shapes_arg(shapes, occluders):
+    if shapes is None or len(shapes) == 0:
+        return NO_SHAPES
+    shapes = np.ascontiguousarray(shapes, dtype=np.float64)
+    if shapes.shape != (occluders.shape[0], 7):
+        raise ValueError(f"shapes must be (0, 7) or ({occluders.shape[0]}, 7), one row per "
+                         f"occluder; got shape {shapes.shape}")
+    return shapes
+
+
+def render_all(par, samples, occluders, card, r0, r1, c0, c1, exact, shapes=None):
     """Trace every pixel of the window rows [r0, r1), cols [c0, c1) against all occluders.
 
     ``exact`` True traces every sample of every pixel against every occluder (the
     brute-force reference); False uses the per-pixel shortcuts of :func:`_trace_pixel`.
+    ``shapes`` (module notes) marks ellipsoids; None: all spheres.
     Returns a ``(r1 - r0, c1 - c0)`` float32 irradiance image in [0, 1].
     """
+    return _render_all(par, samples, occluders, _shapes_arg(shapes, occluders), card, r0, r1,
+                       c0, c1, exact)
+
+
+def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card, shapes=None):
+    """Re-trace, in place, every pixel of ``out`` owned by one of ``lenses``.
+
+    ``out`` must hold the unoccluded irradiance: pixels no occluder can touch keep it.
+
+    A pixel is owned by the lens whose image centre is nearest to the pixel centre (its
+    samples may still use a neighbouring lens). ``lenses`` is ``(L, 2)`` int64 (i, j);
+    the pixels of lens ``k`` are tested against ``occluders[idx[ptr[k]:ptr[k + 1]]]``.
+    ``shapes`` (module notes) marks ellipsoids; None: all spheres.
+    """
+    _render_lenses(out, lenses, ptr, idx, par, samples, occluders,
+                   _shapes_arg(shapes, occluders), card)
+
+
+@njit(parallel=True, cache=True)
+def _render_all(par, samples, occluders, shapes, card, r0, r1, c0, c1, exact):
+    """:func:`render_all` (numba core)."""
     out = np.empty((r1 - r0, c1 - c0), dtype=np.float32)
     m = occluders.shape[0]
     idx = np.arange(m)
@@ -540,24 +631,18 @@ def render_all(par, samples, occluders, card, r0, r1, c0, c1, exact):
             if exact:
                 x0 = (c - (par[COLS] - 1.0) * 0.5) * par[PP]
                 y0 = (r - (par[ROWS] - 1.0) * 0.5) * par[PP]
-                lit = _sample_loop(x0, y0, par, samples, occluders, idx, m, card, card[0] > 0.0,
-                                   _PER_SAMPLE, 0)
+                lit = _sample_loop(x0, y0, par, samples, occluders, shapes, idx, m, card,
+                                   card[0] > 0.0, _PER_SAMPLE, 0)
             else:
-                lit = _trace_pixel(r, c, par, samples, occluders, idx, 0, m, card, cand, False)
+                lit = _trace_pixel(r, c, par, samples, occluders, shapes, idx, 0, m, card, cand,
+                                   False)
             out[r - r0, c - c0] = lit * inv_n
     return out
 
 
 @njit(parallel=True, cache=True)
-def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card):
-    """Re-trace, in place, every pixel of ``out`` owned by one of ``lenses``.
-
-    ``out`` must hold the unoccluded irradiance: pixels no occluder can touch keep it.
-
-    A pixel is owned by the lens whose image centre is nearest to the pixel centre (its
-    samples may still use a neighbouring lens). ``lenses`` is ``(L, 2)`` int64 (i, j);
-    the pixels of lens ``k`` are tested against ``occluders[idx[ptr[k]:ptr[k + 1]]]``.
-    """
+def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, card):
+    """:func:`render_lenses` (numba core)."""
     rows = out.shape[0]
     cols = out.shape[1]
     inv_n = 1.0 / samples.shape[0]
@@ -580,7 +665,7 @@ def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card):
                 pi, pj = _pixel_lens(r, c, par)
                 if pi != i or pj != j:
                     continue
-                lit = _trace_pixel(r, c, par, samples, occluders, idx, ptr[k], ptr[k + 1],
-                                   card, cand, True)
+                lit = _trace_pixel(r, c, par, samples, occluders, shapes, idx, ptr[k],
+                                   ptr[k + 1], card, cand, True)
                 if lit != KEEP:
                     out[r, c] = lit * inv_n

@@ -8,7 +8,9 @@ Folder layout (the simulator part of the file contract in ``DESIGN.md``)::
       dotcards/card_00.tif ...   one dot-card image per depth
       dotcards/dotcards.toml     spacing_mm, dot_diameter_mm, [[cards]] file + z_mm
       camera.toml                nominal camera description (what a user would write)
-      truth.parquet              frame, particle, x, y, z, diameter (world frame, mm)
+      truth.parquet              frame, particle, x, y, z, diameter (world frame, mm),
+                                 projected_area (mm^2), orientation (rad); ellipsoid
+                                 scenes add shape, aspect, axis_x, axis_y, axis_z
       truth_optics.json          true lenslet grid, MLA perturbation and distortion
 
 ``truth.parquet`` and ``truth_optics.json`` are ground truth for tests and evaluation;
@@ -161,7 +163,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
                      dotcard_depths=None, dotcard: DotCard | None = None,
                      sensor: SensorModel = SensorModel(),
                      realism: Realism | str | None = None,
-                     progress: bool = False) -> SimulationResult:
+                     progress: bool = False, shape: str = "sphere",
+                     max_aspect: float = 3.0) -> SimulationResult:
     """Simulate raw frames, a white image and dot cards, with ground truth, into a folder.
 
     Parameters
@@ -211,6 +214,11 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         off their stated ones by a common traverse zero offset and a per-card error.
     progress : bool
         Show progress bars.
+    shape : {"sphere", "ellipsoid"}
+        Particle shape of the random scene (ignored when ``scene`` is given); see
+        :func:`~plenoptrack.simulate.scene.random_particles`.
+    max_aspect : float
+        Largest aspect (long over short semi-axis) of random ellipsoids, >= 1.
 
     Returns
     -------
@@ -245,7 +253,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     _check_out_dir(out)
     if scene is None:
         scene = make_scene(camera, n_particles=n_particles, diameter_mm=diameter_mm,
-                           frames=frames, velocity_mm_per_frame=velocity_mm_per_frame, seed=seed)
+                           frames=frames, velocity_mm_per_frame=velocity_mm_per_frame, seed=seed,
+                           shape=shape, max_aspect=max_aspect)
     elif scene.camera != camera:
         raise SceneError(f"the scene was made for camera {scene.camera.name!r} "
                          f"(magnification {scene.camera.magnification}); pass scene.camera")

@@ -11,6 +11,9 @@ the focal plane of the thin microlens, so the ray leaves ``Q`` with slope
 samples with ``|H| > D / 2`` are vignetted. In object space the ray joins ``H`` and the
 distorted conjugate of ``Q`` on the focal plane. A sample sees the back-light (radiance
 1) unless the ray meets an opaque particle; the pixel irradiance is the lit fraction.
+Particles are spheres or, opt-in (``shape == "ellipsoid"``), prolate spheroids; a ray
+meets a spheroid when the quadratic in the ray parameter for ``(p - c)^T M (p - c) = 1``
+has real roots (:mod:`._kernels`). Spheres keep their own test and arithmetic.
 
 The empty (back-lit only) irradiance is computed once per optics and sample count and
 cached. A frame with particles re-traces only the pixels of lenses whose footprint can
@@ -19,7 +22,8 @@ over the whole aperture plus the particle's projected size) is mapped back to th
 microlens plane through the inverse distortion, the enclosing disc is grown by a lens-cell
 radius and two pitches (a pixel's samples may use a lens next to the one owning the
 pixel centre), and the pixels of the lenses with centres inside are re-traced against
-the particles whose boxes contain them.
+the particles whose boxes contain them. A spheroid is culled by its bounding sphere
+(radius = long semi-axis), so the bounds stay conservative and culling stays exact.
 
 Lens effects (``optics.realism.lens``, see :mod:`.optics`) act on the rays themselves:
 the microlens distance of a tilted MLA, the Seidel errors of the aim point, the front
@@ -50,7 +54,7 @@ import pandas as pd
 from .._columns import DIAMETER_COLUMN, POS_COLUMNS, T_COLUMN
 from . import _kernels
 from .optics import SimOptics
-from .scene import SceneError
+from .scene import SceneError, _shape_arrays
 from ..errors import SettingsError
 from .illumination import illuminate, image_rng
 from .psf import blur_image, live_cell_scale
@@ -145,9 +149,35 @@ def background_irradiance(optics: SimOptics, samples_per_pixel: int = DEFAULT_SA
 
 
 def _particle_table(optics: SimOptics, particles) -> np.ndarray:
-    """Validate a particles table; return ``(m, 4)`` occluders (X, Y, Z, r^2), camera frame."""
+    """Validate a particles table; return ``(m, 4)`` occluders (X, Y, Z, r^2), camera frame.
+
+    For ellipsoids ``r`` is the bounding radius (the long semi-axis); their shapes come
+    from :func:`_particle_arrays`.
+    """
+    return _particle_arrays(optics, particles)[0]
+
+
+def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a particles table; return the kernels' ``occluders`` and ``shapes``.
+
+    Returns
+    -------
+    occluders : (m, 4) float64 ndarray
+        (X, Y, Z, r^2) camera frame, mm; ``r`` is the radius of a sphere and the long
+        semi-axis ``a`` (bounding radius) of an ellipsoid.
+    shapes : (0, 7) or (m, 7) float64 ndarray
+        Zero rows when every particle is a sphere; else per occluder the ellipsoid flag and
+        scaled inverse-shape matrix ``M' = k^2 I + (1 - k^2) v v^T`` (``k`` the aspect,
+        ``v`` the unit long axis in the camera frame), see :mod:`._kernels`.
+
+    Notes
+    -----
+    Optional columns :data:`~plenoptrack._columns.SHAPE_COLUMNS` make rows with
+    ``shape == "ellipsoid"`` prolate spheroids of volume-equivalent diameter ``diameter``:
+    short semi-axes ``b = (d / 2) k^(-1/3)``, long semi-axis ``a = (d / 2) k^(2/3)``.
+    """
     if particles is None:
-        return np.zeros((0, 4))
+        return np.zeros((0, 4)), _kernels.NO_SHAPES
     if not isinstance(particles, pd.DataFrame):
         raise TypeError(f"particles must be a pandas DataFrame; got {type(particles).__name__}")
     needed = [*POS_COLUMNS, DIAMETER_COLUMN]
@@ -164,14 +194,32 @@ def _particle_table(optics: SimOptics, particles) -> np.ndarray:
     diam = values[:, 3]
     if (diam <= 0).any():
         raise SceneError(f"particle diameters must be positive (mm); got min {diam.min()}")
+    ell, aspect, axis = _shape_arrays(particles)
     big_z = values[:, 2] + optics.s_o
     radius = diam / 2
+    if ell.any():
+        radius = np.where(ell, radius * aspect ** (2.0 / 3.0), radius)
     behind = big_z - radius <= 0.05 * optics.s_o
     if behind.any():
         raise SceneError(f"particle(s) at z = {values[behind, 2][:3]} mm reach the main lens "
                          f"(the focal plane is {optics.s_o:.1f} mm in front of it); "
                          f"keep z - diameter/2 > {-0.95 * optics.s_o:.1f} mm")
-    return np.column_stack([-values[:, 0], -values[:, 1], big_z, radius ** 2])
+    occ = np.column_stack([-values[:, 0], -values[:, 1], big_z, radius ** 2])
+    if not ell.any():
+        return occ, _kernels.NO_SHAPES
+    v = axis * np.array([-1.0, -1.0, 1.0])              # world -> camera frame
+    k2 = aspect ** 2
+    c = 1.0 - k2
+    shapes = np.zeros((len(occ), 7))
+    shapes[:, 0] = ell
+    shapes[:, 1] = k2 + c * v[:, 0] * v[:, 0]
+    shapes[:, 2] = k2 + c * v[:, 1] * v[:, 1]
+    shapes[:, 3] = k2 + c * v[:, 2] * v[:, 2]
+    shapes[:, 4] = c * v[:, 0] * v[:, 1]
+    shapes[:, 5] = c * v[:, 0] * v[:, 2]
+    shapes[:, 6] = c * v[:, 1] * v[:, 2]
+    shapes[~ell, 1:] = 0.0
+    return occ, shapes
 
 
 def _footprint_discs(optics: SimOptics, occluders: np.ndarray) -> np.ndarray:
@@ -274,14 +322,17 @@ def particle_lenses(optics: SimOptics, occluders: np.ndarray):
 def render_irradiance(optics: SimOptics, particles: pd.DataFrame | None = None, *,
                       samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
                       cull: bool = True) -> np.ndarray:
-    """Noise-free irradiance of a back-lit frame with opaque spherical particles.
+    """Noise-free irradiance of a back-lit frame with opaque spherical or spheroidal particles.
 
     Parameters
     ----------
     optics : SimOptics
         True camera optics.
     particles : DataFrame or None
-        One frame of particles, columns ``x, y, z, diameter`` (world frame, mm).
+        One frame of particles, columns ``x, y, z, diameter`` (world frame, mm); optional
+        :data:`~plenoptrack._columns.SHAPE_COLUMNS` (``shape, aspect, axis_x, axis_y,
+        axis_z``) make rows with ``shape == "ellipsoid"`` prolate spheroids (``diameter``
+        then volume-equivalent; see :func:`_particle_arrays`).
     samples_per_pixel : int
         Rays per pixel.
     cull : bool
@@ -296,16 +347,18 @@ def render_irradiance(optics: SimOptics, particles: pd.DataFrame | None = None, 
     """
     _check_optics(optics)
     n = _check_samples(samples_per_pixel)
-    occ = _particle_table(optics, particles)
+    occ, shapes = _particle_arrays(optics, particles)
     par = _kernels.pack_params(optics)
     samples = sample_pattern(optics, n)
     if not cull:
         rows, cols = optics.camera.sensor_shape_px
-        return _kernels.render_all(par, samples, occ, _NO_CARD, 0, rows, 0, cols, True)
+        return _kernels.render_all(par, samples, occ, _NO_CARD, 0, rows, 0, cols, True,
+                                   shapes=shapes)
     out = background_irradiance(optics, n).copy()
     if len(occ):
         lenses, ptr, idx = particle_lenses(optics, occ)
-        _kernels.render_lenses(out, lenses, ptr, idx, par, samples, occ, _NO_CARD)
+        _kernels.render_lenses(out, lenses, ptr, idx, par, samples, occ, _NO_CARD,
+                               shapes=shapes)
     return out
 
 

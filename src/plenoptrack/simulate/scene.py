@@ -1,7 +1,12 @@
 """Ground-truth scenes: particle positions and sizes over frames.
 
 A scene is a truth table (columns :data:`plenoptrack._columns.TRUTH_COLUMNS`: ``frame,
-particle, x, y, z, diameter``, world frame, mm) for a camera. Random scenes place
+particle, x, y, z, diameter`` (world frame, mm), ``projected_area`` (mm^2) and
+``orientation`` (rad) of the silhouette along the optical axis, see
+:func:`particle_silhouettes`) for a camera. Opt-in ellipsoid scenes (``shape="ellipsoid"``)
+hold prolate spheroids and add ``shape, aspect, axis_x, axis_y, axis_z``
+(:data:`~plenoptrack._columns.SHAPE_COLUMNS`); ``diameter`` is then the volume-equivalent
+diameter. Random scenes place
 non-overlapping spheres uniformly in a measurement volume, of one diameter or of diameters
 drawn log-uniformly from a range (a polydisperse scene); multi-frame scenes move every
 particle with a constant velocity so that tracking has ground truth.
@@ -28,6 +33,8 @@ Scene files (TOML)
     n = 20
     diameter_mm = 1.0                   # optional, default per preset (default_diameter_mm);
                                         # [min, max] draws each diameter log-uniformly
+    shape = "ellipsoid"                 # optional, default "sphere"
+    max_aspect = 3.0                    # optional: ellipsoids' largest aspect ratio
 
     [[particles]]                       # ... or explicit particles at frame 0
     x = 0.0
@@ -50,14 +57,18 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from .._columns import DIAMETER_COLUMN, ID_COLUMN, POS_COLUMNS, T_COLUMN, TRUTH_COLUMNS
+from .._columns import (ASPECT_COLUMN, AXIS_COLUMNS, DIAMETER_COLUMN, ID_COLUMN,
+                        ORIENTATION_COLUMN, PARTICLE_TABLE_COLUMNS, POS_COLUMNS,
+                        PROJECTED_AREA_COLUMN, SHAPE_COLUMN, SHAPE_COLUMNS, T_COLUMN,
+                        TRUTH_COLUMNS)
 from ..camera import CameraSpec, preset
 from ..errors import InputFileError, PlenoptrackError, SettingsError
 from .realism import Realism, realism_from_dict
 
 __all__ = ["SceneError", "Volume", "Scene", "VOLUME_DEPTH_MM", "DIAMETER_MM", "volume_depth_mm",
            "default_diameter_mm", "diameter_range", "default_volume", "random_particles",
-           "moving_particles", "make_scene", "load_scene"]
+           "moving_particles", "make_scene", "load_scene", "particle_silhouettes",
+           "SHAPES"]
 
 VOLUME_DEPTH_MM = {"hall2019": 50.0, "small": 20.0, "small-rect": 20.0}
 """Default measurement-volume depth per camera preset, mm."""
@@ -147,9 +158,108 @@ def default_volume(camera: CameraSpec, *, depth_mm: float | None = None,
     return Volume((-half_x, half_x), (-half_y, half_y), (-half_z, half_z))
 
 
-def _empty_truth() -> pd.DataFrame:
-    return pd.DataFrame({T_COLUMN: pd.Series(dtype=np.int64), ID_COLUMN: pd.Series(dtype=np.int64),
-                         **{c: pd.Series(dtype=float) for c in (*POS_COLUMNS, DIAMETER_COLUMN)}})
+SHAPES = ("sphere", "ellipsoid")
+"""Particle shapes: spheres, or prolate spheroids (``shape`` column ``"ellipsoid"``)."""
+
+
+def _empty_truth(shapes: bool = False) -> pd.DataFrame:
+    cols = {T_COLUMN: pd.Series(dtype=np.int64), ID_COLUMN: pd.Series(dtype=np.int64),
+            **{c: pd.Series(dtype=float) for c in (*POS_COLUMNS, DIAMETER_COLUMN,
+                                                   PROJECTED_AREA_COLUMN, ORIENTATION_COLUMN)}}
+    if shapes:
+        cols |= {SHAPE_COLUMN: pd.Series(dtype=object),
+                 **{c: pd.Series(dtype=float) for c in (ASPECT_COLUMN, *AXIS_COLUMNS)}}
+    return pd.DataFrame(cols)
+
+
+def _check_shape(shape, max_aspect) -> float:
+    if shape not in SHAPES:
+        raise SceneError(f"shape must be one of {SHAPES}; got {shape!r}")
+    try:
+        k = float(max_aspect)
+    except (TypeError, ValueError):
+        k = math.nan
+    if not (math.isfinite(k) and k >= 1):
+        raise SceneError(f"max_aspect must be a finite number >= 1; got {max_aspect!r}")
+    return k
+
+
+def _shape_arrays(particles: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Shapes of a particles table: ``(ellipsoid, aspect, axis)``.
+
+    ``ellipsoid`` (n,) bool marks rows with ``shape == "ellipsoid"``; ``aspect`` (n,) float
+    is their aspect (1 for spheres); ``axis`` (n, 3) float their unit long axis, world
+    frame ((0, 0, 1) for spheres). A table without a ``shape`` column holds spheres.
+    Raises :class:`SceneError` for unknown shapes, aspects below 1 or zero axes.
+    """
+    n = len(particles)
+    ell = np.zeros(n, dtype=bool)
+    aspect = np.ones(n)
+    axis = np.tile([0.0, 0.0, 1.0], (n, 1))
+    if SHAPE_COLUMN not in particles.columns:
+        return ell, aspect, axis
+    shape = particles[SHAPE_COLUMN].to_numpy(dtype=object)
+    bad = ~np.isin(shape, SHAPES)
+    if bad.any():
+        raise SceneError(f"particle shape must be one of {SHAPES}; got {shape[bad][:3].tolist()}")
+    ell = shape == "ellipsoid"
+    if not ell.any():
+        return ell, aspect, axis
+    missing = [c for c in (ASPECT_COLUMN, *AXIS_COLUMNS) if c not in particles.columns]
+    if missing:
+        raise SceneError(f"ellipsoidal particles need column(s) {missing} "
+                         f"(aspect >= 1 and a long-axis vector, world frame)")
+    k = particles[ASPECT_COLUMN].to_numpy(dtype=np.float64)[ell]
+    u = particles[list(AXIS_COLUMNS)].to_numpy(dtype=np.float64)[ell]
+    if not (np.isfinite(k).all() and (k >= 1).all()):
+        raise SceneError(f"ellipsoid aspect must be finite and >= 1; got min {np.nanmin(k)}")
+    norm = np.sqrt((u ** 2).sum(axis=1))
+    if not (np.isfinite(norm).all() and (norm > 0).all()):
+        raise SceneError("ellipsoid axis (axis_x, axis_y, axis_z) must be finite and non-zero")
+    aspect[ell] = k
+    axis[ell] = u / norm[:, None]
+    return ell, aspect, axis
+
+
+def particle_silhouettes(particles: pd.DataFrame) -> pd.DataFrame:
+    """Silhouettes of particles seen along the optical axis (orthographic projection).
+
+    Parameters
+    ----------
+    particles : DataFrame
+        Columns ``diameter`` (mm; volume-equivalent for ellipsoids) and optionally
+        :data:`~plenoptrack._columns.SHAPE_COLUMNS`.
+
+    Returns
+    -------
+    DataFrame
+        Same index; ``projected_area`` (mm^2) and ``orientation`` (rad, long axis of the
+        silhouette from +x towards +y, in [-pi/2, pi/2); 0 for circular silhouettes).
+
+    Notes
+    -----
+    A prolate spheroid of aspect ``k``, semi-axes ``a = (d/2) k^(2/3)`` along the unit axis
+    ``u`` and ``b = (d/2) k^(-1/3)``, projects along z onto an ellipse of semi-axes ``b``
+    and ``a_perp = sqrt(a^2 (1 - u_z^2) + b^2 u_z^2)``, area ``pi b a_perp``, long axis
+    along ``(u_x, u_y)``. Spheres: ``pi d^2 / 4`` and 0.
+    """
+    d = particles[DIAMETER_COLUMN].to_numpy(dtype=np.float64)
+    ell, k, u = _shape_arrays(particles)
+    area = math.pi * d ** 2 / 4
+    orientation = np.zeros(len(d))
+    if ell.any():
+        r = d / 2
+        b = r * k ** (-1.0 / 3.0)
+        a = r * k ** (2.0 / 3.0)
+        uz2 = np.minimum(u[:, 2] ** 2, 1.0)
+        a_perp = np.sqrt(a ** 2 * (1.0 - uz2) + b ** 2 * uz2)
+        area = np.where(ell, math.pi * b * a_perp, area)
+        theta = np.arctan2(u[:, 1], u[:, 0])
+        theta = (theta + math.pi / 2) % math.pi - math.pi / 2
+        round_ = (k == 1.0) | ((u[:, 0] == 0.0) & (u[:, 1] == 0.0))
+        orientation = np.where(ell & ~round_, theta, 0.0)
+    return pd.DataFrame({PROJECTED_AREA_COLUMN: area, ORIENTATION_COLUMN: orientation},
+                        index=particles.index)
 
 
 def diameter_range(diameter_mm, *, name: str = "diameter_mm") -> tuple[float, float]:
@@ -180,8 +290,9 @@ of equal spheres jams near 0.38)."""
 
 def random_particles(n: int, *, volume: Volume,
                      diameter_mm: float | tuple[float, float] = 1.0,
-                     seed: int | np.random.Generator | None = 0) -> pd.DataFrame:
-    """Non-overlapping spheres placed uniformly at random in a volume (frame 0).
+                     seed: int | np.random.Generator | None = 0,
+                     shape: str = "sphere", max_aspect: float = 3.0) -> pd.DataFrame:
+    """Non-overlapping spheres (or spheroids) placed uniformly at random in a volume (frame 0).
 
     Parameters
     ----------
@@ -193,23 +304,35 @@ def random_particles(n: int, *, volume: Volume,
         Particle diameter, mm; or a ``(min, max)`` range, mm, from which each particle's
         diameter is drawn log-uniformly (uniform in ``log d``).
     seed : int or numpy.random.Generator
-        Seed of the draws: with a range, first the ``n`` diameters, then the positions.
+        Seed of the draws: with a range, first the ``n`` diameters; for ellipsoids then the
+        ``n`` aspects and ``n`` axes; then the positions. Sphere scenes make no shape
+        draws, so a seed gives the same spheres as before shapes existed.
+    shape : {"sphere", "ellipsoid"}
+        ``"ellipsoid"``: prolate spheroids with ``diameter`` the volume-equivalent
+        diameter, aspect (long over short semi-axis) uniform in ``[1, max_aspect]`` and
+        long axis uniform on the unit sphere.
+    max_aspect : float
+        Largest aspect of the spheroids (>= 1); ignored for spheres.
 
     Returns
     -------
     DataFrame
-        Columns ``frame`` (0), ``particle`` (0..n-1), ``x, y, z`` (mm), ``diameter`` (mm).
+        Columns ``frame`` (0), ``particle`` (0..n-1), ``x, y, z`` (mm), ``diameter`` (mm),
+        ``projected_area`` (mm^2), ``orientation`` (rad) (:func:`particle_silhouettes`);
+        for ellipsoids also ``shape``, ``aspect`` and ``axis_x, axis_y, axis_z``.
 
     Notes
     -----
     Random sequential placement: each candidate centre is drawn uniformly in the volume
-    and kept when it lies at least ``(d_i + d_j) / 2`` from every placed particle ``j``.
-    With a range, the particles are placed largest first (the small ones fit into the
-    gaps); the table keeps the order in which the diameters were drawn.
+    and kept when it lies at least ``(d_i + d_j) / 2`` from every placed particle ``j``
+    (for spheroids ``d`` is the bounding diameter ``d k^(2/3)``, twice the long
+    semi-axis). With a range, the particles are placed largest first (the small ones fit
+    into the gaps); the table keeps the order in which the diameters were drawn.
     """
     if not (isinstance(n, (int, np.integer)) and n >= 0):
         raise SceneError(f"n must be a non-negative integer; got {n!r}")
     lo, hi = diameter_range(diameter_mm)
+    k_max = _check_shape(shape, max_aspect)
     rng = np.random.default_rng(seed)
     if lo == hi:
         diameters = np.full(n, lo)
@@ -217,14 +340,24 @@ def random_particles(n: int, *, volume: Volume,
     else:
         diameters = np.exp(rng.uniform(math.log(lo), math.log(hi), size=n))
         label = f"{lo:g}-{hi:g} mm"
+    shape_cols = {}
+    extent = diameters                      # bounding diameters used for placement
+    if shape == "ellipsoid":
+        aspect = rng.uniform(1.0, k_max, size=n)
+        u = rng.standard_normal((n, 3))
+        u /= np.sqrt((u ** 2).sum(axis=1))[:, None]
+        extent = diameters * aspect ** (2.0 / 3.0)
+        hi = hi * k_max ** (2.0 / 3.0)
+        shape_cols = {SHAPE_COLUMN: np.full(n, "ellipsoid", dtype=object), ASPECT_COLUMN: aspect,
+                      **{c: u[:, i] for i, c in enumerate(AXIS_COLUMNS)}}
     b = volume.bounds
-    fill = (math.pi / 6 * float((diameters ** 3).sum())
+    fill = (math.pi / 6 * float((extent ** 3).sum())
             / max(float(np.prod(b[:, 1] - b[:, 0])), 1e-300))
     if fill > MAX_PACKING_FRACTION:
         raise SceneError(f"{n} particles of {label} would fill {fill:.0%} of the volume; "
                          f"random placement stops near {MAX_PACKING_FRACTION:.0%}: lower n or "
                          "the diameter")
-    order = np.argsort(-diameters, kind="stable")
+    order = np.argsort(-extent, kind="stable")
     placed = np.empty((n, 3))
     # Spatial hash with cells one largest diameter wide: a new particle can only overlap
     # particles in its own or the 26 neighbouring cells.
@@ -237,24 +370,35 @@ def random_particles(n: int, *, volume: Volume,
             raise SceneError(f"could not place {n} non-overlapping particles of {label} "
                              f"in the volume (placed {count}); lower n or the diameter")
         p = rng.uniform(b[:, 0], b[:, 1])
-        d = diameters[order[count]]
+        d = extent[order[count]]
         ci, cj, ck = (int(math.floor(c / cell)) for c in p)
         near = [k for di in (-1, 0, 1) for dj in (-1, 0, 1) for dk in (-1, 0, 1)
                 for k in cells.get((ci + di, cj + dj, ck + dk), ())]
         if near:
-            gap2 = (d + diameters[order[near]]) ** 2 / 4
+            gap2 = (d + extent[order[near]]) ** 2 / 4
             if (((placed[near] - p) ** 2).sum(axis=1) < gap2).any():
                 continue
         placed[count] = p
         cells.setdefault((ci, cj, ck), []).append(count)
         count += 1
     if n == 0:
-        return _empty_truth()
+        return _empty_truth(shapes=shape != "sphere")
     xyz = np.empty((n, 3))
     xyz[order] = placed
-    return pd.DataFrame({T_COLUMN: np.zeros(n, np.int64), ID_COLUMN: np.arange(n, dtype=np.int64),
-                         "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
-                         DIAMETER_COLUMN: diameters.astype(float)})
+    out = pd.DataFrame({T_COLUMN: np.zeros(n, np.int64), ID_COLUMN: np.arange(n, dtype=np.int64),
+                        "x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2],
+                        DIAMETER_COLUMN: diameters.astype(float), **shape_cols})
+    return _with_silhouettes(out)
+
+
+def _with_silhouettes(particles: pd.DataFrame) -> pd.DataFrame:
+    """``particles`` with the silhouette columns, in truth column order."""
+    sil = particle_silhouettes(particles)
+    out = particles.assign(**{c: sil[c].to_numpy() for c in sil.columns})
+    cols = list(TRUTH_COLUMNS)
+    if SHAPE_COLUMN in particles.columns:
+        cols += list(SHAPE_COLUMNS)
+    return out[cols]
 
 
 def moving_particles(particles: pd.DataFrame, *, frames: int,
@@ -264,7 +408,7 @@ def moving_particles(particles: pd.DataFrame, *, frames: int,
     Parameters
     ----------
     particles : DataFrame
-        Frame-0 truth (``particle, x, y, z, diameter``).
+        Frame-0 truth (``particle, x, y, z, diameter``; shape columns, if any, are kept).
     frames : int
         Number of frames (>= 1).
     velocity_mm_per_frame : (3,) or (n, 3) array-like
@@ -273,8 +417,9 @@ def moving_particles(particles: pd.DataFrame, *, frames: int,
     Returns
     -------
     DataFrame
-        Truth table with :data:`~plenoptrack._columns.TRUTH_COLUMNS`, sorted by frame then
-        particle.
+        Truth table with :data:`~plenoptrack._columns.TRUTH_COLUMNS` (silhouette columns
+        recomputed by :func:`particle_silhouettes`) and, for shaped particles,
+        :data:`~plenoptrack._columns.SHAPE_COLUMNS`; sorted by frame then particle.
     """
     if not (isinstance(frames, (int, np.integer)) and frames >= 1):
         raise SceneError(f"frames must be a positive integer; got {frames!r}")
@@ -284,15 +429,21 @@ def moving_particles(particles: pd.DataFrame, *, frames: int,
                          f"got shape {v.shape}")
     v = np.broadcast_to(v, (len(particles), 3))
     base = particles[list(POS_COLUMNS)].to_numpy(dtype=float)
+    extra = {}
+    if SHAPE_COLUMN in particles.columns:
+        _shape_arrays(particles)  # validate
+        extra = {c: particles[c].to_numpy() for c in SHAPE_COLUMNS if c in particles.columns}
     parts = []
     for f in range(frames):
         pos = base + f * v
         parts.append(pd.DataFrame({T_COLUMN: np.full(len(particles), f, np.int64),
                                    ID_COLUMN: particles[ID_COLUMN].to_numpy(np.int64),
                                    "x": pos[:, 0], "y": pos[:, 1], "z": pos[:, 2],
-                                   DIAMETER_COLUMN: particles[DIAMETER_COLUMN].to_numpy(float)}))
-    out = pd.concat(parts, ignore_index=True) if parts else _empty_truth()
-    return out[list(TRUTH_COLUMNS)]
+                                   DIAMETER_COLUMN: particles[DIAMETER_COLUMN].to_numpy(float),
+                                   **extra}))
+    shaped = SHAPE_COLUMN in particles.columns
+    out = pd.concat(parts, ignore_index=True) if parts else _empty_truth(shapes=shaped)
+    return _with_silhouettes(out)
 
 
 @dataclass(frozen=True)
@@ -328,7 +479,7 @@ class Scene:
 
 def check_particles(particles: pd.DataFrame, volume: Volume, *, where: str = "scene") -> None:
     """Raise :class:`SceneError` for bad diameters, overlaps or centres outside ``volume``."""
-    missing = [c for c in TRUTH_COLUMNS if c not in particles.columns]
+    missing = [c for c in PARTICLE_TABLE_COLUMNS if c not in particles.columns]
     if missing:
         raise SceneError(f"{where}: particles are missing column(s) {missing}")
     values = particles[[*POS_COLUMNS, DIAMETER_COLUMN]].to_numpy(dtype=float)
@@ -338,6 +489,9 @@ def check_particles(particles: pd.DataFrame, volume: Volume, *, where: str = "sc
     if bad.any():
         raise SceneError(f"{where}: particle diameters must be positive (mm); "
                          f"got {values[bad, 3][:3].tolist()}")
+    _, aspect, _ = _shape_arrays(particles)
+    extent = values[:, 3] * aspect ** (2.0 / 3.0)   # bounding diameters (spheres: d)
+    particles = particles.assign(_extent=extent)
     outside = ~volume.contains(values[:, :3])
     if outside.any():
         first = values[outside][0]
@@ -346,7 +500,7 @@ def check_particles(particles: pd.DataFrame, volume: Volume, *, where: str = "sc
                          f"x {volume.x_mm}, y {volume.y_mm}, z {volume.z_mm} mm")
     for _, grp in particles.groupby(T_COLUMN):
         xyz = grp[list(POS_COLUMNS)].to_numpy(dtype=float)
-        d = grp[DIAMETER_COLUMN].to_numpy(dtype=float)
+        d = grp["_extent"].to_numpy(dtype=float)
         if len(xyz) > 1:
             from scipy.spatial import cKDTree
 
@@ -363,22 +517,28 @@ def check_particles(particles: pd.DataFrame, volume: Volume, *, where: str = "sc
 def make_scene(camera: CameraSpec, *, n_particles: int = 20,
                diameter_mm: float | tuple[float, float] | None = None,
                frames: int = 1, velocity_mm_per_frame=(0.0, 0.0, 0.0),
-               volume: Volume | None = None, seed: int = 0) -> Scene:
+               volume: Volume | None = None, seed: int = 0, shape: str = "sphere",
+               max_aspect: float = 3.0) -> Scene:
     """Random scene: ``n_particles`` spheres in the volume, moving at constant velocity.
 
     The diameter defaults to :func:`default_diameter_mm` of the camera; a ``(min, max)``
     pair draws each particle's diameter log-uniformly in that range (see
     :func:`random_particles`; the truth records each particle's diameter). The volume
     (default :func:`default_volume`, with the margin of the largest diameter) bounds the
-    frame-0 positions; later frames may leave it.
+    frame-0 positions; later frames may leave it. ``shape="ellipsoid"`` makes prolate
+    spheroids of aspect up to ``max_aspect`` (:func:`random_particles`); the default
+    volume's margin is then the largest bounding diameter.
     """
     if diameter_mm is None:
         diameter_mm = default_diameter_mm(camera)
     lo, hi = diameter_range(diameter_mm)
+    k_max = _check_shape(shape, max_aspect)
     diameter_mm = lo if lo == hi else (lo, hi)
-    volume = default_volume(camera, diameter_mm=hi) if volume is None else volume
+    margin = hi if shape == "sphere" else hi * k_max ** (2.0 / 3.0)
+    volume = default_volume(camera, diameter_mm=margin) if volume is None else volume
     first = random_particles(n_particles, volume=volume, diameter_mm=diameter_mm,
-                             seed=np.random.default_rng([seed, 1]))
+                             seed=np.random.default_rng([seed, 1]), shape=shape,
+                             max_aspect=max_aspect)
     truth = moving_particles(first, frames=frames, velocity_mm_per_frame=velocity_mm_per_frame)
     return Scene(camera=camera, volume=volume, truth=truth, seed=seed)
 
@@ -432,7 +592,8 @@ def load_scene(path: str | Path) -> Scene:
             volume = default_volume(camera, depth_mm=depth, diameter_mm=hi)
             scene = make_scene(camera, n_particles=int(spec["n"]), diameter_mm=diameter,
                                frames=frames, velocity_mm_per_frame=velocity, volume=volume,
-                               seed=seed)
+                               seed=seed, shape=spec.get("shape", "sphere"),
+                               max_aspect=float(spec.get("max_aspect", 3.0)))
             return dataclasses.replace(scene, realism=realism)
         rows = data["particles"]
         first = pd.DataFrame({
