@@ -254,23 +254,7 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
             ok, hx, hy, dx, dy = _lens_ray(px, py, qx, qy, cx, cy, par)
             if not ok:
                 continue
-            dd = dx * dx + dy * dy + 1.0
-            blocked = False
-            for m in range(nc):
-                q = cand[m]
-                if has_shapes and shapes[q, 0] != 0.0:
-                    if _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
-                        blocked = True
-                        break
-                    continue
-                wx = occluders[q, 0] - hx
-                wy = occluders[q, 1] - hy
-                wz = occluders[q, 2]
-                wd = wx * dx + wy * dy + wz
-                if (wx * wx + wy * wy + wz * wz - occluders[q, 3]) * dd < wd * wd:
-                    blocked = True
-                    break
-            if blocked:
+            if _ray_blocked(hx, hy, dx, dy, occluders, cand, nc, shapes, has_shapes):
                 continue
             if use_card and _on_dot(hx, hy, dx, dy, card):
                 continue
@@ -286,29 +270,36 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
         g = 1.0 + par[K1] * rho2 + par[K2] * rho2 * rho2
         dx = (qx * conj * g - hx) * inv_so
         dy = (qy * conj * g - hy) * inv_so
-        dd = dx * dx + dy * dy + 1.0
-        blocked = False
-        for m in range(nc):
-            q = cand[m]
-            if has_shapes and shapes[q, 0] != 0.0:
-                if _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
-                    blocked = True
-                    break
-                continue
-            wx = occluders[q, 0] - hx
-            wy = occluders[q, 1] - hy
-            wz = occluders[q, 2]
-            wd = wx * dx + wy * dy + wz
-            # squared distance of the sphere centre from the ray, times dd
-            if (wx * wx + wy * wy + wz * wz - occluders[q, 3]) * dd < wd * wd:
-                blocked = True
-                break
-        if blocked:
+        if _ray_blocked(hx, hy, dx, dy, occluders, cand, nc, shapes, has_shapes):
             continue
         if use_card and _on_dot(hx, hy, dx, dy, card):
             continue
         lit += 1
     return lit
+
+
+@njit(cache=True)
+def _ray_blocked(hx, hy, dx, dy, occluders, cand, nc, shapes, has_shapes):
+    """True if the ray H + Z (d, 1) meets one of ``occluders[cand[:nc]]``.
+
+    Spheres are tested exactly: the squared distance of the centre from the ray, times
+    ``|(d, 1)|^2``, against the squared radius; rows ``shapes[q, 0] != 0`` are
+    ellipsoids (:func:`_ellipsoid_hit`).
+    """
+    dd = dx * dx + dy * dy + 1.0
+    for m in range(nc):
+        q = cand[m]
+        if has_shapes and shapes[q, 0] != 0.0:
+            if _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
+                return True
+            continue
+        wx = occluders[q, 0] - hx
+        wy = occluders[q, 1] - hy
+        wz = occluders[q, 2]
+        wd = wx * dx + wy * dy + wz
+        if (wx * wx + wy * wy + wz * wz - occluders[q, 3]) * dd < wd * wd:
+            return True
+    return False
 
 
 @njit(cache=True)
