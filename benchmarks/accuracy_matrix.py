@@ -4,6 +4,7 @@
     python benchmarks/accuracy_matrix.py --quick          # fewer seeds and cells, < 5 min
     python benchmarks/accuracy_matrix.py --hall           # also the hall2019 cells (slow)
     python benchmarks/accuracy_matrix.py --shapes sphere ellipsoid   # unknown shapes are skipped
+    python benchmarks/accuracy_matrix.py --no-effects     # without the one-effect-at-a-time cells
 
 This is the yardstick on which the locator is judged (``DESIGN.md``, Validation). Claims
 about accuracy quote the **validation** rows of the **realistic** optics.
@@ -20,13 +21,20 @@ cards, spec-sheet values that differ from the truth; see
   density 0.01 particles per microlens (32 particles), spheres of 0.4 mm;
 * density sweep: 0.003, 0.01, 0.03, 0.1 particles per microlens (n = density x the
   number of microlenses), also reported as source density N_s (below);
-* size sweep: single sizes 0.2, 0.4, 0.5, 1, 2 mm (a size whose particles do not fit the
-  camera's default volume at the base density is skipped with a message) and a mixed
-  cell, diameters log-uniform in 0.2-1 mm;
+* size sweep: single sizes 0.2, 0.4, 0.5, 1, 2 mm and a mixed cell, diameters
+  log-uniform in 0.2-1 mm (a size whose particles would fill more than ``MAX_FILL`` of the
+  default volume at the base density runs at the largest density of the 1-2-5 series that
+  fits, and says so in its name);
 * magnification sweep: -0.3, -0.5, -0.75, -1.0, f-number matched to the microlenses
   (:meth:`CameraSpec.with_magnification`);
-* shape: ``sphere`` only (the simulator has no other shape yet); other names given with
-  ``--shapes`` are skipped with a message;
+* shape sweep: ``ellipsoid`` (prolate spheroids, aspect ratio log-uniform in 1-3, random
+  orientation) and ``fragment`` (irregular convex or star-shaped bodies), at the base size
+  (volume-equivalent diameter) and density; shapes the simulator does not know are skipped
+  with a message;
+* effect sweep (not with ``--no-effects`` or ``--quick``): the base cell with the ideal
+  optics plus *one* group of :class:`~plenoptrack.simulate.realism.Realism` at its realistic
+  size (optics ``ideal+blur``, ``ideal+lens``, ...), each with its own calibration: which
+  effect costs how much accuracy;
 * ``--hall``: the ``hall2019`` preset (362 x 471 microlenses) at magnification -0.5 with
   1 mm spheres at density 0.003 (511 particles) and 2 mm spheres at density 0.001 (171
   particles), on the first development and the first validation seed only (each data
@@ -114,7 +122,7 @@ DENSITIES = (0.003, 0.01, 0.03, 0.1)
 SIZES = (0.2, 0.4, 0.5, 1.0, 2.0)
 MIXED_SIZE = (0.2, 1.0)
 MAGNIFICATIONS = (-0.3, -0.5, -0.75, -1.0)
-KNOWN_SHAPES = ("sphere",)
+SHAPES = ("sphere", "ellipsoid", "fragment")
 OPTICS = ("ideal", "realistic")
 HALL_CELLS = ({"density": 0.003, "size": 1.0}, {"density": 0.001, "size": 2.0})
 
@@ -131,12 +139,13 @@ class Cell:
     """One point of the matrix."""
 
     name: str
-    axis: str                      # "base", "density", "size", "magnification", "shape", "hall"
+    axis: str     # "base", "density", "size", "magnification", "shape", "effect", "hall"
     preset: str
     magnification: float
     density: float                 # particles per microlens
     size: float | tuple[float, float]   # mm, or (min, max) log-uniform
     shape: str = "sphere"
+    optics: str | None = None      # only this optics (effect cells); None: every mode run
 
     @property
     def size_label(self) -> str:
@@ -149,17 +158,54 @@ class Cell:
         return d
 
 
-def _cell(axis: str, **changes) -> Cell:
+def _cell(axis: str, optics: str | None = None, **changes) -> Cell:
     p = {**BASE, **changes}
     size = p["size"]
     size_txt = f"{size[0]:g}-{size[1]:g}mm" if isinstance(size, tuple) else f"{size:g}mm"
-    name = (f"{p['preset']} M{p['magnification']:g} d{p['density']:g} {size_txt} {p['shape']}")
+    name = (f"{p['preset']} M{p['magnification']:g} d{p['density']:g} {size_txt} {p['shape']}"
+            + (f" {optics}" if optics else ""))
     return Cell(name=name, axis=axis, preset=p["preset"], magnification=p["magnification"],
-                density=p["density"], size=size, shape=p["shape"])
+                density=p["density"], size=size, shape=p["shape"], optics=optics)
 
 
-def build_cells(*, quick: bool, hall: bool, shapes) -> tuple[list[Cell], list[str]]:
-    """The cells to run and the messages for the cells skipped."""
+def effect_groups() -> tuple[str, ...]:
+    """Names of the :class:`~plenoptrack.simulate.realism.Realism` groups."""
+    from plenoptrack.simulate.realism import Realism
+
+    return tuple(f.name for f in dataclasses.fields(Realism))
+
+
+def realism_of(optics: str):
+    """``"ideal"``, ``"realistic"`` or ``"ideal+GROUP"`` as a Realism (or the name)."""
+    if optics in OPTICS:
+        return optics
+    from plenoptrack.simulate.realism import Realism
+
+    group = optics.removeprefix("ideal+")
+    if group not in effect_groups():
+        raise ValueError(f"unknown optics {optics!r}")
+    return dataclasses.replace(Realism.ideal(), **{group: getattr(Realism.realistic(), group)})
+
+
+def _fitting_density(cell: Cell) -> float | None:
+    """The largest density of the 1-2-5 series at or below the cell's whose particles fit
+    the volume (``MAX_FILL``), or None if none down to 1e-4 does."""
+    for exp in range(5):
+        for mant in (5, 2, 1):
+            d = mant * 10.0 ** (-exp - 1)
+            if d > cell.density:
+                continue
+            trial = dataclasses.replace(cell, density=d)
+            if not _does_not_fit(trial):
+                return d
+    return None
+
+
+def build_cells(*, quick: bool, hall: bool, shapes, effects: bool = True
+                ) -> tuple[list[Cell], list[str]]:
+    """The cells to run and the messages for the cells skipped or moved."""
+    from plenoptrack.simulate.scene import SHAPES as KNOWN_SHAPES
+
     base = _cell("base")
     if quick:
         densities, sizes, mags = (0.1,), (0.2, 1.0), (-1.0,)
@@ -176,15 +222,25 @@ def build_cells(*, quick: bool, hall: bool, shapes) -> tuple[list[Cell], list[st
         if shape == BASE["shape"]:
             continue
         if shape not in KNOWN_SHAPES:
-            skipped.append(f"shape {shape!r}: the simulator has no such particle shape yet "
+            skipped.append(f"shape {shape!r}: the simulator has no such particle shape "
                            f"(known: {', '.join(KNOWN_SHAPES)}); its cell is skipped")
             continue
         cells.append(_cell("shape", shape=shape))
+    if effects and not quick:
+        cells += [_cell("effect", optics=f"ideal+{g}") for g in effect_groups()]
     if hall:
         cells += [_cell("hall", preset="hall2019", **c) for c in HALL_CELLS]
     kept = []
     for cell in cells:
         why = _does_not_fit(cell)
+        if why and cell.axis == "size":
+            d = _fitting_density(cell)
+            if d is not None:
+                moved = _cell(cell.axis, preset=cell.preset, magnification=cell.magnification,
+                              density=d, size=cell.size, shape=cell.shape)
+                skipped.append(f"{cell.name}: {why}; run at density {d:g} instead")
+                kept.append(moved)
+                continue
         if why:
             skipped.append(f"{cell.name}: {why}; skipped")
         else:
@@ -259,7 +315,7 @@ def make_cell_scene(cell: Cell, seed: int, frames: int):
 
     camera, volume, n = _camera(cell), _volume(cell), n_particles(cell)
     key = zlib.crc32(cell.name.encode())
-    parts = [random_particles(n, volume=volume, diameter_mm=cell.size,
+    parts = [random_particles(n, volume=volume, diameter_mm=cell.size, shape=cell.shape,
                               seed=np.random.default_rng([seed, key, f])).assign(frame=f)
              for f in range(frames)]
     truth = pd.concat(parts, ignore_index=True)
@@ -343,7 +399,7 @@ class Runner:
         folder = self.tmp / f"cal_{preset_name}_{magnification:g}_{optics}_{seed}"
         t = time.perf_counter()
         sim = simulate_dataset(preset_name, folder, seed=seed, n_particles=0,
-                               magnification=magnification, realism=optics)
+                               magnification=magnification, realism=realism_of(optics))
         t_sim = time.perf_counter() - t
         row = {"preset": preset_name, "magnification": magnification, "optics": optics,
                "seed": seed, "ok": False, "rms_px": math.nan, "simulate_s": t_sim,
@@ -379,7 +435,7 @@ class Runner:
         scene = make_cell_scene(cell, seed, frames)
         folder = self.tmp / f"frames_{zlib.crc32(cell.name.encode())}_{optics}_{seed}"
         sim = simulate_dataset(cell.preset, folder, seed=seed, scene=scene,
-                               magnification=cell.magnification, realism=optics,
+                               magnification=cell.magnification, realism=realism_of(optics),
                                dotcard_depths=[])
         if sim.optics != cal_optics:
             raise RuntimeError(f"{cell.name} {optics} seed {seed}: the frames' optics differ "
@@ -492,6 +548,39 @@ def _costs(rows: list[dict], seed_set: str, optics: str) -> list[str]:
     return lines + [""]
 
 
+def _effect_costs(rows: list[dict]) -> list[str]:
+    """The one-effect cells against the ideal base cell, worst first, per seed set."""
+    lines = []
+    for seed_set in ("validation", "development"):
+        base = next((r for r in rows if r["seed_set"] == seed_set and r["axis"] == "base"
+                     and r["optics"] == "ideal"), None)
+        sel = [r for r in rows if r["seed_set"] == seed_set and r["axis"] == "effect"]
+        if base is None or not sel:
+            continue
+        lines += [f"One effect group at a time on the base cell ({seed_set} seeds), against "
+                  f"the ideal base: recall {base['recall']:.2f}, precision "
+                  f"{base['precision']:.2f}, depth robust std "
+                  f"{_fmt(base['rstd_z'], '{:.3f}')} mm, 1s z {_fmt(base['cov1_z'], '{:.2f}')}. "
+                  "Sorted by the rise in depth robust std:", "",
+                  "| effect group | recall | precision | dz rstd mm (x ideal) | dz bias mm | "
+                  "lat RMS mm | 1s z | d ratio |", "|---|---|---|---|---|---|---|---|"]
+
+        def rise(r):
+            v = r["rstd_z"]
+            return -(v if v is not None and math.isfinite(v) else math.inf)
+
+        for r in sorted(sel, key=rise):
+            q = (r["rstd_z"] / base["rstd_z"] if r["rstd_z"] is not None and base["rstd_z"]
+                 else math.nan)
+            lines.append(f"| {r['optics'].removeprefix('ideal+')} | {r['recall']:.2f} | "
+                         f"{_fmt(r['precision'], '{:.2f}')} | {_fmt(r['rstd_z'], '{:.3f}')} "
+                         f"(x{_fmt(q, '{:.2f}')}) | {_fmt(r['bias_z'], '{:+.3f}')} | "
+                         f"{_fmt(r['lat_rms'], '{:.3f}')} | {_fmt(r['cov1_z'], '{:.2f}')} | "
+                         f"{_fmt(r['diameter_ratio'], '{:.2f}')} |")
+        lines.append("")
+    return lines
+
+
 def write_report(out: Path, doc: dict) -> Path:
     meta = doc["meta"]
     rows = doc["rows"]
@@ -507,7 +596,8 @@ def write_report(out: Path, doc: dict) -> Path:
              f"- development seeds (tuning allowed): {meta['dev_seeds']}; validation seeds "
              f"(never tuned on): {meta['validation_seeds']}",
              f"- base cell: {meta['base']}; one-axis sweeps around it; every cell with "
-             f"optics ideal and realistic",
+             f"optics ideal and realistic, the effect cells with the ideal optics plus one "
+             f"group of effects",
              f"- at least {meta['min_particles']} particles per cell and seed (independent "
              "random scenes, one per frame)",
              f"- matching: Hungarian within an ellipsoid of half-axes {TOL_LATERAL_MM} mm "
@@ -538,6 +628,7 @@ def write_report(out: Path, doc: dict) -> Path:
     for seed_set in ("validation", "development"):
         for optics in OPTICS:
             lines += _costs(rows, seed_set, optics)
+    lines += _effect_costs(rows)
     lines += ["## Calibrations", "", "| preset | M | optics | seed | ok | DLFC RMS px | "
               "simulate s | calibrate s | warnings / error |", "|---|---|---|---|---|---|---|---|---|"]
     for c in doc["calibrations"]:
@@ -626,7 +717,9 @@ def write_figures(out: Path, rows: list[dict]) -> list[str]:
         names.append(name)
 
     cell_names = list(dict.fromkeys(r["cell"] for r in rows))
-    columns = [(o, s) for o in OPTICS for s in ("development", "validation")]
+    modes = list(OPTICS) + (["one effect"] if any(r["optics"] not in OPTICS for r in rows)
+                            else [])
+    columns = [(o, s) for o in modes for s in ("development", "validation")]
     fig, axes = plt.subplots(1, 3, figsize=(14, 0.45 * len(cell_names) + 2),
                              constrained_layout=True)
     for a, (key, title, cmap) in zip(axes, (("recall", "recall", "viridis"),
@@ -635,7 +728,8 @@ def write_figures(out: Path, rows: list[dict]) -> list[str]:
         grid = np.full((len(cell_names), len(columns)), np.nan)
         for r in rows:
             v = r[key]
-            grid[cell_names.index(r["cell"]), columns.index((r["optics"], r["seed_set"]))] = (
+            mode = r["optics"] if r["optics"] in OPTICS else "one effect"
+            grid[cell_names.index(r["cell"]), columns.index((mode, r["seed_set"]))] = (
                 np.nan if v is None else v)
         im = a.imshow(grid, aspect="auto", cmap=cmap)
         for i in range(grid.shape[0]):
@@ -707,8 +801,11 @@ def main(argv=None) -> int:
                         help="one development and one validation seed, fewer cells (< 5 min)")
     parser.add_argument("--hall", action="store_true",
                         help="add the hall2019 cells (first dev and validation seed; slow)")
-    parser.add_argument("--shapes", nargs="+", default=["sphere"],
-                        help="particle shapes (only 'sphere' exists; others are skipped)")
+    parser.add_argument("--shapes", nargs="+", default=list(SHAPES),
+                        help="particle shapes (default sphere, ellipsoid and fragment; shapes "
+                             "the simulator does not know are skipped)")
+    parser.add_argument("--no-effects", action="store_true",
+                        help="leave out the one-effect-at-a-time cells")
     parser.add_argument("--optics", nargs="+", choices=OPTICS, default=list(OPTICS),
                         help="optics modes (default both)")
     parser.add_argument("--min-particles", type=int, default=None,
@@ -730,17 +827,20 @@ def main(argv=None) -> int:
 
     t0 = time.perf_counter()
     commit, source_hash = _commit(), _source_hash()   # at the start: the tree may change later
-    cells, skipped = build_cells(quick=args.quick, hall=args.hall, shapes=args.shapes)
+    cells, skipped = build_cells(quick=args.quick, hall=args.hall, shapes=args.shapes,
+                                 effects=not args.no_effects)
     for s in skipped:
         print(f"skip: {s}", flush=True)
     seed_sets = {"development": DEV_SEEDS[:1] if args.quick else DEV_SEEDS,
                  "validation": VALIDATION_SEEDS[:1] if args.quick else VALIDATION_SEEDS}
     jobs = []   # (preset, magnification, optics, seed_set, seed) -> cells
-    for optics in args.optics:
+    modes = list(dict.fromkeys(args.optics + [c.optics for c in cells if c.optics]))
+    for optics in modes:
+        mine = [c for c in cells if (c.optics == optics if c.optics else optics in args.optics)]
         for seed_set, seeds in seed_sets.items():
             for i, seed in enumerate(seeds):
-                for key in dict.fromkeys((c.preset, c.magnification) for c in cells):
-                    todo = [c for c in cells if (c.preset, c.magnification) == key
+                for key in dict.fromkeys((c.preset, c.magnification) for c in mine):
+                    todo = [c for c in mine if (c.preset, c.magnification) == key
                             and (c.axis != "hall" or i == 0)]
                     if todo:
                         jobs.append((key[0], key[1], optics, seed_set, seed, todo))
@@ -773,7 +873,7 @@ def main(argv=None) -> int:
     rows = aggregate(results, ("cell", "axis", "optics", "seed_set"))
     order = {c.name: i for i, c in enumerate(cells)}
     rows.sort(key=lambda r: (r["seed_set"] != "validation", order[r["cell"]],
-                             OPTICS.index(r["optics"])))
+                             r["optics"] != "ideal", r["optics"]))
     per_seed = [{k: v for k, v in r.items() if k not in ("pairs", "seconds", "cell_params")}
                 | {"s_per_frame": float(np.mean(r["seconds"]))}
                 | metrics(r["pairs"], r["n_true"], r["n_measured"]) for r in results]
