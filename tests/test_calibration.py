@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from plenoptrack import preset
-from plenoptrack.calibration import Calibration, load_calibration, save_calibration
+from plenoptrack.calibration import (Calibration, find_white, load_calibration, record_white,
+                                     save_calibration)
 from plenoptrack.errors import CalibrationError
 from plenoptrack.lightfield import LensletGrid
 
@@ -70,3 +71,34 @@ def test_lattice_centres_and_coordinates(calibration):
     np.testing.assert_allclose(ij, [[2, 5], [3, 5.5]], atol=1e-9)
     assert g.pitch_px == pytest.approx(np.hypot(0.01, 14.03))
     assert g.rotation_deg == pytest.approx(np.degrees(np.arctan2(0.01, 14.03)))
+
+
+def test_white_image_record(tmp_path, calibration):
+    (tmp_path / "data").mkdir()
+    white = tmp_path / "data" / "white.tif"
+    white.write_bytes(b"white image bytes")
+    path = tmp_path / "calib.json"
+    save_calibration(record_white(calibration, white, calibration_path=path), path)
+    loaded = load_calibration(path)
+    assert loaded.extra["white_image"]["file"] == "data/white.tif"   # relative: movable
+    assert find_white(loaded, path) == (white, "")
+    # the folder moved as a whole: still found
+    (tmp_path / "data").rename(tmp_path / "moved")
+    moved = tmp_path / "moved"
+    (moved / "data").mkdir()
+    (moved / "white.tif").rename(moved / "data" / "white.tif")
+    path.rename(moved / "calib.json")
+    assert find_white(loaded, moved / "calib.json") == (moved / "data" / "white.tif", "")
+    # gone, or changed: not found, and the reason names the file
+    found, why = find_white(loaded, tmp_path / "calib.json")
+    assert found is None and "data/white.tif" in why and "not there" in why
+    (moved / "data" / "white.tif").write_bytes(b"another image")
+    found, why = find_white(loaded, moved / "calib.json")
+    assert found is None and "changed since" in why
+    assert find_white(calibration, path)[0] is None                   # nothing recorded
+    # a white image outside the calibration's folder is recorded by its absolute path
+    outside = tmp_path / "elsewhere" / "w.tif"
+    outside.parent.mkdir()
+    outside.write_bytes(b"w")
+    rec = record_white(calibration, outside, calibration_path=moved / "calib.json")
+    assert rec.extra["white_image"]["file"] == str(outside.resolve())

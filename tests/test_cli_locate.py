@@ -33,7 +33,7 @@ def calibrated(tmp_path_factory):
     root = tmp_path_factory.mktemp("cli_locate")
     sim = root / "sim"
     ok("simulate", "--preset", "small", "--seed", 1, "--particles", 12, "--frames", 2,
-       "--out", sim)
+       "--optics", "realistic", "--out", sim)
     ok("calibrate", "--white", sim / "white.tif", "--dotcards", sim / "dotcards",
        "--camera", sim / "camera.toml", "--out", root / "calib.json")
     return root, sim
@@ -58,6 +58,49 @@ def test_locate_then_evaluate_against_truth(calibrated):
     assert printed["mean_error_z"] == pytest.approx(ev.mean_error_z)
     table = ok("evaluate", out, sim / "truth.parquet")
     assert "recall" in table.stdout and "precision" in table.stdout
+
+
+def test_locate_flat_fields_with_the_recorded_white_image(calibrated, tmp_path):
+    root, sim = calibrated
+    record = json.loads((root / "calib.json").read_text())["white_image"]
+    assert record["file"] == "sim/white.tif" and len(record["sha256"]) == 64
+    frame = sim / "raw" / "frame_0000.tif"
+    truth = read_table(sim / "truth.parquet").query("frame == 0")
+
+    def false_positives(result_path):
+        found = read_table(result_path)
+        return len(found) - evaluate_particles(found, truth, tolerance_mm=1.0).n_matched
+
+    ok("locate", frame, "--calib", root / "calib.json", "--out", tmp_path / "flat.parquet")
+    res = ok("locate", frame, "--calib", root / "calib.json", "--no-flat-field",
+             "--out", tmp_path / "raw.parquet")
+    assert "flat-field" not in res.stderr          # asked for: no warning
+    # the realistic camera's dust shadows and dead pixels pass for particles without it
+    assert false_positives(tmp_path / "flat.parquet") <= 1
+    assert false_positives(tmp_path / "raw.parquet") >= 3
+
+    # a calibration whose white image is gone: located unflat-fielded, with one warning line
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    (moved / "calib.json").write_bytes((root / "calib.json").read_bytes())
+    res = ok("locate", frame, "--calib", moved / "calib.json", "--out", tmp_path / "m.parquet")
+    assert "sim/white.tif" in res.stderr and "not flat-fielded" in res.stderr
+    assert "--white" in res.stderr and "Traceback" not in res.stderr
+    assert false_positives(tmp_path / "m.parquet") >= 3
+    res = ok("locate", frame, "--calib", moved / "calib.json", "--white", sim / "white.tif",
+             "--out", tmp_path / "w.parquet")
+    assert "flat-field" not in res.stderr
+    assert read_table(tmp_path / "w.parquet").equals(read_table(tmp_path / "flat.parquet"))
+    # a changed white image is not used silently
+    (moved / "sim").mkdir()
+    white = tifffile.imread(sim / "white.tif")
+    tifffile.imwrite(moved / "sim" / "white.tif", white // 2)
+    res = ok("locate", frame, "--calib", moved / "calib.json", "--out", tmp_path / "c.parquet")
+    assert "changed since" in res.stderr and "not flat-fielded" in res.stderr
+    res = run("locate", frame, "--calib", root / "calib.json", "--white", sim / "white.tif",
+              "--no-flat-field", "--out", tmp_path / "x.parquet")
+    assert res.exit_code == 2 and "contradict" in res.stderr
+    assert not (tmp_path / "x.parquet").exists()
 
 
 def test_locate_empty_image_gives_empty_table(calibrated, tmp_path):

@@ -6,11 +6,14 @@ made for, the lenslet grid measured from a white image and, once fitted, the vol
 :meth:`plenoptrack.locate.dlfc.DLFC.to_dict`). It is validated on load: a corrupt file
 or DLFC section, a file of another format version, or a file made for another camera is
 refused with a message that says what to do. The whole workflow, white image and dot
-cards to calibration file, is :func:`plenoptrack.calibrate.calibrate`.
+cards to calibration file, is :func:`plenoptrack.calibrate.calibrate`. A
+``white_image`` section records the white image (path and SHA-256, :func:`record_white`)
+so that ``plenoptrack locate`` can flat-field the frames with it.
 """
 
 from __future__ import annotations
 
+import hashlib
 import json
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -24,7 +27,8 @@ from .io import atomic_write_text
 from .lightfield.lattice import LensletGrid
 from .locate.dlfc import DLFC
 
-__all__ = ["Calibration", "load_calibration", "save_calibration", "FORMAT", "VERSION"]
+__all__ = ["Calibration", "load_calibration", "save_calibration", "record_white",
+           "find_white", "file_sha256", "FORMAT", "VERSION", "WHITE_KEY"]
 
 FORMAT = "plenoptrack-calibration"
 VERSION = 1
@@ -180,6 +184,71 @@ def load_calibration(path: str | Path, *, camera: CameraSpec | None = None) -> C
     if camera is not None:
         calibration.check_camera(camera, source=str(path))
     return calibration
+
+
+WHITE_KEY = "white_image"
+"""Section of the calibration file recording the white image: ``file`` (its path,
+relative to the calibration file's folder when it lies below it) and ``sha256``."""
+
+
+def file_sha256(path: str | Path) -> str:
+    """SHA-256 of a file's bytes, hex."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 22), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def record_white(calibration: Calibration, white_path: str | Path, *,
+                 calibration_path: str | Path) -> Calibration:
+    """A copy of ``calibration`` that records the white image used to make it.
+
+    ``plenoptrack locate`` finds the white image through this record and flat-fields
+    every frame with it (see :func:`find_white`).
+
+    Parameters
+    ----------
+    calibration : Calibration
+    white_path : str or Path
+        The white (flat-field) image file.
+    calibration_path : str or Path
+        Where the calibration file will be written: the record is relative to its folder
+        (so that a folder holding both can be moved), or absolute if the white image lies
+        elsewhere.
+    """
+    white = Path(white_path).resolve()
+    folder = Path(calibration_path).resolve().parent
+    try:
+        name = white.relative_to(folder).as_posix()
+    except ValueError:
+        name = str(white)
+    return replace(calibration, extra={**calibration.extra,
+                                       WHITE_KEY: {"file": name, "sha256": file_sha256(white)}})
+
+
+def find_white(calibration: Calibration, calibration_path: str | Path) -> tuple[Path | None, str]:
+    """The white image a calibration file records, if it is still there unchanged.
+
+    Returns
+    -------
+    path : Path or None
+        The white image, or None.
+    why : str
+        Empty when ``path`` is found; otherwise why not, as one sentence naming the file.
+    """
+    record = calibration.extra.get(WHITE_KEY)
+    if not isinstance(record, dict) or not isinstance(record.get("file"), str):
+        return None, f"{calibration_path} records no white image"
+    path = Path(record["file"])
+    if not path.is_absolute():
+        path = Path(calibration_path).parent / path
+    if not path.is_file():
+        return None, f"the white image {path} recorded in {calibration_path} is not there"
+    if record.get("sha256") != file_sha256(path):
+        return None, (f"the white image {path} changed since {calibration_path} was made "
+                      "(SHA-256 differs)")
+    return path, ""
 
 
 def calibrate_from_white(white, camera: CameraSpec, *, progress: bool = False):

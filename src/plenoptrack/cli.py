@@ -311,13 +311,13 @@ def calibrate_grid_cmd(
 ) -> None:
     """Measure the lenslet grid from a white image and write a calibration file."""
     from .camera import load_camera
-    from .calibration import calibrate_from_white, save_calibration
+    from .calibration import calibrate_from_white, record_white, save_calibration
 
     with _outputs({"--out": out_file}, {"WHITE": white, "--camera": camera_file}) as (tmp,):
         camera = load_camera(camera_file)
         t0 = time.perf_counter()
         calib, report = calibrate_from_white(white, camera)
-        save_calibration(calib, tmp)
+        save_calibration(record_white(calib, white, calibration_path=out_file), tmp)
     table = _grid_table(f"lenslet grid ({time.perf_counter() - t0:.2f} s)", calib.grid, report)
     out.print(table)
     console.print(f"wrote {out_file}", highlight=False)
@@ -339,7 +339,7 @@ def calibrate_cmd(
     across views shows; a sign or scale error is refused.
     """
     from .calibrate import calibrate, read_dotcards
-    from .calibration import save_calibration
+    from .calibration import record_white, save_calibration
     from .camera import load_camera
 
     cards = read_dotcards(dotcards)
@@ -349,7 +349,7 @@ def calibrate_cmd(
         camera = load_camera(camera_file)
         calib, report = calibrate(white, cards, camera, order=order, check_depths=check_depths,
                                   progress=True)
-        save_calibration(calib, tmp)
+        save_calibration(record_white(calib, white, calibration_path=out_file), tmp)
     _print_calibration_report(calib, cards, report)
     console.print(f"wrote {out_file}", highlight=False)
 
@@ -476,21 +476,31 @@ def locate(
     window: int = typer.Option(31, "--window", min=3, help="Local-threshold window of the segmentation, view pixels (at least 3)."),
     contrast: float = typer.Option(0.15, "--contrast", callback=_finite(positive=True, below=1.0), help="Relative darkness a particle pixel needs (between 0 and 1)."),
     planes: int = typer.Option(10, "--planes", min=2, help="Refocus planes of the clustering (at least 2)."),
+    white: Optional[Path] = typer.Option(None, "--white", "-w", help="White (flat-field) image to divide every frame by (default: the one the calibration file records)."),
+    flat_field: bool = typer.Option(True, "--flat-field/--no-flat-field", help="Divide every frame by the white image (recommended: dust shadows and dead pixels are otherwise taken for particles)."),
     partial: bool = typer.Option(False, "--partial", help="On Ctrl-C, keep the frames already located (default: write nothing)."),
 ) -> None:
-    """Locate particles in 3D (perspective-shift method) and write a particle table."""
+    """Locate particles in 3D (perspective-shift method) and write a particle table.
+
+    Every frame is divided by the white image (flat-fielded) first: by default the white
+    image the calibration file records, if it is still there unchanged.
+    """
     from rich.progress import Progress
 
     from .calibration import load_calibration
     from .io import count_frames, read_frames
     from .locate.perspective import PerspectiveLocator
 
+    if white is not None and not flat_field:
+        raise typer.BadParameter("--white and --no-flat-field contradict each other; give one",
+                                 param_hint="--white")
     locator = PerspectiveLocator(window=window, contrast=contrast, n_planes=planes)
     with _outputs({"--out": out_file, "--detections": detections_file},
-                  {"RAW": raw, "--calib": calib_file}) as (out_tmp, det_tmp):
+                  {"RAW": raw, "--calib": calib_file, "--white": white}) as (out_tmp, det_tmp):
         calib = load_calibration(calib_file)
         calib.dlfc  # refuse a calibration without a DLFC before any work
         n_frames = sum(count_frames(path) for path in raw)  # every input readable, up front
+        white_lf = _flat_field_white(calib, calib_file, white) if flat_field else None
         tables, detections, frame, empty = [], [], 0, 0
         interrupted = False
         t0 = time.perf_counter()
@@ -502,7 +512,8 @@ def locate(
                     calib.check_image(stack, source=str(path))
                     for k, image in enumerate(stack):
                         result, no_particles = _locate_one(image, calib, frame, locator,
-                                                           source=f"{path} frame {k}")
+                                                           source=f"{path} frame {k}",
+                                                           white=white_lf)
                         empty += no_particles
                         tables.append(result.particles)
                         if det_tmp is not None:
@@ -523,7 +534,28 @@ def locate(
                   f"{time.perf_counter() - t0:.2f} s; wrote {out_file}", highlight=False)
 
 
-def _locate_one(image, calib, frame: int, locator, *, source: str):
+def _flat_field_white(calib, calib_file: Path, white: Path | None):
+    """The decoded white light field to flat-field the frames with, or None (warned)."""
+    from .calibration import find_white
+    from .errors import FlatFieldWarning
+    from .io import read_raw, warn_exposure
+    from .lightfield import decode
+
+    if white is None:
+        white, why = find_white(calib, calib_file)
+        if white is None:
+            warnings.warn(f"{why}: frames are not flat-fielded, so dust shadows and dead "
+                          "pixels may be taken for particles; pass the white image with "
+                          "--white (or --no-flat-field to locate without one)",
+                          FlatFieldWarning, stacklevel=2)
+            return None
+    image = read_raw(white)
+    calib.check_image(image, source=str(white))
+    warn_exposure(image, calib.camera.full_scale, source=f"white image {white}")
+    return decode(image, calib.grid)
+
+
+def _locate_one(image, calib, frame: int, locator, *, source: str, white=None):
     """Locate one frame; return the result and whether it had no particles.
 
     Warnings other than "no particles" are shown, prefixed with the file and frame.
@@ -533,7 +565,7 @@ def _locate_one(image, calib, frame: int, locator, *, source: str):
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = locate_frame(image, calib, frame=frame, locator=locator)
+        result = locate_frame(image, calib, frame=frame, locator=locator, white=white)
     empty = False
     for w in caught:
         if issubclass(w.category, NoParticlesWarning):

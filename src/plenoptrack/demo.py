@@ -62,7 +62,7 @@ def run_demo(out_dir: str | Path, *, seed: int = 0, n_particles: int = 20,
     DemoSummary
     """
     from .calibrate import calibrate
-    from .calibration import save_calibration
+    from .calibration import record_white, save_calibration
     from .camera import preset
     from .evaluate import evaluate_particles
     from .io import read_raw, write_table
@@ -82,6 +82,7 @@ def run_demo(out_dir: str | Path, *, seed: int = 0, n_particles: int = 20,
 
     t0 = time.perf_counter()
     calib, report = calibrate(sim.white_path, sim.dotcards_path.parent, sim.camera, progress=progress)
+    calib = record_white(calib, sim.white_path, calibration_path=out_dir / "calib.json")
     save_calibration(calib, out_dir / "calib.json")
     summary.rows.append(("calibrate", f"grid {calib.grid.shape[0]} x {calib.grid.shape[1]}, "
                          f"DLFC order {calib.dlfc.order}, residual {calib.dlfc.report.rms_px:.3f} px",
@@ -89,7 +90,7 @@ def run_demo(out_dir: str | Path, *, seed: int = 0, n_particles: int = 20,
 
     t0 = time.perf_counter()
     raw = read_raw(sim.frame_paths[0])
-    result = locate_frame(raw, calib, frame=0)
+    result = locate_frame(raw, calib, frame=0, white=read_raw(sim.white_path))
     write_table(result.particles, out_dir / "particles.parquet")
     summary.rows.append(("locate", f"{len(result.particles)} particles from "
                          f"{len(result.detections)} centroids", time.perf_counter() - t0))

@@ -64,5 +64,10 @@ class ExposureWarning(PlenoptrackWarning):
     """A raw frame is black (no light) or saturated, so it cannot show particles."""
 
 
+class FlatFieldWarning(PlenoptrackWarning):
+    """Frames are located without flat-fielding: the calibration's white image is missing
+    or changed. Dust shadows and dead pixels may then be taken for particles."""
+
+
 class CardDepthWarning(PlenoptrackWarning):
     """A dot card's stated depth disagrees with the depth its parallax across views shows."""

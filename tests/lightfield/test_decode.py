@@ -205,6 +205,24 @@ def test_wrong_white_shape_raises(grid):
         decode(np.zeros((420, 520), np.uint16), grid, white=np.ones((420, 521), np.uint16))
 
 
+def test_white_decoded_once_equals_raw_white():
+    grid = _lattice("hex")
+    radius = grid.pitch_px / 2
+
+    def white_f(dv, du, row, col):
+        return np.where(np.hypot(dv, du) < radius - 1.5, 3000.0 * (1.0 + 0.0005 * row), 0.0)
+
+    white = _paint(grid, white_f).astype(np.uint16)
+    raw = (_paint(grid, white_f) * 0.6).astype(np.uint16)
+    by_raw = decode(raw, grid, white=white)
+    by_lf = decode(raw, grid, white=decode(white, grid))
+    np.testing.assert_array_equal(by_lf.data, by_raw.data)
+    np.testing.assert_array_equal(by_lf.valid_fraction, by_raw.valid_fraction)
+    assert by_lf.flat_fielded
+    with pytest.raises(CalibrationError, match="without a white image"):
+        decode(raw, grid, white=by_raw)          # already flat-fielded: not a white
+
+
 def test_dark_white_raises(grid):
     with pytest.raises(InputFileError, match="white image is dark"):
         decode(np.zeros((420, 520), np.uint16), grid, white=np.zeros((420, 520), np.uint16))

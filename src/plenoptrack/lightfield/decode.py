@@ -382,7 +382,7 @@ def _decode_array(raw: np.ndarray, grid: LensletGrid, samp: _Sampling, rad: int,
     return out
 
 
-def decode(raw: np.ndarray, grid: LensletGrid, *, white: np.ndarray | None = None,
+def decode(raw: np.ndarray, grid: LensletGrid, *, white: "np.ndarray | LightField | None" = None,
            white_floor: float = WHITE_FLOOR, progress: bool = False) -> LightField:
     """Decode a raw plenoptic image into a light field ``L[v, u, t, s]``.
 
@@ -393,10 +393,14 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: np.ndarray | None = Non
         ``grid.sensor_shape_px``.
     grid : LensletGrid
         Microlens-image centres (from :func:`plenoptrack.lightfield.calibrate_grid`).
-    white : (rows, cols) ndarray, optional
-        White (flat-field) image of the same camera. When given, the light field is
-        divided by the decoded white light field wherever the latter exceeds
-        ``white_floor`` times the mean level of its brightest view (zero elsewhere).
+    white : (rows, cols) ndarray or LightField, optional
+        White (flat-field) image of the same camera, raw or already decoded with this
+        grid and without a white (``decode(white, grid)``: decode it once when
+        flat-fielding many frames). When given, the light field is divided by the decoded
+        white light field wherever the latter exceeds ``white_floor`` times the mean
+        level of its brightest view, and set to zero (invalid: dead pixels, dark rims)
+        elsewhere. Division removes what the frames share with the white image: the
+        back-light's shape, pixel gains, dust shadows on the sensor window.
         ``valid_fraction`` is the fraction of each view's pixel footprint inside the disc
         of radius ``grid.pitch_px / 2`` (the microlens image of a matched main lens); with
         a white image it is further limited to the view's mean white level relative to
@@ -445,7 +449,11 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: np.ndarray | None = Non
     if not isinstance(grid, LensletGrid):
         raise CalibrationError(f"grid must be a LensletGrid; got {type(grid).__name__}")
     raw = _check_raw(raw, grid, "raw image")
-    if white is not None:
+    if isinstance(white, LightField):
+        if white.flat_fielded or tuple(white.sensor_shape_px) != tuple(grid.sensor_shape_px):
+            raise CalibrationError("a decoded white image must be decoded with the same grid "
+                                   "and without a white image: decode(white, grid)")
+    elif white is not None:
         white = _check_raw(white, grid, "white image")
     if not 0.0 < white_floor < 1.0:
         raise SettingsError(f"white_floor must be between 0 and 1; got {white_floor!r}")
@@ -457,7 +465,13 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: np.ndarray | None = Non
     ang = np.arange(-rad, rad + 1, dtype=float)
     data = _decode_array(raw, grid, samp, rad, progress, "decoding")
     valid = _disc_fraction(ang, ang, grid.pitch_px / 2.0)
-    if white is not None:
+    if isinstance(white, LightField):
+        if white.data.shape != data.shape:
+            raise CalibrationError(f"decoded white light field has shape {white.data.shape} "
+                                   f"but the frame decodes to {data.shape}; decode the white "
+                                   "image with the same grid")
+        valid = np.minimum(valid, _flat_field(data, white.data, samp.mask, white_floor))
+    elif white is not None:
         wdata = _decode_array(white, grid, samp, rad, progress, "decoding white")
         valid = np.minimum(valid, _flat_field(data, wdata, samp.mask, white_floor))
         del wdata

@@ -203,9 +203,9 @@ class PerspectiveLocator:
         """The settings as a plain dict (for provenance in output metadata)."""
         return asdict(self)
 
-    def locate(self, raw_or_lf, calibration, *, frame: int = 0) -> LocateResult:
+    def locate(self, raw_or_lf, calibration, *, frame: int = 0, white=None) -> LocateResult:
         """Locate the particles of one frame; see :func:`locate_frame`."""
-        return locate_frame(raw_or_lf, calibration, frame=frame, locator=self)
+        return locate_frame(raw_or_lf, calibration, frame=frame, locator=self, white=white)
 
 
 def _empty_particles() -> pd.DataFrame:
@@ -492,7 +492,7 @@ def _solve(dlfc, detections, owner, initial, n_possible, volume_depth, locator):
 
 
 def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
-                 locator: PerspectiveLocator | None = None) -> LocateResult:
+                 locator: PerspectiveLocator | None = None, white=None) -> LocateResult:
     """Locate particles in 3D in one raw plenoptic image (perspective-shift method).
 
     Parameters
@@ -506,6 +506,12 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         Frame index written to the ``frame`` column.
     locator : PerspectiveLocator, optional
         Settings; default ``PerspectiveLocator()``.
+    white : (rows, cols) ndarray or LightField, optional
+        White (flat-field) image of the camera, raw or decoded once with
+        ``decode(white, calibration.grid)``. Recommended: the raw frame is divided by it
+        (:func:`~plenoptrack.lightfield.decode`), so dust shadows, dead pixels and gain
+        patterns the frames share with the white image are not taken for particles.
+        Ignored when ``raw_or_lf`` is already a light field.
 
     Returns
     -------
@@ -532,7 +538,7 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         image = np.asarray(raw_or_lf)
         calibration.check_image(image)
         warn_exposure(image, camera.full_scale, source=f"frame {frame}")
-        lf = decode(image, calibration.grid)
+        lf = decode(image, calibration.grid, white=white)
     if calibration.vignetting is not None and calibration.vignetting.shape == lf.valid_fraction.shape:
         # Views the white image showed to be vignetted are not searched.
         lf = dataclasses.replace(lf, valid_fraction=np.minimum(lf.valid_fraction,
