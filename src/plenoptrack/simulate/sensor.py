@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import functools
 import math
+import os
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,8 +106,9 @@ def expose(irradiance: np.ndarray, *, level: float, bit_depth: int, sensor: Sens
     sensor : SensorModel
         Full well and read noise.
     rng : numpy.random.Generator
-        Source of the noise: one float32 standard normal per pixel (row-major), then
-        Poisson draws for the pixels below :data:`POISSON_EXACT_BELOW_E`. Shot noise is
+        Source of the noise: one float32 standard normal per pixel
+        (:func:`standard_normal_image`), then Poisson draws for the pixels below
+        :data:`POISSON_EXACT_BELOW_E`. Shot noise is
         Poisson (normal approximation above that threshold), read noise Gaussian.
         Unused when ``noise`` is False.
     noise : bool
@@ -138,7 +140,7 @@ def expose(irradiance: np.ndarray, *, level: float, bit_depth: int, sensor: Sens
         return _quantise(irr, to_e, gain, full_scale)
     if rng is None:
         raise ValueError("rng is required when noise=True")
-    z = rng.standard_normal(size=irr.shape, dtype=np.float32)
+    z = standard_normal_image(rng, irr.shape)
     out, is_low = _expose_bright(irr, z, to_e, sensor.read_noise_e, gain, full_scale,
                                  POISSON_EXACT_BELOW_E)
     low = np.flatnonzero(is_low)
@@ -303,6 +305,41 @@ def fixed_pattern(optics) -> FixedPattern:
                         dead_columns=dead_cols)
 
 
+NOISE_CHUNKS = 8
+"""An image's standard normals are drawn in this many contiguous chunks, each from its own
+child of the image's generator (:meth:`numpy.random.Generator.spawn`), on up to as many
+threads; a fixed number, so the bytes do not depend on the machine's core count."""
+
+_CHUNKED_ABOVE = 1 << 20
+
+
+def standard_normal_image(rng: np.random.Generator, shape) -> np.ndarray:
+    """One float32 standard normal per pixel, drawn on several threads.
+
+    Images of at least 2**20 pixels are filled in :data:`NOISE_CHUNKS` row-major chunks
+    from ``rng.spawn(NOISE_CHUNKS)`` (numpy releases the GIL while filling, so the threads
+    run in parallel); smaller ones with ``rng.standard_normal``. ``rng`` itself is not
+    advanced by the chunked draw.
+    """
+    size = int(np.prod(shape))
+    if size < _CHUNKED_ABOVE:
+        return rng.standard_normal(size=shape, dtype=np.float32)
+    from concurrent.futures import ThreadPoolExecutor
+
+    out = np.empty(size, dtype=np.float32)
+    children = rng.spawn(NOISE_CHUNKS)
+    edges = np.linspace(0, size, NOISE_CHUNKS + 1).astype(np.int64)
+
+    def fill(k: int) -> None:
+        children[k].standard_normal(dtype=np.float32, out=out[edges[k]:edges[k + 1]])
+
+    workers = min(NOISE_CHUNKS, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                  else (os.cpu_count() or 1))
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        list(pool.map(fill, range(NOISE_CHUNKS)))
+    return out.reshape(shape)
+
+
 _ONE = np.ones((1, 1), dtype=np.float32)
 _ZERO = np.zeros((1, 1), dtype=np.float32)
 
@@ -322,7 +359,7 @@ def _expose_fixed(irr, *, level, full_scale, sensor, rng, noise, fixed):
         return _quantise_fixed(irr, gmap, omap, has_g, has_o, to_e, gain, full_scale)
     if rng is None:
         raise ValueError("rng is required when noise=True")
-    z = rng.standard_normal(size=irr.shape, dtype=np.float32)
+    z = standard_normal_image(rng, irr.shape)
     out, is_low = _expose_bright_fixed(irr, gmap, omap, has_g, has_o, z, to_e, sensor.read_noise_e,
                                        gain, full_scale, POISSON_EXACT_BELOW_E)
     low = np.flatnonzero(is_low)
