@@ -50,7 +50,7 @@ def run_seed(preset: str, seed: int, folder: Path) -> dict:
     from plenoptrack.simulate import simulate_dataset
 
     t0 = time.perf_counter()
-    out = simulate_dataset(preset, folder, seed=seed, n_particles=0)
+    out = simulate_dataset(preset, folder, seed=seed, n_particles=0, realism="ideal")
     t1 = time.perf_counter()
     row = {"seed": seed, "ok": False, "reason": "", "rms_px": np.nan, "sim_s": t1 - t0,
            "cal_s": np.nan, "a": np.nan, "b": np.nan, "max_dev_mm": np.nan,
