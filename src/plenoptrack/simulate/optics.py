@@ -92,7 +92,7 @@ import numpy as np
 from ..camera import CameraSpec
 from ..errors import CalibrationError, CameraSpecError
 from ..lightfield.lattice import LensletGrid
-from .realism import Realism, SpecEffects, realism_from_dict
+from .realism import GROUPS, Realism, SpecEffects, realism_from_dict
 
 __all__ = ["SimOptics", "make_optics", "true_camera", "ROTATION_RANGE_DEG", "OFFSET_RANGE_PX",
            "PITCH_ERROR_RANGE"]
@@ -473,7 +473,7 @@ class SimOptics:
                          axis_offset_mm=tuple(data.get("lens", {}).get("axis_offset_mm", (0.0, 0.0))),
                          mla_tilt=tuple(data.get("lens", {}).get("mla_tilt", (0.0, 0.0))),
                          seed=data.get("seed"),
-                         realism=realism_from_dict(data.get("realism", {"mode": "ideal"}),
+                         realism=realism_from_dict(_stored_realism(data),
                                                    source=f"{source} realism"),
                          nominal=None if "nominal_camera" not in data else
                          CameraSpec.from_dict(data["nominal_camera"], source=source))
@@ -488,6 +488,15 @@ class SimOptics:
                 raise CalibrationError(f"{source}: stored true_grid does not match the MLA "
                                        "parameters; the file was edited or is corrupt")
         return optics
+
+
+def _stored_realism(data: dict) -> dict:
+    """The ``realism`` table of a :meth:`SimOptics.to_dict` document; groups it lacks were
+    written before they existed (nothing of theirs was simulated), so they read as off."""
+    stored = data.get("realism", {"mode": "ideal"})
+    if not isinstance(stored, dict) or "mode" in stored:
+        return stored
+    return {**{name: {"scale": 0.0} for name in GROUPS if name not in stored}, **stored}
 
 
 def _true_grid(optics: SimOptics) -> LensletGrid:
