@@ -232,6 +232,16 @@ def test_simulate_ellipsoids(tmp_path):
     assert (truth["projected_area"] != spheres).any()
 
 
+def test_simulate_fragments(tmp_path):
+    out = tmp_path / "f"
+    ok("simulate", "--seed", SEED, "--particles", 6, "--shape", "fragment", "--max-aspect", 2.0,
+       "--samples", 2, "--out", out)
+    truth = pd.read_parquet(out / "truth.parquet")
+    assert (truth["shape"] == "fragment").all() and truth["aspect"].between(1, 2.0).all()
+    assert (truth["shape_seed"] >= 0).all() and truth["shape_seed"].nunique() == 6
+    assert "transmission" not in truth.columns           # ideal optics: no particle effects
+
+
 # A particle on the optical axis, 6 mm behind the focal plane, in its own data set made
 # from a scene file with another seed.
 SCENE_Z_MM = 6.0

@@ -18,15 +18,32 @@ ORIENTATION_COLUMN = "orientation"
 SILHOUETTE_COLUMNS = (PROJECTED_AREA_COLUMN, ORIENTATION_COLUMN)
 """Silhouette columns of the simulator truth (every particle)."""
 SHAPE_COLUMN = "shape"
-"""Particle shape column: ``"sphere"`` or ``"ellipsoid"`` (prolate spheroid)."""
+"""Particle shape column: ``"sphere"``, ``"ellipsoid"`` (prolate spheroid) or
+``"fragment"`` (irregular body)."""
 ASPECT_COLUMN = "aspect"
-"""Long semi-axis over the two equal short semi-axes of a spheroid (>= 1; 1 for spheres)."""
+"""Long semi-axis over the two equal short semi-axes of a spheroid (>= 1; 1 for spheres);
+for a fragment, that of its equivalent ellipsoid (the ellipsoid with the same second
+moments of volume)."""
 AXIS_COLUMNS = ("axis_x", "axis_y", "axis_z")
-"""Unit vector of a spheroid's long axis, world frame."""
+"""Unit vector of a spheroid's long axis (of a fragment's equivalent ellipsoid), world frame."""
 SHAPE_COLUMNS = (SHAPE_COLUMN, ASPECT_COLUMN, *AXIS_COLUMNS)
 """Optional shape columns of a particles or truth table; absent means spheres. With them,
 ``diameter`` is the volume-equivalent diameter."""
+SHAPE_SEED_COLUMN = "shape_seed"
+"""Seed (integer >= 0) of a fragment's irregular geometry; with ``diameter``, ``aspect`` and
+the axis it fixes the body (:func:`plenoptrack.simulate.fragments.fragment_geometry`).
+Present in tables that hold fragments (-1 on their other rows)."""
+TRANSMISSION_COLUMN = "transmission"
+"""Fraction of the back-light a particle lets through, in [0, 1); absent means opaque."""
+VELOCITY_COLUMNS = ("velocity_x", "velocity_y", "velocity_z")
+"""Particle velocity, mm per frame, world frame; absent means still. With an exposure
+fraction, the image is blurred along ``velocity * exposure_fraction``."""
 PARTICLE_TABLE_COLUMNS = (T_COLUMN, ID_COLUMN, *POS_COLUMNS, DIAMETER_COLUMN)
 """Columns every truth table must have (the silhouette columns are derived)."""
 TRUTH_COLUMNS = (*PARTICLE_TABLE_COLUMNS, *SILHOUETTE_COLUMNS)
-"""Columns of a simulator ``truth.parquet`` (ellipsoid scenes add :data:`SHAPE_COLUMNS`)."""
+"""Columns of a simulator ``truth.parquet`` (ellipsoid scenes add :data:`SHAPE_COLUMNS`,
+fragment scenes also :data:`SHAPE_SEED_COLUMN`; the particle effects add
+:data:`TRANSMISSION_COLUMN` and :data:`VELOCITY_COLUMNS`)."""
+OPTIONAL_TRUTH_COLUMNS = (*SHAPE_COLUMNS, SHAPE_SEED_COLUMN, TRANSMISSION_COLUMN,
+                          *VELOCITY_COLUMNS)
+"""Optional truth columns, in the order they follow :data:`TRUTH_COLUMNS`."""

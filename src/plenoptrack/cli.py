@@ -250,8 +250,8 @@ def simulate(
     seed: Optional[int] = typer.Option(None, "--seed", help="Random seed of optics, particles and noise (default 0, or the scene file's seed); the same seed gives the same bytes."),
     particles: int = typer.Option(20, "--particles", min=0, help="Number of particles (random scene)."),
     diameter: Optional[str] = typer.Option(None, "--diameter", callback=_diameter, help="Particle diameter, mm (default per preset: 0.4 on the small presets, 1.0 on hall2019), or a range MIN:MAX drawn log-uniformly, e.g. 0.2:2."),
-    shape: str = typer.Option("sphere", "--shape", help="Particle shape of the random scene: sphere, or ellipsoid (prolate, random orientation, aspect ratio up to --max-aspect)."),
-    max_aspect: float = typer.Option(3.0, "--max-aspect", callback=_finite(at_least=1.0), help="Largest aspect ratio (long over short axis) of ellipsoids."),
+    shape: str = typer.Option("sphere", "--shape", help="Particle shape of the random scene: sphere, ellipsoid (prolate, random orientation, aspect ratio up to --max-aspect) or fragment (irregular faceted body, random orientation, aspect ratio of its equivalent ellipsoid up to --max-aspect)."),
+    max_aspect: float = typer.Option(3.0, "--max-aspect", callback=_finite(at_least=1.0), help="Largest aspect ratio (long over short axis) of ellipsoids and fragments."),
     magnification: Optional[float] = typer.Option(None, "--magnification", callback=_finite(), help="Override the preset magnification (negative, e.g. -0.5); the f-number is re-set to keep the microlens images filled."),
     frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
     scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification, seed and particles replace --preset, --magnification, --seed and the random-scene options."),
@@ -266,8 +266,9 @@ def simulate(
     if magnification == 0:
         raise typer.BadParameter("must be non-zero (negative for a real, inverted image)",
                                  param_hint="--magnification")
-    if shape not in ("sphere", "ellipsoid"):
-        raise typer.BadParameter(f"must be 'sphere' or 'ellipsoid'; got {shape!r}", param_hint="--shape")
+    if shape not in ("sphere", "ellipsoid", "fragment"):
+        raise typer.BadParameter(f"must be 'sphere', 'ellipsoid' or 'fragment'; got {shape!r}",
+                                 param_hint="--shape")
     if optics_mode not in (None, "ideal", "realistic"):
         raise typer.BadParameter(f"must be 'ideal' or 'realistic'; got {optics_mode!r}",
                                  param_hint="--optics")

@@ -1,4 +1,5 @@
-"""Ellipsoidal (prolate spheroid) particles: rendering, silhouettes, scenes; spheres unchanged."""
+"""Ellipsoidal (prolate spheroid) and fragment particles: rendering, silhouettes, scenes;
+spheres unchanged."""
 
 import hashlib
 import math
@@ -9,8 +10,9 @@ import pytest
 
 from plenoptrack import preset
 from plenoptrack._columns import SHAPE_COLUMNS, TRUTH_COLUMNS
-from plenoptrack.simulate import (make_optics, make_scene, particle_silhouettes, random_particles,
-                                  render_irradiance)
+from plenoptrack.simulate import (fragment_geometry, make_optics, make_scene, particle_silhouettes,
+                                  random_particles, render_irradiance)
+from plenoptrack.simulate.fragments import FRAGMENT_REACH
 from plenoptrack.simulate.render import background_irradiance
 from plenoptrack.simulate.scene import SceneError, Volume
 
@@ -166,3 +168,131 @@ def test_invalid_ellipsoid_rows(small_optics):
         render_irradiance(small_optics, bad)
     with pytest.raises(SceneError, match="need column"):
         render_irradiance(small_optics, bad.drop(columns=["axis_z"]))
+
+
+# --- irregular fragments ---------------------------------------------------------------------
+
+def _fragment(x, y, z, d, aspect, axis, seed):
+    return {**_spheroid(x, y, z, d, aspect, axis), "shape": "fragment", "shape_seed": seed}
+
+
+FRAGMENTS = [(1, 1.0, (0, 0, 1)), (2, 2.5, (1, 1, 0)), (3, 2.0, (-0.3, 1, 0.6)),
+             (4, 3.0, (1, -0.2, 0.3))]
+
+
+@pytest.mark.parametrize("seed, aspect, axis", FRAGMENTS)
+def test_fragment_volume_moments_by_monte_carlo(seed, aspect, axis):
+    # Points inside the union of the pieces' half-space sets, drawn in the bounding cube.
+    frag = fragment_geometry(seed, 0.8, aspect, axis)
+    assert 1 <= len(frag.planes) <= 3 and all(8 <= len(p) <= 14 for p in frag.planes)
+    again = fragment_geometry(seed, 0.8, aspect, axis)
+    for a, b in zip(frag.planes, again.planes):
+        np.testing.assert_array_equal(a, b)
+    r = frag.bounding_radius
+    pts = np.random.default_rng(seed).uniform(-r, r, (300_000, 3))
+    inside = np.zeros(len(pts), dtype=bool)
+    for planes in frag.planes:
+        inside |= (pts @ planes[:, :3].T <= planes[:, 3]).all(axis=1)
+        # The core point every piece contains lies inside every piece: star-shaped union.
+    assert inside.mean() * (2 * r) ** 3 == pytest.approx(math.pi / 6 * 0.8 ** 3, rel=0.02)
+    p = pts[inside]
+    np.testing.assert_allclose(p.mean(axis=0), 0.0, atol=0.01)     # centre = centroid
+    lam, vec = np.linalg.eigh(np.cov(p.T))
+    assert math.sqrt(lam[2] / lam[0]) == pytest.approx(aspect, rel=0.03)
+    assert math.sqrt(lam[1] / lam[0]) == pytest.approx(1.0, rel=0.03)
+    u = np.asarray(axis, float) / np.linalg.norm(axis)
+    if aspect > 1.2:
+        assert abs(vec[:, 2] @ u) > 0.999
+    # Vertices: all within the bounding radius and the enclosing balls; on the planes.
+    for planes, verts, ball in zip(frag.planes, frag.vertices, frag.piece_balls):
+        assert (np.abs(verts @ planes[:, :3].T - planes[:, 3]).min(axis=1) < 1e-9).all()
+        assert (np.linalg.norm(verts - ball[:3], axis=1) <= ball[3] + 1e-12).all()
+        assert (np.linalg.norm(verts - frag.ball[:3], axis=1) <= frag.ball[3] + 1e-12).all()
+    assert frag.bounding_radius <= FRAGMENT_REACH * 0.4 * aspect ** (2 / 3)
+
+
+@pytest.mark.parametrize("seed, aspect, axis", FRAGMENTS)
+def test_fragment_silhouette_against_a_raster(seed, aspect, axis):
+    from scipy.spatial import ConvexHull
+
+    frag = fragment_geometry(seed, 1.0, aspect, axis)
+    truth = particle_silhouettes(pd.DataFrame([_fragment(0, 0, 0, 1.0, aspect, axis, seed)]))
+    r = frag.bounding_radius
+    n = 700
+    g = (np.arange(n) + 0.5) / n * 2 * r - r
+    xx, yy = np.meshgrid(g, g)
+    pts = np.column_stack([xx.ravel(), yy.ravel()])
+    inside = np.zeros(len(pts), dtype=bool)
+    for verts in frag.vertices:
+        eq = ConvexHull(verts[:, :2]).equations
+        inside |= (pts @ eq[:, :2].T + eq[:, 2] <= 0).all(axis=1)
+    area = inside.mean() * (2 * r) ** 2
+    assert truth["projected_area"].iloc[0] == pytest.approx(area, rel=0.005)
+    p = pts[inside]
+    c = np.cov(p.T)
+    angle = 0.5 * math.atan2(2 * c[0, 1], c[0, 0] - c[1, 1])
+    diff = (angle - truth["orientation"].iloc[0] + math.pi / 2) % math.pi - math.pi / 2
+    assert abs(diff) < math.radians(0.5)
+    assert -math.pi / 2 <= truth["orientation"].iloc[0] < math.pi / 2
+
+
+@pytest.mark.parametrize("seed, aspect, axis", FRAGMENTS)
+def test_fragment_shadow_area_and_orientation(small_optics, seed, aspect, axis):
+    # In focus, the shadow summed over all views is the silhouette (times M^2 in pixels).
+    particle = _fragment(0.0, 0.0, 0.0, 1.0, aspect, axis, seed)
+    truth = particle_silhouettes(pd.DataFrame([particle])).iloc[0]
+    area, angle, _ = _shadow(small_optics, particle)
+    assert area == pytest.approx(truth["projected_area"], rel=0.03)
+    if aspect >= 2:
+        diff = (angle - truth["orientation"] + math.pi / 2) % math.pi - math.pi / 2
+        assert abs(diff) < math.radians(3)
+
+
+def test_culled_equals_exact_with_fragments(small_optics):
+    parts = pd.DataFrame([
+        _fragment(0.5, -0.3, 2.0, 0.7, 2.0, (1, 1, 0.2), 11),
+        _fragment(-2.0, 1.0, -6.0, 0.8, 1.3, (0, 0.2, 1), 12),
+        {**_spheroid(1.5, 1.2, 0.0, 0.5, 1.0, (0, 0, 1)), "shape": "sphere", "shape_seed": -1},
+        {**_spheroid(-1.0, -1.5, 4.0, 0.5, 1.7, (1, -2, 0.5)), "shape_seed": -1},
+        _fragment(0.9, -0.5, 5.0, 0.6, 3.0, (1, -2, 0.5), 13),        # overlaps the first in view
+    ])
+    culled = render_irradiance(small_optics, parts)
+    assert (culled != background_irradiance(small_optics)).sum() > 10000
+    np.testing.assert_array_equal(culled, render_irradiance(small_optics, parts, cull=False))
+
+
+def test_random_fragments():
+    vol = Volume((-3, 3), (-2, 2), (-5, 5))
+    t = random_particles(30, volume=vol, diameter_mm=0.4, seed=5, shape="fragment",
+                         max_aspect=3.0)
+    assert list(t.columns) == [*TRUTH_COLUMNS, *SHAPE_COLUMNS, "shape_seed"]
+    assert (t["shape"] == "fragment").all() and t["aspect"].between(1, 3).all()
+    assert t["shape_seed"].dtype == np.int64 and t["shape_seed"].nunique() == 30
+    pd.testing.assert_frame_equal(t, random_particles(30, volume=vol, diameter_mm=0.4, seed=5,
+                                                      shape="fragment"))
+    # Geometry reproducible from the truth row alone; bounding spheres do not overlap.
+    reach = np.array([fragment_geometry(r.shape_seed, r.diameter, r.aspect,
+                                        (r.axis_x, r.axis_y, r.axis_z)).bounding_radius
+                      for r in t.itertuples()])
+    xyz = t[["x", "y", "z"]].to_numpy()
+    gap = np.linalg.norm(xyz[:, None] - xyz[None], axis=-1)
+    np.fill_diagonal(gap, np.inf)
+    assert (gap >= reach[:, None] + reach[None]).all()
+    # Fragments of one volume have more varied, mostly larger silhouettes than spheres.
+    ratio = t["projected_area"] / (math.pi * t["diameter"] ** 2 / 4)
+    assert ratio.median() > 1.1 and ratio.std() > 0.1
+    scene = make_scene(preset("small"), n_particles=4, frames=2, seed=1, shape="fragment",
+                       velocity_mm_per_frame=(0.1, 0, 0))
+    f0, f1 = (g.reset_index(drop=True) for _, g in scene.truth.groupby("frame"))
+    np.testing.assert_array_equal(f0["shape_seed"], f1["shape_seed"])
+    np.testing.assert_array_equal(f0["projected_area"], f1["projected_area"])
+
+
+def test_invalid_fragment_rows(small_optics):
+    good = _fragment(0, 0, 0, 0.5, 2.0, (1, 0, 0), 3)
+    with pytest.raises(SceneError, match="need column 'shape_seed'"):
+        render_irradiance(small_optics, pd.DataFrame([good]).drop(columns=["shape_seed"]))
+    with pytest.raises(SceneError, match="shape_seed must be an integer >= 0"):
+        render_irradiance(small_optics, pd.DataFrame([{**good, "shape_seed": -2}]))
+    with pytest.raises(SceneError, match="shape_seed must be an integer >= 0"):
+        particle_silhouettes(pd.DataFrame([{**good, "shape_seed": 1.5}]))

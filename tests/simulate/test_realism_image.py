@@ -266,7 +266,7 @@ PARTS = pd.DataFrame([[0.5, -0.3, 2.0, 0.8], [-2.0, 1.0, -6.0, 1.0]],
 
 def test_groups_scaled_to_zero_give_the_ideal_bytes(ideal):
     off = Realism.realistic()
-    for g in ("blur", "illumination", "sensor", "spec", "lens"):
+    for g in ("blur", "illumination", "sensor", "spec", "lens", "particles"):
         off = off.scaled(0.0, group=g)
     o = make_optics(CAM, 0, realism=off)
     for a, b in zip(_card_frame_white(o, PARTS), _card_frame_white(ideal, PARTS)):

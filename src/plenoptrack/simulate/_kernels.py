@@ -6,8 +6,9 @@ so an image rendered lens by lens, over the whole sensor with shortcuts, or by b
 force is bit-identical. Geometry and symbols as in :mod:`.optics`.
 
 ``par`` is a float64 vector holding the optics (indices below). ``samples`` is an
-``(n, 4)`` float64 array: the sub-pixel offset (dX, dY) of the sensor point P and the
-offset (dX, dY) of the microlens point Q from the lens centre, mm, camera frame.
+``(n, 4)`` or ``(n, 5)`` float64 array: the sub-pixel offset (dX, dY) of the sensor point
+P and the offset (dX, dY) of the microlens point Q from the lens centre, mm, camera frame;
+the fifth column, the sample's time in the exposure, is read only with motion blur.
 ``occluders`` is an ``(m, 4)`` float64 array of spheres (X, Y, Z, radius^2) relative to
 the optical axis (``X - a_x``, ``Y - a_y``, ``Z``), mm; for an ellipsoid the row holds its
 centre and its *bounding* sphere (radius = long semi-axis ``a``), which every culling bound
@@ -17,6 +18,31 @@ for a sphere), columns 1..6 the scaled inverse-shape matrix ``M' = a^2 M`` (dime
 symmetric; entries ``M'xx, M'yy, M'zz, M'xy, M'xz, M'yz``), with the ellipsoid the set
 ``(p - c)^T M (p - c) <= 1``. For a prolate spheroid of aspect ``k = a / b`` and unit long
 axis ``v``: ``M' = k^2 I + (1 - k^2) v v^T``, exactly the identity when ``k = 1``.
+
+Particle effects (:class:`~.realism.ParticleEffects`, fragments). When a frame has
+fragments, translucent particles, specular highlights or motion blur, ``shapes`` has
+``W >= 28`` columns (the *extended* rows; ``W = 7`` otherwise and the code above runs
+unchanged, so such images keep their bytes): columns 0..6 as above with column 0 the
+type (0 sphere, 1 ellipsoid, 2 fragment); 7 the squared radius of the body's own test
+(sphere ``r^2``, ellipsoid ``a^2``, fragment bounding sphere); 8 the transmission
+``tau``; 9..11 the displacement ``s`` over the whole exposure (camera frame, mm); 12
+the number of convex pieces of a fragment and 13..15 their plane counts; 16..27 a sphere
+enclosing each piece (centre relative to ``c`` and radius^2, 4 columns per piece); from
+column 28 the planes, piece by piece, 4 columns each: unit outward normal
+``(nx, ny, nz)`` and offset ``d`` (mm) of the half-space ``n . (p - c) <= d``, camera
+frame. For a fragment ``c`` is the centre of a sphere enclosing it, not its centroid. ``occluders``
+then holds the centre at mid-exposure and the squared radius of a sphere that bounds the
+body over its whole path (bounding radius plus ``|s| / 2``), which every culling bound
+uses. ``samples`` has a fifth column, the sample's time ``t`` in [-0.5, 0.5) within the
+exposure: the body is tested at ``c + s t``. A sample's value is the product of ``tau``
+over every body its ray meets, plus, with highlights on (``par[HL_ON]``), the
+Blinn-Phong term ``S max(0, n . h)^E`` of the body met nearest the camera (``n`` the
+outward normal at the entry point: the gradient ``M'(p - c)`` on a quadric, the entry
+facet's normal on a fragment), clipped to 1 (the unoccluded value). Candidates are
+tested in increasing occluder index (:func:`_sort_head`), so the product's rounding is
+the same for the culled and the brute-force renderer. Fragment pieces are clipped by the
+Cyrus-Beck slab test on the line (not the half-line) after bounding-sphere rejections
+(the whole fragment's, then the piece's).
 
 Ray-occluder test. A ray ``p(Z) = H + Z d`` with ``H = (hx, hy, 0)``, ``d = (dx, dy, 1)``
 and ``w = c - H`` meets the ellipsoid iff the quadratic
@@ -50,7 +76,16 @@ E1X, E1Y, E2X, E2Y, OFFX, OFFY, SHIFT, PITCH, ROW_STEP, CELL_PX = range(11, 21)
 CELL_R, HALF_DIAG, INRADIUS_IMG, INV_SCALE, INV_P2, INV_RS2, R_AP = range(21, 28)
 LENS_ON, AXX, AXY, TX, TY, SEID_A, SEID_B, COMA_K, E_DEF, E_COMA = range(28, 38)
 VIG_ON, VIG_L, VIG_R2, VIG_R = range(38, 42)
-N_PAR = 42
+HL_ON, HL_S, HL_EXP, HL_LX, HL_LY, HL_LZ = range(42, 48)
+N_PAR = 48
+
+N_SHAPE_BASE = 7
+"""Columns of the ``shapes`` rows of spheres and ellipsoids without particle effects."""
+S_R2, S_TAU, S_VX, S_VY, S_VZ, S_NPIECE, S_PIECES, S_BALLS = 7, 8, 9, 10, 11, 12, 13, 16
+S_PLANES = 28
+"""First plane column of the extended ``shapes`` rows (module notes)."""
+MAX_PIECES = 3
+SPHERE_T, ELLIPSOID_T, FRAGMENT_T = 0.0, 1.0, 2.0
 
 
 def pack_params(optics) -> np.ndarray:
@@ -102,6 +137,13 @@ def pack_params(optics) -> np.ndarray:
             par[VIG_L] = stop[0]
             par[VIG_R2] = stop[1] ** 2
             par[VIG_R] = stop[1]
+    eff = optics.realism.particles
+    if eff.highlight_strength > 0:
+        lx, ly, lz = eff.light_direction                     # world frame
+        par[HL_ON] = 1.0
+        par[HL_S] = eff.highlight_strength
+        par[HL_EXP] = eff.highlight_exponent
+        par[HL_LX], par[HL_LY], par[HL_LZ] = -lx, -ly, lz    # camera frame
     return par
 
 
@@ -230,7 +272,12 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
     ``lens_i`` < -2**40 means "find the lens of every sample"; otherwise every sample
     uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]`` (ellipsoids
     where ``shapes`` flags them, module notes); the dot card ``card`` only if ``use_card``.
+    Extended ``shapes`` rows (particle effects, module notes) go to :func:`_sample_loop_ext`,
+    which returns the summed sample values instead of a count.
     """
+    if shapes.shape[1] > N_SHAPE_BASE:
+        return _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card,
+                                use_card, lens_i, lens_j)
     has_shapes = shapes.shape[0] > 0
     tan_s = par[S_I] / par[F_ML]
     s_o = par[S_O]
@@ -276,6 +323,203 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
             continue
         lit += 1
     return lit
+
+
+@njit(cache=True)
+def _sort_head(cand, nc):
+    """Sort ``cand[:nc]`` in place (insertion sort; writes nothing when already sorted)."""
+    for a in range(1, nc):
+        v = cand[a]
+        b = a - 1
+        if cand[b] <= v:
+            continue
+        while b >= 0 and cand[b] > v:
+            cand[b + 1] = cand[b]
+            b -= 1
+        cand[b + 1] = v
+
+
+@njit(cache=True)
+def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card,
+                     lens_i, lens_j):
+    """:func:`_sample_loop` with the particle effects: the sum of the sample values."""
+    _sort_head(cand, nc)
+    tan_s = par[S_I] / par[F_ML]
+    s_o = par[S_O]
+    inv_so = 1.0 / s_o
+    conj = -s_o / par[S_I]
+    per_sample = lens_i < -(1 << 40)
+    has_t = samples.shape[1] > 4
+    cx, cy = 0.0, 0.0
+    if not per_sample:
+        cx, cy = _lens_center(lens_i, lens_j, par)
+    total = 0.0
+    lens_on = par[LENS_ON] != 0.0
+    for k in range(samples.shape[0]):
+        px = x0 + samples[k, 0]
+        py = y0 + samples[k, 1]
+        if per_sample:
+            i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
+            cx, cy = _lens_center(i, j, par)
+        qx = cx + samples[k, 2]
+        qy = cy + samples[k, 3]
+        if lens_on:
+            ok, hx, hy, dx, dy = _lens_ray(px, py, qx, qy, cx, cy, par)
+            if not ok:
+                continue
+        else:
+            hx = qx + (cx - px) * tan_s
+            hy = qy + (cy - py) * tan_s
+            if hx * hx + hy * hy > par[R_AP2]:
+                continue
+            rho2 = (qx * qx + qy * qy) * par[INV_RN2]
+            g = 1.0 + par[K1] * rho2 + par[K2] * rho2 * rho2
+            dx = (qx * conj * g - hx) * inv_so
+            dy = (qy * conj * g - hy) * inv_so
+        t = samples[k, 4] if has_t else 0.0
+        value = _ray_value(hx, hy, dx, dy, t, occluders, cand, nc, shapes, par)
+        if value == 0.0:
+            continue
+        if use_card and _on_dot(hx, hy, dx, dy, card):
+            continue
+        total += value
+    return total
+
+
+@njit(cache=True)
+def _quadric_entry(q, wx, wy, wz, dx, dy, shapes, entry):
+    """Ray test of sphere or ellipsoid ``q`` with centre offset ``w = c - H`` (module
+    notes). Returns (hit, Z, nx, ny, nz): with ``entry``, the ray parameter of the entry
+    point and the (unnormalised) outward normal there."""
+    if shapes[q, 0] == SPHERE_T:
+        dmd = dx * dx + dy * dy + 1.0
+        dmw = wx * dx + wy * dy + wz
+        c0 = wx * wx + wy * wy + wz * wz - shapes[q, S_R2]
+        if not c0 * dmd < dmw * dmw:
+            return False, 0.0, 0.0, 0.0, 0.0
+        if not entry:
+            return True, 0.0, 0.0, 0.0, 0.0
+        z = (dmw - math.sqrt(dmw * dmw - c0 * dmd)) / dmd
+        return True, z, z * dx - wx, z * dy - wy, z - wz
+    mxx = shapes[q, 1]
+    myy = shapes[q, 2]
+    mzz = shapes[q, 3]
+    mxy = shapes[q, 4]
+    mxz = shapes[q, 5]
+    myz = shapes[q, 6]
+    mwx = mxx * wx + mxy * wy + mxz * wz
+    mwy = mxy * wx + myy * wy + myz * wz
+    mwz = mxz * wx + myz * wy + mzz * wz
+    mdx = mxx * dx + mxy * dy + mxz
+    mdy = mxy * dx + myy * dy + myz
+    mdz = mxz * dx + myz * dy + mzz
+    dmd = dx * mdx + dy * mdy + mdz
+    c0 = wx * mwx + wy * mwy + wz * mwz - shapes[q, S_R2]
+    dmw = dx * mwx + dy * mwy + mwz
+    if not c0 * dmd < dmw * dmw:
+        return False, 0.0, 0.0, 0.0, 0.0
+    if not entry:
+        return True, 0.0, 0.0, 0.0, 0.0
+    z = (dmw - math.sqrt(dmw * dmw - c0 * dmd)) / dmd
+    return True, z, z * mdx - mwx, z * mdy - mwy, z * mdz - mwz
+
+
+@njit(cache=True)
+def _fragment_entry(q, wx, wy, wz, dx, dy, shapes, entry):
+    """Ray test of fragment ``q`` (module notes): bounding sphere, then Cyrus-Beck per
+    piece. Returns (hit, Z, nx, ny, nz): with ``entry``, the smallest entry parameter over
+    the pieces met and the normal of its entry facet."""
+    dd = dx * dx + dy * dy + 1.0
+    wd = wx * dx + wy * dy + wz
+    if not (wx * wx + wy * wy + wz * wz - shapes[q, S_R2]) * dd < wd * wd:
+        return False, 0.0, 0.0, 0.0, 0.0
+    hit = False
+    best = math.inf
+    bx, by, bz = 0.0, 0.0, 0.0
+    col = S_PLANES
+    for piece in range(int(shapes[q, S_NPIECE])):
+        k = int(shapes[q, S_PIECES + piece])
+        b0 = S_BALLS + 4 * piece
+        px = wx + shapes[q, b0]
+        py = wy + shapes[q, b0 + 1]
+        pz = wz + shapes[q, b0 + 2]
+        pd = px * dx + py * dy + pz
+        if not (px * px + py * py + pz * pz - shapes[q, b0 + 3]) * dd < pd * pd:
+            col += 4 * k
+            continue
+        lo = -math.inf
+        hi = math.inf
+        lx, ly, lz = 0.0, 0.0, 0.0
+        inside = True
+        for c in range(col, col + 4 * k, 4):
+            nx = shapes[q, c]
+            ny = shapes[q, c + 1]
+            nz = shapes[q, c + 2]
+            # n . (Z d - w) <= offset  <=>  Z (n . d) <= offset + n . w
+            a = nx * dx + ny * dy + nz
+            b = shapes[q, c + 3] + nx * wx + ny * wy + nz * wz
+            if a > 0.0:
+                hi = min(hi, b / a)
+            elif a < 0.0:
+                z = b / a
+                if z > lo:
+                    lo = z
+                    lx, ly, lz = nx, ny, nz
+            elif b < 0.0:
+                inside = False
+            if not inside or lo >= hi:
+                inside = False
+                break
+        col += 4 * k
+        if inside:
+            hit = True
+            if not entry:
+                return True, 0.0, 0.0, 0.0, 0.0
+            if lo < best:
+                best = lo
+                bx, by, bz = lx, ly, lz
+    return hit, best, bx, by, bz
+
+
+@njit(cache=True)
+def _ray_value(hx, hy, dx, dy, t, occluders, cand, nc, shapes, par):
+    """Value of the ray ``H + Z (d, 1)`` at exposure time ``t`` against the extended
+    occluders ``cand[:nc]`` (module notes): transmission product plus highlight, <= 1."""
+    hl_on = par[HL_ON] != 0.0
+    trans = 1.0
+    best = math.inf
+    bx, by, bz = 0.0, 0.0, 0.0
+    for m in range(nc):
+        q = cand[m]
+        wx = occluders[q, 0] + shapes[q, S_VX] * t - hx
+        wy = occluders[q, 1] + shapes[q, S_VY] * t - hy
+        wz = occluders[q, 2] + shapes[q, S_VZ] * t
+        if shapes[q, 0] == FRAGMENT_T:
+            hit, z, nx, ny, nz = _fragment_entry(q, wx, wy, wz, dx, dy, shapes, hl_on)
+        else:
+            hit, z, nx, ny, nz = _quadric_entry(q, wx, wy, wz, dx, dy, shapes, hl_on)
+        if not hit:
+            continue
+        trans *= shapes[q, S_TAU]
+        if hl_on:
+            if z < best:
+                best = z
+                bx, by, bz = nx, ny, nz
+        elif trans == 0.0:
+            return 0.0
+    if not hl_on or best == math.inf:
+        return trans
+    # Half vector of the light and the direction back to the camera, -(d, 1) / |(d, 1)|.
+    inv_d = 1.0 / math.sqrt(dx * dx + dy * dy + 1.0)
+    h_x = par[HL_LX] - dx * inv_d
+    h_y = par[HL_LY] - dy * inv_d
+    h_z = par[HL_LZ] - inv_d
+    nh = bx * h_x + by * h_y + bz * h_z
+    if nh <= 0.0:
+        return trans
+    nh /= math.sqrt((bx * bx + by * by + bz * bz) * (h_x * h_x + h_y * h_y + h_z * h_z))
+    value = trans + par[HL_S] * nh ** par[HL_EXP]
+    return min(value, 1.0)
 
 
 @njit(cache=True)
@@ -577,9 +821,11 @@ def _shapes_arg(shapes, occluders):
     if shapes is None or len(shapes) == 0:
         return NO_SHAPES
     shapes = np.ascontiguousarray(shapes, dtype=np.float64)
-    if shapes.shape != (occluders.shape[0], 7):
-        raise ValueError(f"shapes must be (0, 7) or ({occluders.shape[0]}, 7), one row per "
-                         f"occluder; got shape {shapes.shape}")
+    m = occluders.shape[0]
+    if (shapes.ndim != 2 or shapes.shape[0] != m
+            or not (shapes.shape[1] == N_SHAPE_BASE or shapes.shape[1] >= S_PLANES)):
+        raise ValueError(f"shapes must be (0, 7), ({m}, 7) or ({m}, W >= {S_PLANES}), one row "
+                         f"per occluder; got shape {shapes.shape}")
     return shapes
 
 

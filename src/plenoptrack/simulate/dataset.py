@@ -10,7 +10,10 @@ Folder layout (the simulator part of the file contract in ``DESIGN.md``)::
       camera.toml                nominal camera description (what a user would write)
       truth.parquet              frame, particle, x, y, z, diameter (world frame, mm),
                                  projected_area (mm^2), orientation (rad); ellipsoid
-                                 scenes add shape, aspect, axis_x, axis_y, axis_z
+                                 scenes add shape, aspect, axis_x, axis_y, axis_z,
+                                 fragment scenes also shape_seed; the particle effects
+                                 add transmission and velocity_x, velocity_y,
+                                 velocity_z (mm per frame)
       truth_optics.json          true lenslet grid, MLA perturbation and distortion
 
 ``truth.parquet`` and ``truth_optics.json`` are ground truth for tests and evaluation;
@@ -35,7 +38,7 @@ from .dotcard import (DotCard, default_dotcard, default_dotcard_depths,
 from .optics import SimOptics, make_optics
 from .realism import Realism
 from .render import DEFAULT_SAMPLES_PER_PIXEL, render_frame, render_white
-from .scene import Scene, SceneError, make_scene
+from .scene import Scene, SceneError, make_scene, with_particle_effects
 from .sensor import SensorModel
 
 __all__ = ["SimulationResult", "simulate_dataset", "foreign_files", "DATASET_LAYOUT"]
@@ -211,14 +214,18 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         ``[optics]`` when it has one, else ideal. With
         ``realism.spec`` the true optics differ from ``camera.toml``; with
         ``realism.target`` the dot cards are tilted, misprinted, off-centre and at depths
-        off their stated ones by a common traverse zero offset and a per-card error.
+        off their stated ones by a common traverse zero offset and a per-card error; with
+        ``realism.particles`` each particle gets a transmission (drawn from
+        ``[seed, 6]``) and its velocity (:meth:`.Scene.particle_velocities`) in the truth
+        (:func:`~.scene.with_particle_effects`), the frames show specular highlights and
+        motion blur over ``exposure_fraction`` of the frame interval.
     progress : bool
         Show progress bars.
-    shape : {"sphere", "ellipsoid"}
+    shape : {"sphere", "ellipsoid", "fragment"}
         Particle shape of the random scene (ignored when ``scene`` is given); see
         :func:`~plenoptrack.simulate.scene.random_particles`.
     max_aspect : float
-        Largest aspect (long over short semi-axis) of random ellipsoids, >= 1.
+        Largest aspect (long over short semi-axis) of random ellipsoids or fragments, >= 1.
 
     Returns
     -------
@@ -263,6 +270,11 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     card = default_dotcard(camera) if dotcard is None else dotcard
     optics = make_optics(camera, seed, realism=realism)
     truth = scene.truth.reset_index(drop=True)  # world frame, for rendering
+    effects = optics.realism.particles
+    if effects.enabled:
+        truth = with_particle_effects(
+            truth, effects, seed=np.random.default_rng([seed, 6]),
+            velocity=scene.particle_velocities() if effects.exposure_fraction > 0 else None)
     zero_mm, centre_mm, placements = 0.0, (0.0, 0.0), [None] * len(depths)
     if optics.realism.target.enabled:
         zero_mm, centre_mm, placements = draw_card_placements(

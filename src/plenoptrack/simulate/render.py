@@ -14,6 +14,18 @@ distorted conjugate of ``Q`` on the focal plane. A sample sees the back-light (r
 Particles are spheres or, opt-in (``shape == "ellipsoid"``), prolate spheroids; a ray
 meets a spheroid when the quadratic in the ray parameter for ``(p - c)^T M (p - c) = 1``
 has real roots (:mod:`._kernels`). Spheres keep their own test and arithmetic.
+Fragments (``shape == "fragment"``, :mod:`.fragments`) are unions of convex polytopes,
+clipped by the Cyrus-Beck slab test.
+
+Particle effects (``optics.realism.particles`` and the truth columns, :mod:`._kernels`
+module notes): a particle with a ``transmission`` tau lets a fraction tau of a ray's
+light through (the product over every particle the ray meets); with highlights on, the
+first surface a ray meets adds a Blinn-Phong term, the sample clipped to the back-light;
+a particle with a velocity is tested at ``c + v f t`` (``f`` the exposure fraction, ``t``
+the sample's time in [-0.5, 0.5) from the fifth column of :func:`sample_pattern`), so its
+image is blurred along its path over the exposure. A sample's value then lies in [0, 1]
+and the pixel irradiance is the mean value. Without any of them the code of the opaque
+model runs unchanged (same bytes, same speed).
 
 The empty (back-lit only) irradiance is computed once per optics and sample count and
 cached. A frame with particles re-traces only the pixels of lenses whose footprint can
@@ -23,7 +35,9 @@ microlens plane through the inverse distortion, the enclosing disc is grown by a
 radius and two pitches (a pixel's samples may use a lens next to the one owning the
 pixel centre), and the pixels of the lenses with centres inside are re-traced against
 the particles whose boxes contain them. A spheroid is culled by its bounding sphere
-(radius = long semi-axis), so the bounds stay conservative and culling stays exact.
+(radius = long semi-axis), a fragment by a sphere enclosing its vertices, a moving
+particle by that sphere grown by half its path over the exposure, so the bounds stay
+conservative and culling stays exact.
 
 Lens effects (``optics.realism.lens``, see :mod:`.optics`) act on the rays themselves:
 the microlens distance of a tilted MLA, the Seidel errors of the aim point, the front
@@ -51,10 +65,11 @@ import math
 import numpy as np
 import pandas as pd
 
-from .._columns import DIAMETER_COLUMN, POS_COLUMNS, T_COLUMN
+from .._columns import (DIAMETER_COLUMN, POS_COLUMNS, T_COLUMN, TRANSMISSION_COLUMN,
+                        VELOCITY_COLUMNS)
 from . import _kernels
 from .optics import SimOptics
-from .scene import SceneError, _shape_arrays
+from .scene import ELLIPSOID, SceneError, _fragments, _shape_arrays
 from ..errors import SettingsError
 from .illumination import illuminate, image_rng
 from .psf import blur_image, live_cell_scale
@@ -81,12 +96,74 @@ def _check_samples(samples_per_pixel) -> int:
     return int(samples_per_pixel)
 
 
+_TIME_SEED = 20240611
+_TIME_DRAWS = 1 << 20
+
+
+def _sample_times(columns: np.ndarray) -> np.ndarray:
+    """Exposure times in [-0.5, 0.5) of a point-symmetric sample pattern.
+
+    Parameters
+    ----------
+    columns : (n, 4) float ndarray
+        The pattern's offsets of ``P`` and ``Q`` (sample ``k + n // 2`` the point reflection
+        of sample ``k``, an odd centre sample last).
+
+    Returns
+    -------
+    (n,) float64 ndarray
+        Stratified: the ``n`` times are the stratum centres ``(j + 0.5) / n - 0.5``, each
+        used once. Symmetric like the pattern: sample ``k + n // 2`` gets the opposite
+        time of sample ``k`` and an odd centre sample 0, so a blurred image has no
+        centroid bias. The strata are dealt to the first half by a permutation with
+        signs: the best of a fixed set of seeded draws, then improved by sign flips and
+        swaps, minimising the largest correlation of the times with the four offsets (a
+        time correlated with ``Q`` would shorten or lengthen the blur in one direction).
+    """
+    n = len(columns)
+    half = n // 2
+    if half == 0:
+        return np.zeros(n)
+    mags = (np.arange(half) + 0.5 * (1 - n % 2) + n % 2) / n     # positive stratum centres
+    x = columns[:half] / np.maximum(np.sqrt((columns[:half] ** 2).sum(axis=0)), 1e-300)
+    rng = np.random.default_rng(_TIME_SEED)
+    draws = max(16, _TIME_DRAWS // half)
+    if half <= 10:
+        # Every sign pattern with each of a set of permutations.
+        signs = 1.0 - 2.0 * ((np.arange(1 << half)[:, None] >> np.arange(half)) & 1)
+        perm = np.argsort(rng.random((max(1, draws // len(signs)), half)), axis=1)
+        cand = (mags[perm][:, None, :] * signs[None]).reshape(-1, half)
+    else:
+        perm = np.argsort(rng.random((draws, half)), axis=1)
+        cand = mags[perm] * rng.choice([-1.0, 1.0], size=(draws, half))
+    norm = math.sqrt(float((mags ** 2).sum()))
+
+    def cost(t):
+        return np.abs(t @ x).max(axis=-1) / norm
+
+    t = cand[np.argmin(cost(cand))]
+    if half <= 256:
+        best = cost(t)
+        for _ in range(50):
+            flips = t[None, :] * np.where(np.eye(half, dtype=bool), -1.0, 1.0)
+            i, j = np.triu_indices(half, 1)
+            swaps = np.repeat(t[None, :], len(i), axis=0)
+            swaps[np.arange(len(i)), i], swaps[np.arange(len(i)), j] = t[j], t[i]
+            trial = np.concatenate([flips, swaps])
+            c = cost(trial)
+            if c.min() >= best:
+                break
+            t, best = trial[np.argmin(c)], c.min()
+    return np.concatenate([t, -t, np.zeros(n % 2)])
+
+
 @functools.lru_cache(maxsize=16)
 def sample_pattern(optics: SimOptics, n: int) -> np.ndarray:
-    """The fixed per-pixel sample pattern, ``(n, 4)`` float64, read-only.
+    """The fixed per-pixel sample pattern, ``(n, 5)`` float64, read-only.
 
     Columns: offset (dX, dY) of ``P`` from the pixel centre and offset (dX, dY) of ``Q``
-    from the microlens centre, camera frame, mm. Half the samples come from a scrambled
+    from the microlens centre, camera frame, mm; the sample's time within the exposure,
+    in [-0.5, 0.5) (:func:`_sample_times`; only motion blur reads it). Half the samples come from a scrambled
     Sobol sequence (Halton when ``n / 2`` is not a power of two) with a fixed seed, the
     other half are their point reflections (``u -> 1 - u`` in all four dimensions), and an
     odd ``n`` adds the centre sample; the pattern is therefore symmetric and the
@@ -127,6 +204,7 @@ def sample_pattern(optics: SimOptics, n: int) -> np.ndarray:
     if optics.realism.blur.fill_gap > 0:
         folded *= live_cell_scale(optics.realism.blur)
     samples = np.column_stack([(u[:, 0] - 0.5) * pp, (u[:, 1] - 0.5) * pp, folded])
+    samples = np.column_stack([samples, _sample_times(samples)])
     samples.setflags(write=False)
     return samples
 
@@ -163,18 +241,26 @@ def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarr
     Returns
     -------
     occluders : (m, 4) float64 ndarray
-        (X, Y, Z, r^2) camera frame, mm; ``r`` is the radius of a sphere and the long
-        semi-axis ``a`` (bounding radius) of an ellipsoid.
-    shapes : (0, 7) or (m, 7) float64 ndarray
-        Zero rows when every particle is a sphere; else per occluder the ellipsoid flag and
-        scaled inverse-shape matrix ``M' = k^2 I + (1 - k^2) v v^T`` (``k`` the aspect,
-        ``v`` the unit long axis in the camera frame), see :mod:`._kernels`.
+        (X, Y, Z, r^2) camera frame, mm; ``r`` is the radius of a sphere, the long
+        semi-axis ``a`` (bounding radius) of an ellipsoid, the farthest vertex of a
+        fragment; with motion blur, plus half the path over the exposure.
+    shapes : (0, 7), (m, 7) or (m, W) float64 ndarray
+        Zero rows when every particle is a still, opaque sphere and there are no
+        highlights; ``(m, 7)`` when some are ellipsoids: per occluder the ellipsoid flag
+        and scaled inverse-shape matrix ``M' = k^2 I + (1 - k^2) v v^T`` (``k`` the
+        aspect, ``v`` the unit long axis in the camera frame); ``(m, W)``, ``W >= 16``,
+        the extended rows of the particle effects (fragments, transmission, highlights,
+        motion), see :mod:`._kernels`.
 
     Notes
     -----
     Optional columns :data:`~plenoptrack._columns.SHAPE_COLUMNS` make rows with
     ``shape == "ellipsoid"`` prolate spheroids of volume-equivalent diameter ``diameter``:
-    short semi-axes ``b = (d / 2) k^(-1/3)``, long semi-axis ``a = (d / 2) k^(2/3)``.
+    short semi-axes ``b = (d / 2) k^(-1/3)``, long semi-axis ``a = (d / 2) k^(2/3)``;
+    rows with ``shape == "fragment"`` (and ``shape_seed``) irregular fragments
+    (:func:`.fragments.fragment_geometry`). ``transmission`` (in [0, 1)) makes particles
+    translucent; ``velocity_x, velocity_y, velocity_z`` (mm per frame) blur them over
+    ``optics.realism.particles.exposure_fraction`` of the frame interval.
     """
     if particles is None:
         return np.zeros((0, 4)), _kernels.NO_SHAPES
@@ -194,23 +280,38 @@ def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarr
     diam = values[:, 3]
     if (diam <= 0).any():
         raise SceneError(f"particle diameters must be positive (mm); got min {diam.min()}")
-    ell, aspect, axis = _shape_arrays(particles)
+    kind, aspect, axis = _shape_arrays(particles)
+    ell = kind == ELLIPSOID
+    frags = _fragments(particles, kind, aspect, axis)
+    tau = _transmissions(particles)
+    sweep = _sweeps(optics, particles)                  # camera frame, mm over the exposure
     big_z = values[:, 2] + optics.s_o
     radius = diam / 2
     if ell.any():
         radius = np.where(ell, radius * aspect ** (2.0 / 3.0), radius)
-    behind = big_z - radius <= 0.05 * optics.s_o
+    centre = np.zeros((len(values), 3))                 # ball centre - particle centre, world
+    for r, frag in frags.items():
+        centre[r] = frag.ball[:3]
+        radius[r] = frag.ball[3] * (1.0 + 1e-9)
+    extended = bool(frags or (tau > 0).any() or (sweep != 0).any()
+                    or (optics.realism.particles.highlight_strength > 0 and len(values)))
+    reach = radius
+    if extended:
+        reach = radius + 0.5 * np.sqrt((sweep ** 2).sum(axis=1)) * (1.0 + 1e-9)
+    behind = big_z + centre[:, 2] - reach <= 0.05 * optics.s_o
     if behind.any():
         raise SceneError(f"particle(s) at z = {values[behind, 2][:3]} mm reach the main lens "
                          f"(the focal plane is {optics.s_o:.1f} mm in front of it); "
                          f"keep z - diameter/2 > {-0.95 * optics.s_o:.1f} mm")
-    occ = np.column_stack([-values[:, 0], -values[:, 1], big_z, radius ** 2])
-    if not ell.any():
+    occ = np.column_stack([-(values[:, 0] + centre[:, 0]), -(values[:, 1] + centre[:, 1]),
+                           big_z + centre[:, 2], reach ** 2])
+    if not ell.any() and not extended:
         return occ, _kernels.NO_SHAPES
+    n_planes = max((sum(len(p) for p in f.planes) for f in frags.values()), default=0)
+    shapes = np.zeros((len(occ), _kernels.S_PLANES + 4 * n_planes if extended else 7))
     v = axis * np.array([-1.0, -1.0, 1.0])              # world -> camera frame
     k2 = aspect ** 2
     c = 1.0 - k2
-    shapes = np.zeros((len(occ), 7))
     shapes[:, 0] = ell
     shapes[:, 1] = k2 + c * v[:, 0] * v[:, 0]
     shapes[:, 2] = k2 + c * v[:, 1] * v[:, 1]
@@ -218,8 +319,55 @@ def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarr
     shapes[:, 4] = c * v[:, 0] * v[:, 1]
     shapes[:, 5] = c * v[:, 0] * v[:, 2]
     shapes[:, 6] = c * v[:, 1] * v[:, 2]
-    shapes[~ell, 1:] = 0.0
+    shapes[~ell, 1:7] = 0.0
+    if not extended:
+        return occ, shapes
+    shapes[:, _kernels.S_R2] = radius ** 2
+    shapes[:, _kernels.S_TAU] = tau
+    shapes[:, _kernels.S_VX:_kernels.S_VZ + 1] = sweep
+    flip = np.array([-1.0, -1.0, 1.0, 1.0])             # world -> camera frame
+    for r, frag in frags.items():
+        shapes[r, 0] = _kernels.FRAGMENT_T
+        shapes[r, _kernels.S_NPIECE] = len(frag.planes)
+        col = _kernels.S_PLANES
+        for p, planes in enumerate(frag.planes):
+            shapes[r, _kernels.S_PIECES + p] = len(planes)
+            ball = frag.piece_balls[p]
+            b0 = _kernels.S_BALLS + 4 * p
+            shapes[r, b0:b0 + 3] = (ball[:3] - centre[r]) * flip[:3]
+            shapes[r, b0 + 3] = (ball[3] * (1.0 + 1e-9)) ** 2
+            # Offsets relative to the ball centre: n . (p - c - b) <= d - n . b.
+            rel = np.column_stack([planes[:, :3], planes[:, 3] - planes[:, :3] @ centre[r]])
+            shapes[r, col:col + 4 * len(planes)] = (rel * flip).ravel()
+            col += 4 * len(planes)
     return occ, shapes
+
+
+def _transmissions(particles: pd.DataFrame) -> np.ndarray:
+    """Per-particle transmission in [0, 1) (0 without the column)."""
+    if TRANSMISSION_COLUMN not in particles.columns:
+        return np.zeros(len(particles))
+    tau = particles[TRANSMISSION_COLUMN].to_numpy(dtype=np.float64)
+    bad = ~(np.isfinite(tau) & (tau >= 0) & (tau < 1))
+    if bad.any():
+        raise SceneError(f"particle {TRANSMISSION_COLUMN} must be in [0, 1); "
+                         f"got {tau[bad][:3].tolist()}")
+    return tau
+
+
+def _sweeps(optics: SimOptics, particles: pd.DataFrame) -> np.ndarray:
+    """Displacement of each particle over the exposure, ``(n, 3)`` camera frame, mm:
+    velocity (mm per frame) times ``optics.realism.particles.exposure_fraction``."""
+    present = [c for c in VELOCITY_COLUMNS if c in particles.columns]
+    if not present:
+        return np.zeros((len(particles), 3))
+    if len(present) < 3:
+        raise SceneError(f"particle velocity needs all of {list(VELOCITY_COLUMNS)} "
+                         f"(mm per frame, world frame); got only {present}")
+    vel = particles[list(VELOCITY_COLUMNS)].to_numpy(dtype=np.float64)
+    if not np.isfinite(vel).all():
+        raise SceneError("particle velocities must be finite (mm per frame)")
+    return vel * np.array([-1.0, -1.0, 1.0]) * optics.realism.particles.exposure_fraction
 
 
 def _footprint_discs(optics: SimOptics, occluders: np.ndarray) -> np.ndarray:
@@ -322,7 +470,7 @@ def particle_lenses(optics: SimOptics, occluders: np.ndarray):
 def render_irradiance(optics: SimOptics, particles: pd.DataFrame | None = None, *,
                       samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
                       cull: bool = True) -> np.ndarray:
-    """Noise-free irradiance of a back-lit frame with opaque spherical or spheroidal particles.
+    """Noise-free irradiance of a back-lit frame with spherical, spheroidal or fragment particles.
 
     Parameters
     ----------
@@ -331,8 +479,12 @@ def render_irradiance(optics: SimOptics, particles: pd.DataFrame | None = None, 
     particles : DataFrame or None
         One frame of particles, columns ``x, y, z, diameter`` (world frame, mm); optional
         :data:`~plenoptrack._columns.SHAPE_COLUMNS` (``shape, aspect, axis_x, axis_y,
-        axis_z``) make rows with ``shape == "ellipsoid"`` prolate spheroids (``diameter``
-        then volume-equivalent; see :func:`_particle_arrays`).
+        axis_z``) make rows with ``shape == "ellipsoid"`` prolate spheroids and, with
+        ``shape_seed``, rows with ``shape == "fragment"`` irregular fragments
+        (``diameter`` then volume-equivalent; see :func:`_particle_arrays`); optional
+        ``transmission`` (in [0, 1)) and ``velocity_x, velocity_y, velocity_z`` (mm per
+        frame, world frame) make them translucent and blurred over the exposure
+        (``optics.realism.particles``, which also switches the highlights).
     samples_per_pixel : int
         Rays per pixel.
     cull : bool
@@ -343,7 +495,8 @@ def render_irradiance(optics: SimOptics, particles: pd.DataFrame | None = None, 
     Returns
     -------
     (rows, cols) float32 ndarray
-        Fraction of the back-light reaching each sensor pixel, in [0, 1].
+        Fraction of the back-light reaching each sensor pixel, in [0, 1] (with
+        highlights, never more than the empty camera's).
     """
     _check_optics(optics)
     n = _check_samples(samples_per_pixel)
@@ -402,15 +555,16 @@ def render_frame(optics: SimOptics, particles: pd.DataFrame | None, *,
                  seed: int | np.random.Generator | None = 0, noise: bool = True,
                  samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
                  sensor: SensorModel = SensorModel()) -> np.ndarray:
-    """Raw image of one frame of opaque particles in front of the back-light.
+    """Raw image of one frame of particles in front of the back-light.
 
     Parameters
     ----------
     optics : SimOptics
         True camera optics.
     particles : DataFrame or None
-        Columns ``x, y, z, diameter`` (world frame, mm); a ``frame`` column, if present,
-        must hold a single value.
+        Columns ``x, y, z, diameter`` (world frame, mm) and the optional shape and effect
+        columns of :func:`render_irradiance`; a ``frame`` column, if present, must hold
+        a single value.
     seed : int or numpy.random.Generator
         Noise seed; the same inputs and seed give identical bytes.
     noise : bool

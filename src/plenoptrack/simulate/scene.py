@@ -6,7 +6,8 @@ particle, x, y, z, diameter`` (world frame, mm), ``projected_area`` (mm^2) and
 :func:`particle_silhouettes`) for a camera. Opt-in ellipsoid scenes (``shape="ellipsoid"``)
 hold prolate spheroids and add ``shape, aspect, axis_x, axis_y, axis_z``
 (:data:`~plenoptrack._columns.SHAPE_COLUMNS`); ``diameter`` is then the volume-equivalent
-diameter. Random scenes place
+diameter. Opt-in fragment scenes (``shape="fragment"``) hold irregular bodies
+(:mod:`.fragments`) and add ``shape_seed`` too. Random scenes place
 non-overlapping spheres uniformly in a measurement volume, of one diameter or of diameters
 drawn log-uniformly from a range (a polydisperse scene); multi-frame scenes move every
 particle with a constant velocity so that tracking has ground truth.
@@ -25,6 +26,8 @@ Scene files (TOML)
 
     [optics]                            # optional: optics mode and effect sizes
     mode = "realistic"                  # or "ideal" (see plenoptrack.simulate.realism)
+    [optics.particles]                  # optional: translucency, highlights, motion blur
+    exposure_fraction = 0.05            # shutter open 5 % of the frame interval
 
     [volume]                            # optional: defaults from the camera (see default_volume)
     depth_mm = 20.0
@@ -33,8 +36,9 @@ Scene files (TOML)
     n = 20
     diameter_mm = 1.0                   # optional, default per preset (default_diameter_mm);
                                         # [min, max] draws each diameter log-uniformly
-    shape = "ellipsoid"                 # optional, default "sphere"
-    max_aspect = 3.0                    # optional: ellipsoids' largest aspect ratio
+    shape = "ellipsoid"                 # optional, default "sphere"; or "fragment"
+    max_aspect = 3.0                    # optional: largest aspect ratio of ellipsoids and
+                                        # fragments
 
     [[particles]]                       # ... or explicit particles at frame 0
     x = 0.0
@@ -51,24 +55,26 @@ from __future__ import annotations
 import dataclasses
 import math
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from .._columns import (ASPECT_COLUMN, AXIS_COLUMNS, DIAMETER_COLUMN, ID_COLUMN,
-                        ORIENTATION_COLUMN, PARTICLE_TABLE_COLUMNS, POS_COLUMNS,
-                        PROJECTED_AREA_COLUMN, SHAPE_COLUMN, SHAPE_COLUMNS, T_COLUMN,
-                        TRUTH_COLUMNS)
+                        OPTIONAL_TRUTH_COLUMNS, ORIENTATION_COLUMN, PARTICLE_TABLE_COLUMNS,
+                        POS_COLUMNS, PROJECTED_AREA_COLUMN, SHAPE_COLUMN, SHAPE_COLUMNS,
+                        SHAPE_SEED_COLUMN, T_COLUMN, TRANSMISSION_COLUMN, TRUTH_COLUMNS,
+                        VELOCITY_COLUMNS)
 from ..camera import CameraSpec, preset
 from ..errors import InputFileError, PlenoptrackError, SettingsError
-from .realism import Realism, realism_from_dict
+from .fragments import FRAGMENT_REACH, fragment_geometry, fragment_silhouette
+from .realism import ParticleEffects, Realism, realism_from_dict
 
 __all__ = ["SceneError", "Volume", "Scene", "VOLUME_DEPTH_MM", "DIAMETER_MM", "volume_depth_mm",
            "default_diameter_mm", "diameter_range", "default_volume", "random_particles",
            "moving_particles", "make_scene", "load_scene", "particle_silhouettes",
-           "SHAPES"]
+           "with_particle_effects", "SHAPES"]
 
 VOLUME_DEPTH_MM = {"hall2019": 50.0, "small": 20.0, "small-rect": 20.0}
 """Default measurement-volume depth per camera preset, mm."""
@@ -158,17 +164,23 @@ def default_volume(camera: CameraSpec, *, depth_mm: float | None = None,
     return Volume((-half_x, half_x), (-half_y, half_y), (-half_z, half_z))
 
 
-SHAPES = ("sphere", "ellipsoid")
-"""Particle shapes: spheres, or prolate spheroids (``shape`` column ``"ellipsoid"``)."""
+SHAPES = ("sphere", "ellipsoid", "fragment")
+"""Particle shapes: spheres, prolate spheroids (``shape`` column ``"ellipsoid"``) or
+irregular fragments (``"fragment"``, :mod:`.fragments`)."""
+
+SPHERE, ELLIPSOID, FRAGMENT = range(3)
+"""Shape codes of :func:`_shape_arrays` (index into :data:`SHAPES`)."""
 
 
-def _empty_truth(shapes: bool = False) -> pd.DataFrame:
+def _empty_truth(shapes: bool = False, fragments: bool = False) -> pd.DataFrame:
     cols = {T_COLUMN: pd.Series(dtype=np.int64), ID_COLUMN: pd.Series(dtype=np.int64),
             **{c: pd.Series(dtype=float) for c in (*POS_COLUMNS, DIAMETER_COLUMN,
                                                    PROJECTED_AREA_COLUMN, ORIENTATION_COLUMN)}}
     if shapes:
         cols |= {SHAPE_COLUMN: pd.Series(dtype=object),
                  **{c: pd.Series(dtype=float) for c in (ASPECT_COLUMN, *AXIS_COLUMNS)}}
+    if fragments:
+        cols |= {SHAPE_SEED_COLUMN: pd.Series(dtype=np.int64)}
     return pd.DataFrame(cols)
 
 
@@ -185,29 +197,33 @@ def _check_shape(shape, max_aspect) -> float:
 
 
 def _shape_arrays(particles: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Shapes of a particles table: ``(ellipsoid, aspect, axis)``.
+    """Shapes of a particles table: ``(kind, aspect, axis)``.
 
-    ``ellipsoid`` (n,) bool marks rows with ``shape == "ellipsoid"``; ``aspect`` (n,) float
-    is their aspect (1 for spheres); ``axis`` (n, 3) float their unit long axis, world
-    frame ((0, 0, 1) for spheres). A table without a ``shape`` column holds spheres.
-    Raises :class:`SceneError` for unknown shapes, aspects below 1 or zero axes.
+    ``kind`` (n,) int holds :data:`SPHERE`, :data:`ELLIPSOID` or :data:`FRAGMENT`;
+    ``aspect`` (n,) float the aspect of ellipsoids and fragments (1 for spheres); ``axis``
+    (n, 3) float their unit long axis, world frame ((0, 0, 1) for spheres). A table
+    without a ``shape`` column holds spheres. Raises :class:`SceneError` for unknown
+    shapes, aspects below 1, zero axes or fragments without a valid ``shape_seed``.
     """
     n = len(particles)
-    ell = np.zeros(n, dtype=bool)
+    kind = np.zeros(n, dtype=np.int64)
     aspect = np.ones(n)
     axis = np.tile([0.0, 0.0, 1.0], (n, 1))
     if SHAPE_COLUMN not in particles.columns:
-        return ell, aspect, axis
+        return kind, aspect, axis
     shape = particles[SHAPE_COLUMN].to_numpy(dtype=object)
     bad = ~np.isin(shape, SHAPES)
     if bad.any():
         raise SceneError(f"particle shape must be one of {SHAPES}; got {shape[bad][:3].tolist()}")
-    ell = shape == "ellipsoid"
+    kind[shape == "ellipsoid"] = ELLIPSOID
+    kind[shape == "fragment"] = FRAGMENT
+    ell = kind != SPHERE
     if not ell.any():
-        return ell, aspect, axis
+        return kind, aspect, axis
+    what = "ellipsoidal" if (kind[ell] == ELLIPSOID).all() else "ellipsoidal and fragment"
     missing = [c for c in (ASPECT_COLUMN, *AXIS_COLUMNS) if c not in particles.columns]
     if missing:
-        raise SceneError(f"ellipsoidal particles need column(s) {missing} "
+        raise SceneError(f"{what} particles need column(s) {missing} "
                          f"(aspect >= 1 and a long-axis vector, world frame)")
     k = particles[ASPECT_COLUMN].to_numpy(dtype=np.float64)[ell]
     u = particles[list(AXIS_COLUMNS)].to_numpy(dtype=np.float64)[ell]
@@ -218,7 +234,50 @@ def _shape_arrays(particles: pd.DataFrame) -> tuple[np.ndarray, np.ndarray, np.n
         raise SceneError("ellipsoid axis (axis_x, axis_y, axis_z) must be finite and non-zero")
     aspect[ell] = k
     axis[ell] = u / norm[:, None]
-    return ell, aspect, axis
+    if (kind == FRAGMENT).any():
+        _shape_seeds(particles, kind)
+    return kind, aspect, axis
+
+
+def _shape_seeds(particles: pd.DataFrame, kind: np.ndarray) -> np.ndarray:
+    """``shape_seed`` of every row as int64 (-1 where the table has none); validated for
+    the fragment rows."""
+    frag = kind == FRAGMENT
+    if SHAPE_SEED_COLUMN not in particles.columns:
+        if frag.any():
+            raise SceneError(f"fragment particles need column {SHAPE_SEED_COLUMN!r} "
+                             "(integer seed >= 0 of the irregular geometry)")
+        return np.full(len(particles), -1, dtype=np.int64)
+    raw = particles[SHAPE_SEED_COLUMN].to_numpy()
+    seeds = np.asarray(raw, dtype=np.float64)
+    good = np.isfinite(seeds) & (seeds >= 0) & (seeds == np.floor(seeds)) & (seeds < 2.0 ** 53)
+    if not good[frag].all():
+        raise SceneError(f"fragment {SHAPE_SEED_COLUMN} must be an integer >= 0; "
+                         f"got {raw[frag & ~good][:3].tolist()}")
+    return np.where(frag, seeds, -1).astype(np.int64)
+
+
+def _fragments(particles: pd.DataFrame, kind: np.ndarray, aspect: np.ndarray,
+               axis: np.ndarray) -> dict:
+    """``{row: Fragment}`` of the fragment rows of a validated table."""
+    rows = np.flatnonzero(kind == FRAGMENT)
+    if len(rows) == 0:
+        return {}
+    seeds = _shape_seeds(particles, kind)
+    d = particles[DIAMETER_COLUMN].to_numpy(dtype=np.float64)
+    return {int(r): fragment_geometry(seeds[r], d[r], aspect[r], axis[r]) for r in rows}
+
+
+def _bounding_radii(particles: pd.DataFrame) -> np.ndarray:
+    """Radius of each particle's bounding sphere about its centre, mm: ``d / 2`` for a
+    sphere, the long semi-axis ``(d / 2) k^(2/3)`` for a spheroid, the farthest vertex for
+    a fragment."""
+    kind, aspect, axis = _shape_arrays(particles)
+    d = particles[DIAMETER_COLUMN].to_numpy(dtype=np.float64)
+    radius = d / 2 * aspect ** (2.0 / 3.0)
+    for r, frag in _fragments(particles, kind, aspect, axis).items():
+        radius[r] = frag.bounding_radius
+    return radius
 
 
 def particle_silhouettes(particles: pd.DataFrame) -> pd.DataFrame:
@@ -227,8 +286,9 @@ def particle_silhouettes(particles: pd.DataFrame) -> pd.DataFrame:
     Parameters
     ----------
     particles : DataFrame
-        Columns ``diameter`` (mm; volume-equivalent for ellipsoids) and optionally
-        :data:`~plenoptrack._columns.SHAPE_COLUMNS`.
+        Columns ``diameter`` (mm; volume-equivalent for ellipsoids and fragments) and
+        optionally :data:`~plenoptrack._columns.SHAPE_COLUMNS` (and ``shape_seed`` for
+        fragments).
 
     Returns
     -------
@@ -241,10 +301,14 @@ def particle_silhouettes(particles: pd.DataFrame) -> pd.DataFrame:
     A prolate spheroid of aspect ``k``, semi-axes ``a = (d/2) k^(2/3)`` along the unit axis
     ``u`` and ``b = (d/2) k^(-1/3)``, projects along z onto an ellipse of semi-axes ``b``
     and ``a_perp = sqrt(a^2 (1 - u_z^2) + b^2 u_z^2)``, area ``pi b a_perp``, long axis
-    along ``(u_x, u_y)``. Spheres: ``pi d^2 / 4`` and 0.
+    along ``(u_x, u_y)``. Spheres: ``pi d^2 / 4`` and 0. A fragment's silhouette is the
+    union of its pieces' projected convex polygons: exact area, and the long axis of its
+    second moments of area (:func:`.fragments.fragment_silhouette`); for a spheroid that
+    is the long axis of the projected ellipse, so the convention is the same.
     """
     d = particles[DIAMETER_COLUMN].to_numpy(dtype=np.float64)
-    ell, k, u = _shape_arrays(particles)
+    kind, k, u = _shape_arrays(particles)
+    ell = kind == ELLIPSOID
     area = math.pi * d ** 2 / 4
     orientation = np.zeros(len(d))
     if ell.any():
@@ -258,6 +322,8 @@ def particle_silhouettes(particles: pd.DataFrame) -> pd.DataFrame:
         theta = (theta + math.pi / 2) % math.pi - math.pi / 2
         round_ = (k == 1.0) | ((u[:, 0] == 0.0) & (u[:, 1] == 0.0))
         orientation = np.where(ell & ~round_, theta, 0.0)
+    for r, frag in _fragments(particles, kind, k, u).items():
+        area[r], orientation[r] = fragment_silhouette(frag)
     return pd.DataFrame({PROJECTED_AREA_COLUMN: area, ORIENTATION_COLUMN: orientation},
                         index=particles.index)
 
@@ -292,7 +358,7 @@ def random_particles(n: int, *, volume: Volume,
                      diameter_mm: float | tuple[float, float] = 1.0,
                      seed: int | np.random.Generator | None = 0,
                      shape: str = "sphere", max_aspect: float = 3.0) -> pd.DataFrame:
-    """Non-overlapping spheres (or spheroids) placed uniformly at random in a volume (frame 0).
+    """Non-overlapping spheres, spheroids or fragments placed uniformly at random (frame 0).
 
     Parameters
     ----------
@@ -304,29 +370,34 @@ def random_particles(n: int, *, volume: Volume,
         Particle diameter, mm; or a ``(min, max)`` range, mm, from which each particle's
         diameter is drawn log-uniformly (uniform in ``log d``).
     seed : int or numpy.random.Generator
-        Seed of the draws: with a range, first the ``n`` diameters; for ellipsoids then the
-        ``n`` aspects and ``n`` axes; then the positions. Sphere scenes make no shape
-        draws, so a seed gives the same spheres as before shapes existed.
-    shape : {"sphere", "ellipsoid"}
+        Seed of the draws: with a range, first the ``n`` diameters; for ellipsoids and
+        fragments then the ``n`` aspects and ``n`` axes, for fragments then ``n`` shape
+        seeds; then the positions. Sphere scenes make no shape draws, so a seed gives the
+        same spheres as before shapes existed.
+    shape : {"sphere", "ellipsoid", "fragment"}
         ``"ellipsoid"``: prolate spheroids with ``diameter`` the volume-equivalent
         diameter, aspect (long over short semi-axis) uniform in ``[1, max_aspect]`` and
-        long axis uniform on the unit sphere.
+        long axis uniform on the unit sphere. ``"fragment"``: irregular bodies
+        (:mod:`.fragments`) of that volume-equivalent diameter whose equivalent ellipsoid
+        has that aspect and long axis; each has a ``shape_seed`` (uniform in
+        ``[0, 2^31)``) that fixes its geometry, with a random roll about the axis.
     max_aspect : float
-        Largest aspect of the spheroids (>= 1); ignored for spheres.
+        Largest aspect of the spheroids or fragments (>= 1); ignored for spheres.
 
     Returns
     -------
     DataFrame
         Columns ``frame`` (0), ``particle`` (0..n-1), ``x, y, z`` (mm), ``diameter`` (mm),
         ``projected_area`` (mm^2), ``orientation`` (rad) (:func:`particle_silhouettes`);
-        for ellipsoids also ``shape``, ``aspect`` and ``axis_x, axis_y, axis_z``.
+        for ellipsoids also ``shape``, ``aspect`` and ``axis_x, axis_y, axis_z``; for
+        fragments also ``shape_seed``.
 
     Notes
     -----
     Random sequential placement: each candidate centre is drawn uniformly in the volume
     and kept when it lies at least ``(d_i + d_j) / 2`` from every placed particle ``j``
     (for spheroids ``d`` is the bounding diameter ``d k^(2/3)``, twice the long
-    semi-axis). With a range, the particles are placed largest first (the small ones fit
+    semi-axis; for fragments twice the distance of the farthest vertex). With a range, the particles are placed largest first (the small ones fit
     into the gaps); the table keeps the order in which the diameters were drawn.
     """
     if not (isinstance(n, (int, np.integer)) and n >= 0):
@@ -350,6 +421,16 @@ def random_particles(n: int, *, volume: Volume,
         hi = hi * k_max ** (2.0 / 3.0)
         shape_cols = {SHAPE_COLUMN: np.full(n, "ellipsoid", dtype=object), ASPECT_COLUMN: aspect,
                       **{c: u[:, i] for i, c in enumerate(AXIS_COLUMNS)}}
+    elif shape == "fragment":
+        aspect = rng.uniform(1.0, k_max, size=n)
+        u = rng.standard_normal((n, 3))
+        u /= np.sqrt((u ** 2).sum(axis=1))[:, None]
+        seeds = rng.integers(0, 2 ** 31, size=n, dtype=np.int64)
+        shape_cols = {SHAPE_COLUMN: np.full(n, "fragment", dtype=object), ASPECT_COLUMN: aspect,
+                      **{c: u[:, i] for i, c in enumerate(AXIS_COLUMNS)},
+                      SHAPE_SEED_COLUMN: seeds}
+        extent = 2.0 * _bounding_radii(pd.DataFrame({DIAMETER_COLUMN: diameters, **shape_cols}))
+        hi = float(extent.max()) if n else hi
     b = volume.bounds
     fill = (math.pi / 6 * float((extent ** 3).sum())
             / max(float(np.prod(b[:, 1] - b[:, 0])), 1e-300))
@@ -382,7 +463,7 @@ def random_particles(n: int, *, volume: Volume,
         cells.setdefault((ci, cj, ck), []).append(count)
         count += 1
     if n == 0:
-        return _empty_truth(shapes=shape != "sphere")
+        return _empty_truth(shapes=shape != "sphere", fragments=shape == "fragment")
     xyz = np.empty((n, 3))
     xyz[order] = placed
     out = pd.DataFrame({T_COLUMN: np.zeros(n, np.int64), ID_COLUMN: np.arange(n, dtype=np.int64),
@@ -395,10 +476,18 @@ def _with_silhouettes(particles: pd.DataFrame) -> pd.DataFrame:
     """``particles`` with the silhouette columns, in truth column order."""
     sil = particle_silhouettes(particles)
     out = particles.assign(**{c: sil[c].to_numpy() for c in sil.columns})
+    return out[_truth_order(out)]
+
+
+def _truth_order(table: pd.DataFrame) -> list[str]:
+    """Truth columns of ``table`` in file order: :data:`TRUTH_COLUMNS`, then the optional
+    ones it has (:data:`~plenoptrack._columns.OPTIONAL_TRUTH_COLUMNS`; shape columns as a
+    group)."""
     cols = list(TRUTH_COLUMNS)
-    if SHAPE_COLUMN in particles.columns:
+    if SHAPE_COLUMN in table.columns:
         cols += list(SHAPE_COLUMNS)
-    return out[cols]
+    return cols + [c for c in OPTIONAL_TRUTH_COLUMNS
+                   if c in table.columns and c not in SHAPE_COLUMNS]
 
 
 def moving_particles(particles: pd.DataFrame, *, frames: int,
@@ -408,7 +497,8 @@ def moving_particles(particles: pd.DataFrame, *, frames: int,
     Parameters
     ----------
     particles : DataFrame
-        Frame-0 truth (``particle, x, y, z, diameter``; shape columns, if any, are kept).
+        Frame-0 truth (``particle, x, y, z, diameter``; optional columns, if any, are kept:
+        :data:`~plenoptrack._columns.OPTIONAL_TRUTH_COLUMNS`).
     frames : int
         Number of frames (>= 1).
     velocity_mm_per_frame : (3,) or (n, 3) array-like
@@ -418,8 +508,8 @@ def moving_particles(particles: pd.DataFrame, *, frames: int,
     -------
     DataFrame
         Truth table with :data:`~plenoptrack._columns.TRUTH_COLUMNS` (silhouette columns
-        recomputed by :func:`particle_silhouettes`) and, for shaped particles,
-        :data:`~plenoptrack._columns.SHAPE_COLUMNS`; sorted by frame then particle.
+        recomputed by :func:`particle_silhouettes`) and the optional columns of
+        ``particles``; sorted by frame then particle.
     """
     if not (isinstance(frames, (int, np.integer)) and frames >= 1):
         raise SceneError(f"frames must be a positive integer; got {frames!r}")
@@ -429,10 +519,9 @@ def moving_particles(particles: pd.DataFrame, *, frames: int,
                          f"got shape {v.shape}")
     v = np.broadcast_to(v, (len(particles), 3))
     base = particles[list(POS_COLUMNS)].to_numpy(dtype=float)
-    extra = {}
     if SHAPE_COLUMN in particles.columns:
         _shape_arrays(particles)  # validate
-        extra = {c: particles[c].to_numpy() for c in SHAPE_COLUMNS if c in particles.columns}
+    extra = {c: particles[c].to_numpy() for c in OPTIONAL_TRUTH_COLUMNS if c in particles.columns}
     parts = []
     for f in range(frames):
         pos = base + f * v
@@ -442,7 +531,8 @@ def moving_particles(particles: pd.DataFrame, *, frames: int,
                                    DIAMETER_COLUMN: particles[DIAMETER_COLUMN].to_numpy(float),
                                    **extra}))
     shaped = SHAPE_COLUMN in particles.columns
-    out = pd.concat(parts, ignore_index=True) if parts else _empty_truth(shapes=shaped)
+    out = pd.concat(parts, ignore_index=True) if parts else _empty_truth(
+        shapes=shaped, fragments=SHAPE_SEED_COLUMN in particles.columns)
     return _with_silhouettes(out)
 
 
@@ -463,6 +553,11 @@ class Scene:
     realism : Realism or None
         Optics mode and effect sizes from the scene file's ``[optics]`` table (see
         :mod:`.realism`); None when the file has none (the simulation's default applies).
+    velocity : DataFrame or None
+        Columns ``particle`` and :data:`~plenoptrack._columns.VELOCITY_COLUMNS` (mm per
+        frame, world frame): the velocity of every particle, which blurs its image over
+        the exposure (:class:`~.realism.ParticleEffects`). None: taken from the first two
+        frames when there are several, else every particle is still.
     """
 
     camera: CameraSpec
@@ -470,11 +565,79 @@ class Scene:
     truth: pd.DataFrame
     seed: int = 0
     realism: Realism | None = None
+    velocity: pd.DataFrame | None = field(default=None, repr=False, compare=False)
 
     @property
     def frames(self) -> int:
         """Number of frames."""
         return int(self.truth[T_COLUMN].max()) + 1 if len(self.truth) else 1
+
+    def particle_velocities(self) -> pd.DataFrame:
+        """``particle`` and :data:`~plenoptrack._columns.VELOCITY_COLUMNS` of every
+        particle, mm per frame (see ``velocity``)."""
+        if self.velocity is not None:
+            return self.velocity[[ID_COLUMN, *VELOCITY_COLUMNS]].reset_index(drop=True)
+        ids = np.unique(self.truth[ID_COLUMN].to_numpy(np.int64))
+        v = np.zeros((len(ids), 3))
+        if self.frames > 1:
+            pos = self.truth.set_index([T_COLUMN, ID_COLUMN])[list(POS_COLUMNS)]
+            f0, f1 = pos.loc[0], pos.loc[1]
+            both = f0.index.intersection(f1.index)
+            step = (f1.loc[both] - f0.loc[both]).reindex(ids).fillna(0.0)
+            v = step.to_numpy(dtype=float)
+        return pd.DataFrame({ID_COLUMN: ids, **{c: v[:, i] for i, c in enumerate(VELOCITY_COLUMNS)}})
+
+
+def _velocity_table(ids, velocity_mm_per_frame) -> pd.DataFrame:
+    """``particle`` and velocity columns from one (3,) or per-particle (n, 3) velocity."""
+    ids = np.asarray(ids, dtype=np.int64)
+    v = np.broadcast_to(np.asarray(velocity_mm_per_frame, dtype=float), (len(ids), 3))
+    return pd.DataFrame({ID_COLUMN: ids, **{c: v[:, i].copy() for i, c in enumerate(VELOCITY_COLUMNS)}})
+
+
+def with_particle_effects(truth: pd.DataFrame, effects: ParticleEffects, *,
+                          seed: int | np.random.Generator | None,
+                          velocity: pd.DataFrame | None = None) -> pd.DataFrame:
+    """A truth table with the per-particle columns the particle effects need.
+
+    Parameters
+    ----------
+    truth : DataFrame
+        Truth of every frame (not changed).
+    effects : ParticleEffects
+        With ``max_transmission > 0`` and no ``transmission`` column, each particle gets a
+        transmission drawn uniformly in ``[0, max_transmission]`` (one per ``particle``
+        id, the same in every frame, in id order). With ``exposure_fraction > 0`` and no
+        velocity columns, each row gets its particle's ``velocity`` (mm per frame).
+    seed : int or numpy.random.Generator
+        Seed of the transmission draws (a data set uses ``[seed, 6]``).
+    velocity : DataFrame, optional
+        ``particle`` and :data:`~plenoptrack._columns.VELOCITY_COLUMNS`
+        (:meth:`Scene.particle_velocities`); None: still particles.
+
+    Returns
+    -------
+    DataFrame
+        ``truth`` with :data:`~plenoptrack._columns.TRANSMISSION_COLUMN` and
+        :data:`~plenoptrack._columns.VELOCITY_COLUMNS` added as above, in truth column
+        order; ``truth`` itself when neither applies.
+    """
+    if not isinstance(effects, ParticleEffects):
+        raise SettingsError(f"effects must be a ParticleEffects; got {type(effects).__name__}")
+    add = {}
+    ids = truth[ID_COLUMN].to_numpy(np.int64)
+    if effects.max_transmission > 0 and TRANSMISSION_COLUMN not in truth.columns:
+        uniq, inverse = np.unique(ids, return_inverse=True)
+        tau = np.random.default_rng(seed).uniform(0.0, effects.max_transmission, len(uniq))
+        add[TRANSMISSION_COLUMN] = tau[inverse]
+    if effects.exposure_fraction > 0 and not set(VELOCITY_COLUMNS) & set(truth.columns):
+        table = _velocity_table(np.unique(ids), (0.0, 0.0, 0.0)) if velocity is None else velocity
+        v = table.set_index(ID_COLUMN)[list(VELOCITY_COLUMNS)].reindex(ids).fillna(0.0)
+        add |= {c: v[c].to_numpy(dtype=float) for c in VELOCITY_COLUMNS}
+    if not add:
+        return truth
+    out = truth.assign(**add)
+    return out[_truth_order(out)]
 
 
 def check_particles(particles: pd.DataFrame, volume: Volume, *, where: str = "scene") -> None:
@@ -489,8 +652,7 @@ def check_particles(particles: pd.DataFrame, volume: Volume, *, where: str = "sc
     if bad.any():
         raise SceneError(f"{where}: particle diameters must be positive (mm); "
                          f"got {values[bad, 3][:3].tolist()}")
-    _, aspect, _ = _shape_arrays(particles)
-    extent = values[:, 3] * aspect ** (2.0 / 3.0)   # bounding diameters (spheres: d)
+    extent = 2.0 * _bounding_radii(particles)      # bounding diameters (spheres: d)
     particles = particles.assign(_extent=extent)
     outside = ~volume.contains(values[:, :3])
     if outside.any():
@@ -526,8 +688,11 @@ def make_scene(camera: CameraSpec, *, n_particles: int = 20,
     :func:`random_particles`; the truth records each particle's diameter). The volume
     (default :func:`default_volume`, with the margin of the largest diameter) bounds the
     frame-0 positions; later frames may leave it. ``shape="ellipsoid"`` makes prolate
-    spheroids of aspect up to ``max_aspect`` (:func:`random_particles`); the default
-    volume's margin is then the largest bounding diameter.
+    spheroids of aspect up to ``max_aspect`` (:func:`random_particles`), ``"fragment"``
+    irregular fragments (:mod:`.fragments`); the default volume's margin is then the
+    largest bounding diameter (for fragments its bound,
+    :data:`~.fragments.FRAGMENT_REACH` times the spheroid's). The scene records the
+    velocity (:attr:`Scene.velocity`).
     """
     if diameter_mm is None:
         diameter_mm = default_diameter_mm(camera)
@@ -535,12 +700,15 @@ def make_scene(camera: CameraSpec, *, n_particles: int = 20,
     k_max = _check_shape(shape, max_aspect)
     diameter_mm = lo if lo == hi else (lo, hi)
     margin = hi if shape == "sphere" else hi * k_max ** (2.0 / 3.0)
+    if shape == "fragment":
+        margin *= FRAGMENT_REACH
     volume = default_volume(camera, diameter_mm=margin) if volume is None else volume
     first = random_particles(n_particles, volume=volume, diameter_mm=diameter_mm,
                              seed=np.random.default_rng([seed, 1]), shape=shape,
                              max_aspect=max_aspect)
     truth = moving_particles(first, frames=frames, velocity_mm_per_frame=velocity_mm_per_frame)
-    return Scene(camera=camera, volume=volume, truth=truth, seed=seed)
+    return Scene(camera=camera, volume=volume, truth=truth, seed=seed,
+                 velocity=_velocity_table(first[ID_COLUMN], velocity_mm_per_frame))
 
 
 _SCENE_KEYS = {"camera", "magnification", "seed", "frames", "velocity_mm_per_frame", "volume",
@@ -606,7 +774,8 @@ def load_scene(path: str | Path) -> Scene:
         check_particles(first, volume, where=str(path))
         truth = moving_particles(first, frames=frames,
                                  velocity_mm_per_frame=vel if len(rows) else velocity)
-        return Scene(camera=camera, volume=volume, truth=truth, seed=int(seed), realism=realism)
+        return Scene(camera=camera, volume=volume, truth=truth, seed=int(seed), realism=realism,
+                     velocity=_velocity_table(first[ID_COLUMN], vel if len(rows) else velocity))
     except KeyError as exc:
         raise InputFileError(f"{path}: missing key {exc}") from None
     except (TypeError, ValueError) as exc:
