@@ -33,8 +33,9 @@ cards, spec-sheet values that differ from the truth; see
   with a message;
 * effect sweep (not with ``--no-effects`` or ``--quick``): the base cell with the ideal
   optics plus *one* group of :class:`~plenoptrack.simulate.realism.Realism` at its realistic
-  size (optics ``ideal+blur``, ``ideal+lens``, ...), each with its own calibration: which
-  effect costs how much accuracy;
+  size (optics ``ideal+blur``, ``ideal+lens``, ...), each with its own calibration, on the
+  first development and the first validation seed only: which effect costs how much
+  accuracy;
 * ``--hall``: the ``hall2019`` preset (362 x 471 microlenses) at magnification -0.5 with
   1 mm spheres at density 0.003 (511 particles) and 2 mm spheres at density 0.001 (171
   particles), on the first development and the first validation seed only (each data
@@ -553,17 +554,24 @@ def _costs(rows: list[dict], seed_set: str, optics: str) -> list[str]:
     return lines + [""]
 
 
-def _effect_costs(rows: list[dict]) -> list[str]:
-    """The one-effect cells against the ideal base cell, worst first, per seed set."""
+def _effect_costs(rows: list[dict], per_seed: list[dict]) -> list[str]:
+    """The one-effect cells against the ideal base cell of the same seed, worst first, per
+    seed set."""
     lines = []
     for seed_set in ("validation", "development"):
-        base = next((r for r in rows if r["seed_set"] == seed_set and r["axis"] == "base"
-                     and r["optics"] == "ideal"), None)
         sel = [r for r in rows if r["seed_set"] == seed_set and r["axis"] == "effect"]
-        if base is None or not sel:
+        if not sel:
             continue
-        lines += [f"One effect group at a time on the base cell ({seed_set} seeds), against "
-                  f"the ideal base: recall {base['recall']:.2f}, precision "
+        seed = sel[0]["seeds"][0]
+        base = next((r for r in per_seed if r["seed"] == seed and r["axis"] == "base"
+                     and r["optics"] == "ideal"), None)
+        realistic = next((r for r in per_seed if r["seed"] == seed and r["axis"] == "base"
+                          and r["optics"] == "realistic"), None)
+        if base is None:
+            continue
+        sel = sel + ([dict(realistic, optics="ideal+all (realistic)")] if realistic else [])
+        lines += [f"One effect group at a time on the base cell ({seed_set} seed {seed}), "
+                  f"against the ideal base of that seed: recall {base['recall']:.2f}, precision "
                   f"{base['precision']:.2f}, depth robust std "
                   f"{_fmt(base['rstd_z'], '{:.3f}')} mm, 1s z {_fmt(base['cov1_z'], '{:.2f}')}. "
                   "Sorted by the rise in depth robust std:", "",
@@ -634,7 +642,7 @@ def write_report(out: Path, doc: dict) -> Path:
     for seed_set in ("validation", "development"):
         for optics in OPTICS:
             lines += _costs(rows, seed_set, optics)
-    lines += _effect_costs(rows)
+    lines += _effect_costs(rows, doc.get("per_seed", []))
     lines += ["## Calibrations", "", "| preset | M | optics | seed | ok | DLFC RMS px | "
               "simulate s | calibrate s | warnings / error |", "|---|---|---|---|---|---|---|---|---|"]
     for c in doc["calibrations"]:
@@ -847,7 +855,7 @@ def main(argv=None) -> int:
             for i, seed in enumerate(seeds):
                 for key in dict.fromkeys((c.preset, c.magnification) for c in mine):
                     todo = [c for c in mine if (c.preset, c.magnification) == key
-                            and (c.axis != "hall" or i == 0)]
+                            and (c.axis not in ("hall", "effect") or i == 0)]
                     if todo:
                         jobs.append((key[0], key[1], optics, seed_set, seed, todo))
     total = sum(len(j[-1]) for j in jobs)

@@ -36,7 +36,8 @@ PARTICLES = pd.DataFrame({"x": [-3.0, 3.0, -2.5, 2.5, 0.0], "y": [-1.2, 1.2, 1.5
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    return simulate_dataset("small", tmp_path_factory.mktemp("sim"), seed=7105, n_particles=0)
+    return simulate_dataset("small", tmp_path_factory.mktemp("sim"), seed=7105, n_particles=0,
+                            realism="ideal")
 
 
 @pytest.fixture(scope="module")
@@ -422,7 +423,8 @@ def test_cli_calibrate_bad_dotcards(dataset, tmp_path, breakage, match):
 @pytest.mark.slow
 def test_full_sensor_hall2019(tmp_path):
     """hall2019, 11 full-sensor cards (6600 x 4400) over +-25 mm: residual and time."""
-    data = simulate_dataset("hall2019", tmp_path / "hall", seed=0, n_particles=0)
+    data = simulate_dataset("hall2019", tmp_path / "hall", seed=0, n_particles=0,
+                            realism="ideal")
     t0 = time.perf_counter()
     calib, report = calibrate(data.white_path, data.out_dir / "dotcards", data.camera)
     seconds = time.perf_counter() - t0

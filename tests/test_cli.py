@@ -29,7 +29,8 @@ N_PARTICLES = 4
 DIAMETER_MM = 0.5
 N_FRAMES = 2
 SIMULATE_ARGS = ["simulate", "--preset", "small", "--seed", str(SEED), "--particles",
-                 str(N_PARTICLES), "--diameter", str(DIAMETER_MM), "--frames", str(N_FRAMES)]
+                 str(N_PARTICLES), "--diameter", str(DIAMETER_MM), "--frames", str(N_FRAMES),
+                 "--optics", "ideal"]   # geometry checked against the exact model
 CENTRE_RMS_PX = 0.05
 
 runner = CliRunner()
@@ -235,7 +236,7 @@ def test_simulate_ellipsoids(tmp_path):
 def test_simulate_fragments(tmp_path):
     out = tmp_path / "f"
     ok("simulate", "--seed", SEED, "--particles", 6, "--shape", "fragment", "--max-aspect", 2.0,
-       "--samples", 2, "--out", out)
+       "--samples", 2, "--optics", "ideal", "--out", out)
     truth = pd.read_parquet(out / "truth.parquet")
     assert (truth["shape"] == "fragment").all() and truth["aspect"].between(1, 2.0).all()
     assert (truth["shape_seed"] >= 0).all() and truth["shape_seed"].nunique() == 6
@@ -260,7 +261,7 @@ diameter = 0.6
 def scene_sim(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("scene")
     (folder / "scene.toml").write_text(SCENE_TOML)
-    ok("simulate", "--scene", folder / "scene.toml", "--out", folder / "sim")
+    ok("simulate", "--scene", folder / "scene.toml", "--optics", "ideal", "--out", folder / "sim")
     return folder / "sim"
 
 
@@ -281,9 +282,10 @@ def test_simulate_different_seed_gives_different_images(sim, scene_sim):
 def test_simulate_scene_file_seed_governs_the_optics_and_noise(scene_sim, tmp_path):
     """The scene file's seed seeds everything; --seed may repeat it but not contradict it."""
     scene = scene_sim.parent / "scene.toml"
-    ok("simulate", "--scene", scene, "--seed", SEED + 1, "--out", tmp_path / "same")
+    ok("simulate", "--scene", scene, "--seed", SEED + 1, "--optics", "ideal", "--out", tmp_path / "same")
     assert (tmp_path / "same" / "white.tif").read_bytes() == (scene_sim / "white.tif").read_bytes()
-    ok("simulate", "--preset", "small", "--seed", SEED + 1, "--particles", 0, "--out", tmp_path / "p")
+    ok("simulate", "--preset", "small", "--seed", SEED + 1, "--particles", 0, "--optics", "ideal",
+       "--out", tmp_path / "p")
     assert (tmp_path / "p" / "white.tif").read_bytes() == (scene_sim / "white.tif").read_bytes()
     result = run("simulate", "--scene", scene, "--seed", SEED, "--out", tmp_path / "other")
     assert_error_line(result, "--seed", f"seed ({SEED + 1})", code=2)

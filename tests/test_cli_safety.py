@@ -89,6 +89,8 @@ def work(data, tmp_path):
     for name in ("white.tif", "camera.toml", "truth.parquet", "raw/frame_0000.tif"):
         (tmp_path / name).parent.mkdir(exist_ok=True)
         (tmp_path / name).write_bytes((data / "sim" / name).read_bytes())
+    (tmp_path / "sim").mkdir()   # where calib.json records its white image, for flat-fielding
+    (tmp_path / "sim" / "white.tif").write_bytes((data / "sim" / "white.tif").read_bytes())
     cards = tmp_path / "dotcards"
     cards.mkdir()
     for path in (data / "sim" / "dotcards").iterdir():
@@ -98,6 +100,7 @@ def work(data, tmp_path):
     raw = read_raw(tmp_path / "white.tif")
     tifffile.imwrite(tmp_path / "rgb.tif", np.stack([raw] * 3, axis=-1), photometric="rgb")
     tifffile.imwrite(tmp_path / "float.tif", raw.astype(np.float32))
+    tifffile.imwrite(tmp_path / "cropped.tif", raw[:-2])
     full = (tmp_path / "frames.tif").read_bytes()
     (tmp_path / "truncated.tif").write_bytes(full[: len(full) // 3])
     (tmp_path / "empty.parquet").write_bytes(b"")
@@ -154,9 +157,14 @@ BAD_INPUTS = {
     "locate-bad-second-raw": (["locate", "frames.tif", "truncated.tif", "--calib", "calib.json", "--out", "p.parquet"], 1, ["truncated.tif"]),
     "locate-grid-only-calib": (["locate", "frames.tif", "--calib", "grid.json", "--out", "p.parquet"], 1, ["DLFC"]),
     "locate-calib-is-an-image": (["locate", "frames.tif", "--calib", "white.tif", "--out", "p.parquet"], 1, ["white.tif"]),
+    "locate-missing-white": (LOCATE + ["--white", "nope.tif", "--out", "p.parquet"], 1, ["nope.tif", "not found"]),
+    "locate-white-wrong-size": (LOCATE + ["--white", "cropped.tif", "--out", "p.parquet"], 1, ["cropped.tif", "pixels"]),
+    "locate-colour-white": (LOCATE + ["--white", "rgb.tif", "--out", "p.parquet"], 1, ["rgb.tif", "colour image"]),
+    "locate-white-and-no-flat-field": (LOCATE + ["--white", "white.tif", "--no-flat-field", "--out", "p.parquet"], 2, ["--white", "contradict"]),
     # locate: outputs
     "locate-out-is-raw": (LOCATE + ["--out", "frames.tif"], 2, ["frames.tif", "--out", "input RAW"]),
     "locate-out-is-calib": (LOCATE + ["--out", "calib.json"], 2, ["--out", "input --calib"]),
+    "locate-out-is-white": (LOCATE + ["--white", "white.tif", "--out", "white.tif"], 2, ["--out", "input --white"]),
     "locate-out-is-symlink-to-raw": (LOCATE + ["--out", "link_to_frames.tif"], 2, ["input RAW"]),
     "locate-out-is-raw-via-dots": (LOCATE + ["--out", "a_folder/../frames.tif"], 2, ["input RAW"]),
     "locate-detections-is-calib": (LOCATE + ["--out", "p.parquet", "--detections", "calib.json"], 2, ["--detections", "input --calib"]),

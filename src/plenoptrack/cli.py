@@ -256,7 +256,7 @@ def simulate(
     frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
     scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification, seed and particles replace --preset, --magnification, --seed and the random-scene options."),
     samples: int = typer.Option(16, "--samples", min=1, max=4096, help="Ray samples per pixel."),
-    optics_mode: Optional[str] = typer.Option(None, "--optics", help="ideal (the exact geometric model; default) or realistic (spec-sheet errors, imperfect dot cards and the other effects of plenoptrack.simulate.realism); the optics table of a scene file applies when not given."),
+    optics_mode: Optional[str] = typer.Option(None, "--optics", help="realistic (default: spec-sheet errors, imperfect dot cards, diffraction, aberrations, dust, sensor defects and the other effects of plenoptrack.simulate.realism) or ideal (the exact geometric model); the optics table of a scene file applies when not given."),
 ) -> None:
     """Simulate a plenoptic data set: raw frames, white image, dot cards and ground truth."""
     from .camera import preset

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from plenoptrack import load_camera, preset
-from plenoptrack._columns import TRUTH_COLUMNS
+from plenoptrack._columns import TRANSMISSION_COLUMN, TRUTH_COLUMNS, VELOCITY_COLUMNS
 from plenoptrack.io import read_raw, read_table
 from plenoptrack.simulate import SceneError, SimOptics, make_scene, simulate_dataset
 
@@ -43,7 +43,10 @@ def test_camera_and_cards_files(dataset):
 
 def test_truth_round_trips(dataset):
     truth = read_table(dataset.truth_path)
-    assert list(truth.columns) == list(TRUTH_COLUMNS)
+    # the default (realistic) optics add each particle's transmission and velocity
+    assert list(truth.columns) == [*TRUTH_COLUMNS, TRANSMISSION_COLUMN, *VELOCITY_COLUMNS]
+    assert truth["transmission"].between(0, 0.1).all()
+    np.testing.assert_allclose(truth[list(VELOCITY_COLUMNS)], [[0.2, 0.0, 0.5]] * len(truth))
     assert truth.equals(dataset.truth)
     assert len(truth) == 12
     doc = json.loads(dataset.optics_path.read_text())

@@ -361,7 +361,7 @@ def test_data_set_records_transmission_and_velocity(tmp_path):
     np.testing.assert_array_equal(truth[list(VELOCITY_COLUMNS)].drop_duplicates().to_numpy(),
                                   [[0.2, 0.0, -0.1]])
     ideal = simulate_dataset("small", tmp_path / "b", seed=4, n_particles=3, frames=1,
-                             dotcard_depths=[], samples_per_pixel=4)
+                             dotcard_depths=[], samples_per_pixel=4, realism="ideal")
     assert list(pd.read_parquet(ideal.truth_path).columns) == list(TRUTH_COLUMNS)
 
 

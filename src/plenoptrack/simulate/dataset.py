@@ -211,7 +211,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         Exposure and noise.
     realism : Realism, "ideal", "realistic" or None
         Effects beyond the geometric model (:mod:`.realism`); default the scene's
-        ``[optics]`` when it has one, else ideal. With
+        ``[optics]`` when it has one, else ``"realistic"`` (every effect on: a data set
+        as imperfect as a real camera's; ``"ideal"`` gives the exact geometric model). With
         ``realism.spec`` the true optics differ from ``camera.toml``; with
         ``realism.target`` the dot cards are tilted, misprinted, off-centre and at depths
         off their stated ones by a common traverse zero offset and a per-card error; with
@@ -256,6 +257,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         seed = scene.seed if scene is not None else 0
     if realism is None and scene is not None:
         realism = scene.realism
+    if realism is None:
+        realism = "realistic"
     out = Path(out_dir)
     _check_out_dir(out)
     if scene is None:
