@@ -7,8 +7,14 @@ import pytest
 
 from plenoptrack.camera import preset
 from plenoptrack.errors import NoParticlesWarning
-from plenoptrack.locate.cluster import (ProjectionGeometry, cluster_detections, plane_alphas,
-                                        project, size_thresholds)
+from plenoptrack.locate.cluster import (ProjectionGeometry, _kmeanspp_topup, _lloyd,
+                                        cluster_detections, plane_alphas, project,
+                                        size_thresholds)
+
+try:
+    from . import _allpairs as allpairs
+except ImportError:  # tests/locate is not a package
+    import _allpairs as allpairs
 
 CAMERA = preset("hall2019")
 AXIS = (271.5, 180.5)
@@ -213,3 +219,49 @@ def test_end_to_end_simulated_small_frame():
     step = np.diff(plane_alphas(cam, (-12.0, 12.0)))[0]
     for a in res.clusters.loc[full, "alpha"]:
         assert np.min(np.abs(true_alpha - a)) < 1.5 * step
+
+
+def _point_sets(seed):
+    """Projected points of four kinds: an integer grid (tied distances), a thin strip,
+    repeated points (coincident centres) and a wide scatter."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(1, 400))
+    kind = seed % 4
+    if kind == 0:
+        pts = rng.integers(0, 6, (n, 2)).astype(float)
+    elif kind == 1:
+        pts = rng.normal(0, 1, (n, 2)) * [1.0, 1e-6]
+    elif kind == 2:
+        pts = np.repeat(rng.uniform(0, 10, (n // 5 + 1, 2)), 5, axis=0)[:n]
+    else:
+        pts = rng.uniform(-1e3, 1e3, (n, 2))
+    k = int(rng.integers(1, min(n, 60) + 1))
+    return rng, pts, pts[rng.choice(n, k, replace=False)].copy()
+
+
+@pytest.mark.parametrize("block", range(4))
+def test_grid_search_kernels_match_all_pairs_search(block):
+    for seed in range(block * 40, (block + 1) * 40):
+        rng, pts, centres = _point_sets(seed)
+        want_c, got_c = centres.copy(), centres.copy()
+        want = allpairs._lloyd(pts, want_c, 50)
+        assert np.array_equal(_lloyd(pts, got_c, 50), want), seed
+        assert np.array_equal(got_c, want_c), seed
+        k0 = int(rng.integers(0, len(centres) + 1))
+        uniforms = rng.random(10)
+        assert np.array_equal(_kmeanspp_topup(pts, centres[:k0].copy(), 10, uniforms),
+                              allpairs._kmeanspp_topup(pts, centres[:k0].copy(), 10, uniforms))
+
+
+def test_clustering_unchanged_by_grid_search(monkeypatch):
+    import plenoptrack.locate.cluster as cluster_module
+
+    det = _detections(np.random.default_rng(11), 150, n_spurious=300)
+    alphas = plane_alphas(CAMERA, DEPTHS, 10)
+    got = cluster_detections(det, GEOM, alphas, seed=2)
+    monkeypatch.setattr(cluster_module, "_lloyd", allpairs._lloyd)
+    monkeypatch.setattr(cluster_module, "_kmeanspp_topup", allpairs._kmeanspp_topup)
+    want = cluster_detections(det, GEOM, alphas, seed=2)
+    assert got.n_clusters > 100
+    assert got.detections.equals(want.detections)
+    assert got.clusters.equals(want.clusters)

@@ -248,22 +248,102 @@ class Clustering:
 # --------------------------------------------------------------------------------------
 # compiled cores
 @numba.njit(cache=True)
-def _nearest_two(px, py, centres):  # pragma: no cover - compiled
-    """Index of the nearest centre and distances to the nearest and second nearest."""
+def _centre_grid(centres):  # pragma: no cover - compiled
+    """Bucket the centres (k, 2) on a square grid over their bounding box.
+
+    Returns ``(start, items, lo_x, lo_y, h, nx, ny, slack)``: cell ``iy * nx + ix`` holds
+    ``items[start[cell]:start[cell + 1]]`` (ascending centre indices); cells of side
+    ``h`` hold about one centre each; ``slack`` absorbs the rounding of cell positions.
+    """
+    k = centres.shape[0]
+    lo_x = hi_x = lo_y = hi_y = 0.0
+    if k > 0:
+        lo_x = hi_x = centres[0, 0]
+        lo_y = hi_y = centres[0, 1]
+    for c in range(1, k):
+        lo_x = min(lo_x, centres[c, 0])
+        hi_x = max(hi_x, centres[c, 0])
+        lo_y = min(lo_y, centres[c, 1])
+        hi_y = max(hi_y, centres[c, 1])
+    w = hi_x - lo_x
+    hh = hi_y - lo_y
+    h = max(math.sqrt(w * hh / max(k, 1)), max(w, hh) / max(k, 1))
+    if not h > 0:
+        h = 1.0
+    nx = int(w / h) + 1
+    ny = int(hh / h) + 1
+    cell = np.empty(k, dtype=np.int64)
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    for c in range(k):
+        ix = min(int((centres[c, 0] - lo_x) / h), nx - 1)
+        iy = min(int((centres[c, 1] - lo_y) / h), ny - 1)
+        cell[c] = iy * nx + ix
+        start[cell[c] + 1] += 1
+    for q in range(nx * ny):
+        start[q + 1] += start[q]
+    items = np.empty(k, dtype=np.int64)
+    fill = start[:-1].copy()
+    for c in range(k):
+        items[fill[cell[c]]] = c
+        fill[cell[c]] += 1
+    slack = 1e-9 * (abs(lo_x) + abs(lo_y) + (nx + ny + 2) * h)
+    return start, items, lo_x, lo_y, h, nx, ny, slack
+
+
+@numba.njit(cache=True)
+def _nearest_two(px, py, centres, grid, skip):  # pragma: no cover - compiled
+    """Index of the nearest centre and squared distances to the nearest and second nearest.
+
+    The same as comparing every centre in index order (the lowest index wins a tie;
+    the second distance is the smallest over the other centres), with centre ``skip``
+    left out (-1: none). Searches the cells of :func:`_centre_grid` in square rings
+    around the point's cell until no unvisited cell can be nearer than the second
+    nearest centre found.
+    """
+    start, items, lo_x, lo_y, h, nx, ny, slack = grid
+    ci = int(min(max((px - lo_x) / h, 0.0), nx - 1.0))
+    cj = int(min(max((py - lo_y) / h, 0.0), ny - 1.0))
     best = 0
     d1 = np.inf
     d2 = np.inf
-    for c in range(centres.shape[0]):
-        dx = px - centres[c, 0]
-        dy = py - centres[c, 1]
-        d = dx * dx + dy * dy
-        if d < d1:
-            d2 = d1
-            d1 = d
-            best = c
-        elif d < d2:
-            d2 = d
-    return best, math.sqrt(d1), math.sqrt(d2)
+    r = 0
+    while True:
+        for iy in range(max(cj - r, 0), min(cj + r, ny - 1) + 1):
+            edge_row = iy == cj - r or iy == cj + r
+            for ix in range(max(ci - r, 0), min(ci + r, nx - 1) + 1):
+                if not edge_row and ix != ci - r and ix != ci + r:
+                    continue
+                q = iy * nx + ix
+                for a in range(start[q], start[q + 1]):
+                    c = items[a]
+                    if c == skip:
+                        continue
+                    dx = px - centres[c, 0]
+                    dy = py - centres[c, 1]
+                    d = dx * dx + dy * dy
+                    if d < d1 or (d == d1 and c < best):
+                        d2 = d1
+                        d1 = d
+                        best = c
+                    elif d < d2:
+                        d2 = d
+        # distance from the point to the cells outside the square of rings 0..r
+        bound = np.inf
+        if ci - r > 0:
+            bound = min(bound, px - (lo_x + (ci - r) * h))
+        if ci + r < nx - 1:
+            bound = min(bound, lo_x + (ci + r + 1) * h - px)
+        if cj - r > 0:
+            bound = min(bound, py - (lo_y + (cj - r) * h))
+        if cj + r < ny - 1:
+            bound = min(bound, lo_y + (cj + r + 1) * h - py)
+        if bound == np.inf:
+            break
+        bound -= slack
+        if bound > 0 and bound * bound > d2:
+            break
+        r += 1
+    return best, d1, d2
 
 
 @numba.njit(cache=True)
@@ -271,9 +351,11 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
     """Lloyd iterations from ``centres`` (modified in place); return labels (n,).
 
     Each point keeps an upper bound on the distance to its centre and a lower bound on
-    the distance to every other centre (Hamerly's bounds); the full search over the
+    the distance to every other centre (Hamerly's bounds); the search for the nearest
     centres runs only for points whose bounds no longer prove the assignment, so the
-    labels are those of plain Lloyd iterations at a fraction of the cost.
+    labels are those of plain Lloyd iterations at a fraction of the cost. Nearest
+    centres come from a grid over the centres (:func:`_nearest_two`), rebuilt when they
+    move, so an iteration costs O(n + k), not O(n k).
     """
     n = points.shape[0]
     k = centres.shape[0]
@@ -284,6 +366,7 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
     counts = np.empty(k)
     shift = np.zeros(k)
     half_gap = np.zeros(k)
+    grid = _centre_grid(centres)
     for it in range(max_iter):
         changed = False
         for i in range(n):
@@ -297,9 +380,9 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
                 upper[i] = math.sqrt(dx * dx + dy * dy)
                 if upper[i] <= m:
                     continue
-            best, d1, d2 = _nearest_two(points[i, 0], points[i, 1], centres)
-            upper[i] = d1
-            lower[i] = d2
+            best, d1, d2 = _nearest_two(points[i, 0], points[i, 1], centres, grid, -1)
+            upper[i] = math.sqrt(d1)
+            lower[i] = math.sqrt(d2)
             if labels[i] != best:
                 labels[i] = best
                 changed = True
@@ -322,13 +405,9 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
                 centres[c, 1] = ny
             if shift[c] > max_shift:
                 max_shift = shift[c]
+        grid = _centre_grid(centres)
         for c in range(k):
-            g = np.inf
-            for c2 in range(k):
-                if c2 != c:
-                    d = (centres[c, 0] - centres[c2, 0]) ** 2 + (centres[c, 1] - centres[c2, 1]) ** 2
-                    if d < g:
-                        g = d
+            g = _nearest_two(centres[c, 0], centres[c, 1], centres, grid, c)[1]
             half_gap[c] = 0.5 * math.sqrt(g)
         for i in range(n):
             upper[i] += shift[labels[i]]
@@ -338,17 +417,21 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
 
 @numba.njit(cache=True)
 def _kmeanspp_topup(points, centres, n_extra, uniforms):  # pragma: no cover - compiled
-    """Append up to ``n_extra`` k-means++ draws (one uniform each) to ``centres``."""
+    """Append up to ``n_extra`` k-means++ draws (one uniform each) to ``centres``.
+
+    The distance of each point to the given centres comes from a grid over them
+    (:func:`_nearest_two`); each draw then updates every point's distance, O(n) per
+    draw.
+    """
     n = points.shape[0]
     k0 = centres.shape[0]
     out = np.empty((k0 + n_extra, 2))
     out[:k0] = centres
     d2 = np.full(n, np.inf)
-    for i in range(n):
-        for c in range(k0):
-            d = (points[i, 0] - centres[c, 0]) ** 2 + (points[i, 1] - centres[c, 1]) ** 2
-            if d < d2[i]:
-                d2[i] = d
+    if k0 > 0:
+        grid = _centre_grid(centres)
+        for i in range(n):
+            d2[i] = _nearest_two(points[i, 0], points[i, 1], centres, grid, -1)[1]
     if k0 == 0:
         d2[:] = 1.0
     m = k0

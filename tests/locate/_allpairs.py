@@ -1,0 +1,343 @@
+"""The all-pairs versions of the locator steps that compare every particle with every
+other particle, every centroid or every k-means centre, as they were before the spatial
+searches replaced them (copied unchanged).
+
+They are the independent reference of ``test_perspective_steps.py`` and
+``test_cluster.py`` and the baseline of ``benchmarks/bench_locate.py --scaling``: each
+builds the full (particles x particles x views), (centroids x particles) or
+(points x centres) comparison and is exact by construction.
+"""
+# ruff: noqa: PLR1730
+
+import math
+import warnings
+
+import numba
+import numpy as np
+
+from plenoptrack.errors import NoParticlesWarning
+from plenoptrack.locate.perspective import _MERGED, _predict_all
+from plenoptrack.locate.triangulate import triangulate_cluster
+
+
+def _add_centroids(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np.ndarray,
+                   residual: np.ndarray, confidence: np.ndarray,
+                   tolerance_px: float) -> np.ndarray:
+    """Give unassigned centroids to the particle that predicts them (most confident first).
+
+    Parameters
+    ----------
+    pred : (P, V, 2) float ndarray
+        Predicted ``(s, t)`` of every particle in every view (:func:`_predict_all`).
+    st : (M, 2) float ndarray
+        Measured centroids ``(s, t)``, view pixels.
+    view : (M,) int ndarray
+        View index of each centroid.
+    owner : (M,) int ndarray
+        Particle row of each detection, -1 for unassigned.
+    residual, confidence : (P,) float ndarray
+        RMS reprojection error (view pixels) and confidence of each particle.
+
+    Returns
+    -------
+    (M,) int ndarray
+        Updated owners: an unassigned centroid joins the most confident particle that has
+        no centroid in its view yet and predicts it within the tolerance; a particle takes
+        at most one centroid per view (the nearest).
+    """
+    owner = owner.copy()
+    n_p, n_v = pred.shape[:2]
+    ok = np.all(np.isfinite(pred[:, 0]), axis=1)
+    if not ok.any():
+        return owner
+    has = np.zeros((n_p, n_v), dtype=bool)
+    mine = owner >= 0
+    has[owner[mine], view[mine]] = True
+    tol = np.maximum(tolerance_px, 3.0 * np.nan_to_num(residual, nan=tolerance_px))
+    rank = np.argsort(-np.nan_to_num(confidence, nan=-np.inf), kind="stable")
+    rank = rank[ok[rank]]
+    free = np.flatnonzero(owner == -1)
+    order = np.argsort(view[free], kind="stable")
+    free = free[order]
+    bounds = np.searchsorted(view[free], np.arange(n_v + 1))
+    for w in np.unique(view[free]):
+        rows = free[bounds[w]:bounds[w + 1]]
+        cand = rank[~has[rank, w]]
+        if len(cand) == 0:
+            continue
+        d = np.hypot(st[rows, None, 0] - pred[None, cand, w, 0],
+                     st[rows, None, 1] - pred[None, cand, w, 1])
+        within = d <= tol[cand][None, :]
+        if not within.any():
+            continue
+        taken = np.zeros(len(rows), dtype=bool)
+        for c in np.flatnonzero(within.any(axis=0)):  # most confident particle first
+            hits = np.flatnonzero(within[:, c] & ~taken)
+            if len(hits):
+                h = hits[np.argmin(d[hits, c])]
+                taken[h] = True
+                owner[rows[h]] = cand[c]
+    return owner
+
+def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np.ndarray,
+                      n_views: np.ndarray, merge_px: float) -> np.ndarray:
+    """Merge particles whose predictions coincide in most views.
+
+    Two particles are the same when the median distance between their predicted
+    positions over all views is at most ``merge_px``. The one with fewer centroids is
+    merged into the other: the centroids of both are pooled and, in each view, the one
+    nearest the surviving particle's prediction is kept (the others are released).
+
+    Returns
+    -------
+    (M,) int ndarray
+        Updated owners.
+    """
+    ok = np.flatnonzero(np.all(np.isfinite(pred[:, 0]), axis=1) & (n_views > 0))
+    if len(ok) < 2:
+        return owner
+    p = pred[ok]
+    d = np.median(np.hypot(p[:, None, :, 0] - p[None, :, :, 0],
+                           p[:, None, :, 1] - p[None, :, :, 1]), axis=2)
+    np.fill_diagonal(d, np.inf)
+    if not (d <= merge_px).any():
+        return owner
+    owner = owner.copy()
+    target = np.arange(len(pred))
+    strength = n_views[ok]
+    for a in np.argsort(-strength, kind="stable"):
+        if target[ok[a]] != ok[a]:
+            continue
+        for b in np.flatnonzero(d[a] <= merge_px):
+            if target[ok[b]] == ok[b] and strength[b] <= strength[a]:
+                target[ok[b]] = ok[a]
+    merged = np.flatnonzero(target != np.arange(len(pred)))
+    survivors = np.unique(target[merged])
+    mine = owner >= 0
+    owner[mine] = target[owner[mine]]
+    for k in survivors:
+        rows = np.flatnonzero(owner == k)
+        dist = np.hypot(st[rows, 0] - pred[k, view[rows], 0], st[rows, 1] - pred[k, view[rows], 1])
+        order = np.lexsort((dist, view[rows]))
+        rows, vw = rows[order], view[rows][order]
+        first = np.r_[True, vw[1:] != vw[:-1]]
+        owner[rows[~first]] = -1
+    return owner
+
+def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_):
+    """Return large round regions that no located particle is predicted on to the pool.
+
+    A region taken for a merged image (owner ``_MERGED``) that is round and has no
+    located particle predicted inside it (within ``radius_px``) is the image of one
+    particle near the camera, larger than the typical image; it is released (owner -1)
+    so that the next clustering pass can find that particle.
+    """
+    rows = np.flatnonzero((owner == _MERGED) & round_)
+    ok = np.all(np.isfinite(positions), axis=1)
+    if len(rows) == 0 or not ok.any():
+        return owner
+    pred = _predict_all(dlfc, positions[ok], views)                       # (P, V, 2)
+    d = np.hypot(st[rows, None, 0] - pred[:, view[rows], 0].T,
+                 st[rows, None, 1] - pred[:, view[rows], 1].T)           # (m, P)
+    empty = ~(d <= radius_px[rows, None]).any(axis=1)
+    owner = owner.copy()
+    owner[rows[empty]] = -1
+    return owner
+
+def _explained_by_others(pred: np.ndarray, st: np.ndarray, view: np.ndarray,
+                         owner: np.ndarray, radius_px: np.ndarray, ok: np.ndarray
+                         ) -> np.ndarray:
+    """Fraction of each particle's centroids that two other particles' predictions fall on.
+
+    A region where the images of two particles merge has its centroid between them; a
+    spurious particle built from such regions has both neighbours predicted inside
+    (within ``radius_px``, the region radius) of nearly all its centroids.
+    """
+    n_p = len(pred)
+    frac = np.zeros(n_p)
+    idx = np.flatnonzero(ok)
+    if len(idx) < 3:
+        return frac
+    mine = np.flatnonzero(owner >= 0)
+    own = owner[mine]
+    d = np.hypot(st[mine, None, 0] - pred[idx][:, view[mine], 0].T,
+                 st[mine, None, 1] - pred[idx][:, view[mine], 1].T)       # (m, K)
+    near = d <= radius_px[mine, None]
+    near[own[:, None] == idx[None, :]] = False
+    hit = near.sum(axis=1) >= 2
+    counts = np.bincount(own, minlength=n_p)
+    frac = np.bincount(own, hit.astype(float), minlength=n_p) / np.maximum(counts, 1)
+    return frac
+
+def _trim_refit(dlfc, st, view, views, owner, positions, particles, min_views: int,
+                tolerance_px: float):
+    """Refit particles on the better half of their centroids (least trimmed squares).
+
+    From the current position, the half of a particle's centroids (at least
+    ``min_views``) nearest their predictions are solved for a new position, and the
+    step is repeated until the position settles. Centroids farther than
+    ``tolerance_px`` from the final predictions are released (owner -1).
+
+    Returns
+    -------
+    owner : (M,) int ndarray
+    positions : (P, 3) float ndarray
+        Updated copies.
+    """
+    owner = owner.copy()
+    positions = positions.copy()
+    for k in particles:
+        rows = np.flatnonzero(owner == k)
+        pos = positions[k].copy()
+        if len(rows) < 2 * min_views or not np.all(np.isfinite(pos)):
+            continue
+        uv = views[view[rows]]
+        n_keep = max(min_views, len(rows) // 2)
+        for _ in range(8):
+            s, t = dlfc.predict(pos[0], pos[1], pos[2], uv[:, 0], uv[:, 1])
+            best = np.argsort(np.hypot(st[rows, 0] - s, st[rows, 1] - t))[:n_keep]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", NoParticlesWarning)
+                tri = triangulate_cluster(dlfc, uv[best, 0], uv[best, 1], st[rows[best], 0],
+                                          st[rows[best], 1], pos, reject_k=np.inf,
+                                          min_views=min_views)
+            new = tri.positions[0]
+            if not np.all(np.isfinite(new)):
+                break
+            settled = np.max(np.abs(new - pos)) < 1e-4
+            pos = new
+            if settled:
+                break
+        s, t = dlfc.predict(pos[0], pos[1], pos[2], uv[:, 0], uv[:, 1])
+        owner[rows[np.hypot(st[rows, 0] - s, st[rows, 1] - t) > tolerance_px]] = -1
+        positions[k] = pos
+    return owner, positions
+
+
+@numba.njit(cache=True)
+def _nearest_two(px, py, centres):  # pragma: no cover - compiled
+    """Index of the nearest centre and distances to the nearest and second nearest."""
+    best = 0
+    d1 = np.inf
+    d2 = np.inf
+    for c in range(centres.shape[0]):
+        dx = px - centres[c, 0]
+        dy = py - centres[c, 1]
+        d = dx * dx + dy * dy
+        if d < d1:
+            d2 = d1
+            d1 = d
+            best = c
+        elif d < d2:
+            d2 = d
+    return best, math.sqrt(d1), math.sqrt(d2)
+
+
+@numba.njit(cache=True)
+def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
+    """Lloyd iterations from ``centres`` (modified in place); return labels (n,).
+
+    Each point keeps an upper bound on the distance to its centre and a lower bound on
+    the distance to every other centre (Hamerly's bounds); the full search over the
+    centres runs only for points whose bounds no longer prove the assignment, so the
+    labels are those of plain Lloyd iterations at a fraction of the cost.
+    """
+    n = points.shape[0]
+    k = centres.shape[0]
+    labels = np.full(n, -1, dtype=np.int64)
+    upper = np.empty(n)
+    lower = np.empty(n)
+    sums = np.empty((k, 2))
+    counts = np.empty(k)
+    shift = np.zeros(k)
+    half_gap = np.zeros(k)
+    for it in range(max_iter):
+        changed = False
+        for i in range(n):
+            if it > 0:
+                lab = labels[i]
+                m = max(half_gap[lab], lower[i])
+                if upper[i] <= m:
+                    continue
+                dx = points[i, 0] - centres[lab, 0]
+                dy = points[i, 1] - centres[lab, 1]
+                upper[i] = math.sqrt(dx * dx + dy * dy)
+                if upper[i] <= m:
+                    continue
+            best, d1, d2 = _nearest_two(points[i, 0], points[i, 1], centres)
+            upper[i] = d1
+            lower[i] = d2
+            if labels[i] != best:
+                labels[i] = best
+                changed = True
+        if not changed:
+            break
+        sums[:, :] = 0.0
+        counts[:] = 0.0
+        for i in range(n):
+            sums[labels[i], 0] += points[i, 0]
+            sums[labels[i], 1] += points[i, 1]
+            counts[labels[i]] += 1.0
+        max_shift = 0.0
+        for c in range(k):
+            shift[c] = 0.0
+            if counts[c] > 0:  # an empty cluster keeps its centre
+                nx = sums[c, 0] / counts[c]
+                ny = sums[c, 1] / counts[c]
+                shift[c] = math.sqrt((nx - centres[c, 0]) ** 2 + (ny - centres[c, 1]) ** 2)
+                centres[c, 0] = nx
+                centres[c, 1] = ny
+            if shift[c] > max_shift:
+                max_shift = shift[c]
+        for c in range(k):
+            g = np.inf
+            for c2 in range(k):
+                if c2 != c:
+                    d = (centres[c, 0] - centres[c2, 0]) ** 2 + (centres[c, 1] - centres[c2, 1]) ** 2
+                    if d < g:
+                        g = d
+            half_gap[c] = 0.5 * math.sqrt(g)
+        for i in range(n):
+            upper[i] += shift[labels[i]]
+            lower[i] -= max_shift
+    return labels
+
+
+@numba.njit(cache=True)
+def _kmeanspp_topup(points, centres, n_extra, uniforms):  # pragma: no cover - compiled
+    """Append up to ``n_extra`` k-means++ draws (one uniform each) to ``centres``."""
+    n = points.shape[0]
+    k0 = centres.shape[0]
+    out = np.empty((k0 + n_extra, 2))
+    out[:k0] = centres
+    d2 = np.full(n, np.inf)
+    for i in range(n):
+        for c in range(k0):
+            d = (points[i, 0] - centres[c, 0]) ** 2 + (points[i, 1] - centres[c, 1]) ** 2
+            if d < d2[i]:
+                d2[i] = d
+    if k0 == 0:
+        d2[:] = 1.0
+    m = k0
+    for e in range(n_extra):
+        total = 0.0
+        for i in range(n):
+            total += d2[i]
+        if not total > 0:
+            break
+        target = uniforms[e] * total
+        acc = 0.0
+        pick = n - 1
+        for i in range(n):
+            acc += d2[i]
+            if acc > target:
+                pick = i
+                break
+        out[m, 0] = points[pick, 0]
+        out[m, 1] = points[pick, 1]
+        m += 1
+        for i in range(n):
+            d = (points[i, 0] - points[pick, 0]) ** 2 + (points[i, 1] - points[pick, 1]) ** 2
+            if d < d2[i]:
+                d2[i] = d
+    return out[:m]
