@@ -44,8 +44,8 @@ def _frame(optics, truth, seed: int) -> np.ndarray:
 
 
 @pytest.fixture(scope="module")
-def small():
-    return _calibrated("small")
+def small(small_calibrated):
+    return small_calibrated
 
 
 def test_small_scenes_recall_and_precision(small):

@@ -33,6 +33,7 @@ import time
 import warnings
 from dataclasses import asdict, dataclass, field
 
+import numba
 import numpy as np
 import pandas as pd
 
@@ -40,6 +41,7 @@ from .._columns import POS_COLUMNS, T_COLUMN
 from ..errors import NoParticlesWarning, SettingsError
 from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
+from ._nearby import pairs_within
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
 from .triangulate import triangulate_cluster, triangulate_clusters
@@ -280,41 +282,59 @@ def _add_centroids(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np
     (M,) int ndarray
         Updated owners: an unassigned centroid joins the most confident particle that has
         no centroid in its view yet and predicts it within the tolerance; a particle takes
-        at most one centroid per view (the nearest).
+        at most one centroid per view (the nearest; the lowest row on a tie).
+
+    Notes
+    -----
+    The candidate (particle, centroid) pairs of each view come from a spatial search
+    (:func:`~plenoptrack.locate._nearby.pairs_within`); the greedy choice then runs over
+    the pairs ordered by particle rank, view, distance and row.
     """
     owner = owner.copy()
     n_p, n_v = pred.shape[:2]
     ok = np.all(np.isfinite(pred[:, 0]), axis=1)
-    if not ok.any():
+    free = np.flatnonzero(owner == -1)
+    if not ok.any() or len(free) == 0:
         return owner
     has = np.zeros((n_p, n_v), dtype=bool)
     mine = owner >= 0
     has[owner[mine], view[mine]] = True
     tol = np.maximum(tolerance_px, 3.0 * np.nan_to_num(residual, nan=tolerance_px))
     rank = np.argsort(-np.nan_to_num(confidence, nan=-np.inf), kind="stable")
-    rank = rank[ok[rank]]
-    free = np.flatnonzero(owner == -1)
-    order = np.argsort(view[free], kind="stable")
-    free = free[order]
-    bounds = np.searchsorted(view[free], np.arange(n_v + 1))
-    for w in np.unique(view[free]):
-        rows = free[bounds[w]:bounds[w + 1]]
-        cand = rank[~has[rank, w]]
-        if len(cand) == 0:
-            continue
-        d = np.hypot(st[rows, None, 0] - pred[None, cand, w, 0],
-                     st[rows, None, 1] - pred[None, cand, w, 1])
-        within = d <= tol[cand][None, :]
-        if not within.any():
-            continue
-        taken = np.zeros(len(rows), dtype=bool)
-        for c in np.flatnonzero(within.any(axis=0)):  # most confident particle first
-            hits = np.flatnonzero(within[:, c] & ~taken)
-            if len(hits):
-                h = hits[np.argmin(d[hits, c])]
-                taken[h] = True
-                owner[rows[h]] = cand[c]
+    place = np.empty(n_p, dtype=np.int64)
+    place[rank] = np.arange(n_p)
+    has_free = np.bincount(view[free], minlength=n_v) > 0
+    part, w = np.nonzero(ok[:, None] & ~has & has_free[None, :])
+    q, f, dist = pairs_within(pred[part, w], w, tol[part], st[free], view[free])
+    if len(q) == 0:
+        return owner
+    part, w, rows = part[q], w[q], free[f]
+    order = np.lexsort((rows, dist, w, place[part]))
+    part, w, rows = part[order], w[order], rows[order]
+    first = np.flatnonzero(np.r_[True, (part[1:] != part[:-1]) | (w[1:] != w[:-1])])
+    pick = _first_untaken(np.r_[first, len(rows)], rows, len(owner))
+    pick = pick[pick >= 0]
+    owner[rows[pick]] = part[pick]
     return owner
+
+
+@numba.njit(cache=True)
+def _first_untaken(start, rows, n_rows):  # pragma: no cover - compiled
+    """Greedy choice over groups of candidate rows in preference order.
+
+    Group ``g`` is ``rows[start[g]:start[g + 1]]``; groups are visited in order and each
+    takes its first row that no earlier group took. Returns the position (in ``rows``)
+    of each group's choice, -1 when every candidate was taken.
+    """
+    taken = np.zeros(n_rows, dtype=np.bool_)
+    pick = np.full(len(start) - 1, -1, dtype=np.int64)
+    for g in range(len(start) - 1):
+        for i in range(start[g], start[g + 1]):
+            if not taken[rows[i]]:
+                taken[rows[i]] = True
+                pick[g] = i
+                break
+    return pick
 
 
 def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np.ndarray,
@@ -322,9 +342,11 @@ def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner:
     """Merge particles whose predictions coincide in most views.
 
     Two particles are the same when the median distance between their predicted
-    positions over all views is at most ``merge_px``. The one with fewer centroids is
-    merged into the other: the centroids of both are pooled and, in each view, the one
-    nearest the surviving particle's prediction is kept (the others are released).
+    positions over all views is at most ``merge_px``. From the particle with most
+    centroids down, each particle not yet merged absorbs the same particles that have no
+    more centroids than it and have not been merged: the centroids of both are pooled
+    and, in each view, the one nearest the surviving particle's prediction is kept (the
+    others are released).
 
     Returns
     -------
@@ -334,33 +356,88 @@ def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner:
     ok = np.flatnonzero(np.all(np.isfinite(pred[:, 0]), axis=1) & (n_views > 0))
     if len(ok) < 2:
         return owner
-    p = pred[ok]
-    d = np.median(np.hypot(p[:, None, :, 0] - p[None, :, :, 0],
-                           p[:, None, :, 1] - p[None, :, :, 1]), axis=2)
-    np.fill_diagonal(d, np.inf)
-    if not (d <= merge_px).any():
+    a, b = _coincident_pairs(pred[ok], merge_px)
+    if len(a) == 0:
         return owner
-    owner = owner.copy()
-    target = np.arange(len(pred))
+    # Both directions, each particle's partners in ascending order.
+    src, dst = np.r_[a, b], np.r_[b, a]
+    by = np.lexsort((dst, src))
+    start = np.searchsorted(src[by], np.arange(len(ok) + 1))
     strength = n_views[ok]
-    for a in np.argsort(-strength, kind="stable"):
-        if target[ok[a]] != ok[a]:
-            continue
-        for b in np.flatnonzero(d[a] <= merge_px):
-            if target[ok[b]] == ok[b] and strength[b] <= strength[a]:
-                target[ok[b]] = ok[a]
-    merged = np.flatnonzero(target != np.arange(len(pred)))
-    survivors = np.unique(target[merged])
+    into = _absorb(np.argsort(-strength, kind="stable"), start, dst[by], strength)
+    target = np.arange(len(pred))
+    target[ok] = ok[into]
+    owner = owner.copy()
     mine = owner >= 0
     owner[mine] = target[owner[mine]]
-    for k in survivors:
-        rows = np.flatnonzero(owner == k)
-        dist = np.hypot(st[rows, 0] - pred[k, view[rows], 0], st[rows, 1] - pred[k, view[rows], 1])
-        order = np.lexsort((dist, view[rows]))
-        rows, vw = rows[order], view[rows][order]
-        first = np.r_[True, vw[1:] != vw[:-1]]
-        owner[rows[~first]] = -1
+    survivor = np.zeros(len(pred), dtype=bool)
+    survivor[target[target != np.arange(len(pred))]] = True
+    rows = np.flatnonzero(mine)
+    rows = rows[survivor[owner[rows]]]
+    k, vw = owner[rows], view[rows]
+    dist = np.hypot(st[rows, 0] - pred[k, vw, 0], st[rows, 1] - pred[k, vw, 1])
+    order = np.lexsort((dist, vw, k))
+    rows, k, vw = rows[order], k[order], vw[order]
+    first = np.r_[True, (k[1:] != k[:-1]) | (vw[1:] != vw[:-1])]
+    owner[rows[~first]] = -1
     return owner
+
+
+def _coincident_pairs(pred: np.ndarray, merge_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pairs ``a < b`` of particles whose median predicted distance is <= ``merge_px``.
+
+    Parameters
+    ----------
+    pred : (K, V, 2) float ndarray
+        Predicted ``(s, t)`` of each particle in each view, view pixels.
+    merge_px : float
+        Largest median distance over the ``V`` views, view pixels.
+
+    Returns
+    -------
+    a, b : (n,) int64 ndarray
+        Row indices into ``pred``, ``a < b``, sorted by ``a`` then ``b``.
+
+    Notes
+    -----
+    The median of ``V`` distances is at most ``merge_px`` only if at least
+    ``ceil(V / 2)`` of them are (for even ``V`` the lower of the two middle values is).
+    The pairs within ``merge_px`` in each view come from a spatial search; the exact
+    median (NaN, hence no merge, when a view's distance is NaN) is taken for the pairs
+    that pass the count.
+    """
+    n_k, n_v = pred.shape[:2]
+    views = np.tile(np.arange(n_v), n_k)
+    flat = pred.reshape(-1, 2)
+    q, d, _ = pairs_within(flat, views, merge_px, flat, views)
+    a, b = q // n_v, d // n_v
+    key = a[a < b] * n_k + b[a < b]
+    key, count = np.unique(key, return_counts=True)
+    key = key[count >= (n_v + 1) // 2]
+    a, b = key // n_k, key % n_k
+    median = np.median(np.hypot(pred[a, :, 0] - pred[b, :, 0], pred[a, :, 1] - pred[b, :, 1]),
+                       axis=1)
+    close = median <= merge_px
+    return a[close], b[close]
+
+
+@numba.njit(cache=True)
+def _absorb(order, start, partner, strength):  # pragma: no cover - compiled
+    """Greedy merging: ``target[i]`` is the particle that particle ``i`` merges into.
+
+    Particles are visited in ``order``; one that has not been merged takes each of its
+    partners ``partner[start[i]:start[i + 1]]`` that has not been merged and whose
+    ``strength`` does not exceed its own.
+    """
+    target = np.arange(len(strength))
+    for a in order:
+        if target[a] != a:
+            continue
+        for j in range(start[a], start[a + 1]):
+            b = partner[j]
+            if target[b] == b and strength[b] <= strength[a]:
+                target[b] = a
+    return target
 
 
 def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_):
@@ -376,9 +453,10 @@ def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, ro
     if len(rows) == 0 or not ok.any():
         return owner
     pred = _predict_all(dlfc, positions[ok], views)                       # (P, V, 2)
-    d = np.hypot(st[rows, None, 0] - pred[:, view[rows], 0].T,
-                 st[rows, None, 1] - pred[:, view[rows], 1].T)           # (m, P)
-    empty = ~(d <= radius_px[rows, None]).any(axis=1)
+    n_p, n_v = pred.shape[:2]
+    q, _, _ = pairs_within(st[rows], view[rows], radius_px[rows], pred.reshape(-1, 2),
+                           np.tile(np.arange(n_v), n_p))
+    empty = np.bincount(q, minlength=len(rows)) == 0
     owner = owner.copy()
     owner[rows[empty]] = -1
     return owner
@@ -391,20 +469,21 @@ def _explained_by_others(pred: np.ndarray, st: np.ndarray, view: np.ndarray,
 
     A region where the images of two particles merge has its centroid between them; a
     spurious particle built from such regions has both neighbours predicted inside
-    (within ``radius_px``, the region radius) of nearly all its centroids.
+    (within ``radius_px``, the region radius) of nearly all its centroids. Only the
+    particles marked ``ok`` count as neighbours; with fewer than three every fraction
+    is 0.
     """
-    n_p = len(pred)
+    n_p, n_v = pred.shape[:2]
     frac = np.zeros(n_p)
     idx = np.flatnonzero(ok)
     if len(idx) < 3:
         return frac
     mine = np.flatnonzero(owner >= 0)
     own = owner[mine]
-    d = np.hypot(st[mine, None, 0] - pred[idx][:, view[mine], 0].T,
-                 st[mine, None, 1] - pred[idx][:, view[mine], 1].T)       # (m, K)
-    near = d <= radius_px[mine, None]
-    near[own[:, None] == idx[None, :]] = False
-    hit = near.sum(axis=1) >= 2
+    q, d, _ = pairs_within(st[mine], view[mine], radius_px[mine], pred[idx].reshape(-1, 2),
+                           np.tile(np.arange(n_v), len(idx)))
+    other = idx[d // n_v] != own[q]
+    hit = np.bincount(q[other], minlength=len(mine)) >= 2
     counts = np.bincount(own, minlength=n_p)
     frac = np.bincount(own, hit.astype(float), minlength=n_p) / np.maximum(counts, 1)
     return frac
@@ -791,8 +870,13 @@ def _trim_refit(dlfc, st, view, views, owner, positions, particles, min_views: i
     """
     owner = owner.copy()
     positions = positions.copy()
-    for k in particles:
-        rows = np.flatnonzero(owner == k)
+    # Rows of each listed particle, found once (a refit releases only its own rows).
+    members = np.flatnonzero(np.isin(owner, particles))
+    members = members[np.argsort(owner[members], kind="stable")]
+    first = np.searchsorted(owner[members], particles, side="left")
+    last = np.searchsorted(owner[members], particles, side="right")
+    for k, lo, hi in zip(particles, first, last, strict=True):
+        rows = members[lo:hi]
         pos = positions[k].copy()
         if len(rows) < 2 * min_views or not np.all(np.isfinite(pos)):
             continue

@@ -1,0 +1,174 @@
+"""The locator's steps that compare particles with each other or with centroids, against
+the all-pairs versions they replaced (``_allpairs.py``): identical outputs on random
+inputs (NaN predictions, views without centroids, tied distances, confidences and
+centroid counts) and identical particle tables from :func:`locate_frame`."""
+
+import numpy as np
+import pytest
+
+from plenoptrack.locate import cluster, perspective
+from plenoptrack.locate.dlfc import fit_dlfc
+from plenoptrack.simulate import make_scene
+
+try:
+    from . import _allpairs as allpairs
+    from .test_dlfc import PlenopticModel, dot_cards, views
+    from .test_perspective import _frame
+except ImportError:  # tests/locate is not a package
+    import _allpairs as allpairs
+    from test_dlfc import PlenopticModel, dot_cards, views
+    from test_perspective import _frame
+
+SEEDS = range(100)
+
+
+def _state(seed):
+    """Random predictions (P, V, 2), centroids near them and the per-particle values.
+
+    Every third seed puts everything on an integer grid, so that distances, confidences
+    and centroid counts tie; some particles are near-copies of others (duplicates to
+    merge); some have no prediction, and odd seeds blank single views of others.
+    """
+    rng = np.random.default_rng(seed)
+    n_p, n_v = int(rng.integers(0, 30)), int(rng.integers(1, 9))
+    grid = seed % 3 == 0
+    if grid:
+        pred = rng.integers(0, 12, (n_p, 1, 2)) + rng.integers(-1, 2, (n_p, n_v, 2)).astype(float)
+    else:
+        pred = rng.uniform(0, 30, (n_p, 1, 2)) + rng.normal(0, 1.0, (n_p, n_v, 2))
+    if n_p > 3:
+        copy, of = rng.integers(0, n_p, (2, n_p // 3))
+        pred[copy] = pred[of] + (0.0 if grid else rng.normal(0, 0.5, pred[of].shape))
+    pred[rng.random(n_p) < 0.1] = np.nan
+    if seed % 2:
+        pred[rng.random((n_p, n_v)) < 0.05] = np.nan
+    m = int(rng.integers(0, 120))
+    view = rng.integers(0, n_v, m)
+    view[view == n_v - 1] = max(n_v - 2, 0)              # the last view has no centroid
+    if n_p:
+        st = pred[rng.integers(0, n_p, m), view] + (
+            rng.integers(-1, 2, (m, 2)) if grid else rng.normal(0, 0.7, (m, 2)))
+        lost = ~np.isfinite(st)
+        st[lost] = rng.uniform(0, 30, (m, 2))[lost]
+        owner = np.where(rng.random(m) < 0.5, -1, rng.integers(-2, n_p, m))
+    else:
+        st = rng.uniform(0, 30, (m, 2))
+        owner = np.full(m, -1)
+    return {
+        "pred": pred, "st": st, "view": view, "owner": owner,
+        "n_views": np.bincount(owner[owner >= 0], minlength=n_p),
+        "residual": rng.choice([np.nan, 0.1, 0.3, 0.5, 2.0], n_p),
+        "confidence": (rng.choice([np.nan, 1.0, 2.0, 3.0, np.inf], n_p) if grid
+                       else rng.uniform(0, 5, n_p)),
+        "radius": (rng.choice([0.5, 1.0, 2.0, 3.0], m) if grid else rng.uniform(0.2, 3, m)),
+        "ok": rng.random(n_p) < 0.8,
+    }
+
+
+def test_add_centroids_matches_all_pairs():
+    changed = 0
+    for seed in SEEDS:
+        a = _state(seed)
+        for tol in (0.5, 1.0):
+            args = (a["pred"], a["st"], a["view"], a["owner"], a["residual"],
+                    a["confidence"], tol)
+            want = allpairs._add_centroids(*args)
+            assert np.array_equal(perspective._add_centroids(*args), want), (seed, tol)
+            changed += int(np.any(want != a["owner"]))
+    assert changed > 60
+
+
+def test_merge_duplicates_matches_all_pairs():
+    changed = 0
+    for seed in SEEDS:
+        a = _state(seed)
+        for merge_px in (0.5, 1.0, 2.0):
+            args = (a["pred"], a["st"], a["view"], a["owner"], a["n_views"], merge_px)
+            want = allpairs._merge_duplicates(*args)
+            assert np.array_equal(perspective._merge_duplicates(*args), want), (seed, merge_px)
+            changed += int(np.any(want != a["owner"]))
+    assert changed > 30
+
+
+def test_explained_by_others_matches_all_pairs():
+    hits = 0
+    for seed in SEEDS:
+        a = _state(seed)
+        args = (a["pred"], a["st"], a["view"], a["owner"], a["radius"], a["ok"])
+        want = allpairs._explained_by_others(*args)
+        assert np.array_equal(perspective._explained_by_others(*args), want), seed
+        hits += int(np.any(want > 0))
+    assert hits > 30
+
+
+class _ShiftModel:
+    """Stand-in calibration: a point at (x, y, z) shows at (x + u z, y + v z)."""
+
+    def predict(self, x, y, z, u, v):
+        return x + u * z, y + v * z
+
+
+def test_release_single_large_matches_all_pairs():
+    released = 0
+    for seed in SEEDS:
+        rng = np.random.default_rng(seed)
+        a = _state(seed)
+        n_p, n_v = a["pred"].shape[:2]
+        positions = np.column_stack([rng.uniform(0, 30, (n_p, 2)), rng.uniform(-1, 1, n_p)])
+        positions[rng.random(n_p) < 0.1] = np.nan
+        views = rng.integers(-2, 3, (n_v, 2)).astype(float)
+        owner = np.where(rng.random(len(a["owner"])) < 0.5, perspective._MERGED, a["owner"])
+        round_ = rng.random(len(owner)) < 0.8
+        args = (_ShiftModel(), positions, views, a["st"], a["view"], owner, a["radius"], round_)
+        want = allpairs._release_single_large(*args)
+        assert np.array_equal(perspective._release_single_large(*args), want), seed
+        released += int(np.any(want != owner))
+    assert released > 30
+
+
+def test_trim_refit_matches_per_particle_scan():
+    model = PlenopticModel()
+    dlfc = fit_dlfc(dot_cards(model), order=4)
+    u, v = views(7)
+    grid = np.unique(np.column_stack([u, v]), axis=0)
+    rng = np.random.default_rng(4)
+    truth = np.column_stack([rng.uniform(-20, 20, (12, 2)), rng.uniform(-15, 15, 12)])
+    lab = np.repeat(np.arange(12), len(grid))
+    view = np.tile(np.arange(len(grid)), 12)
+    s, t = model(truth[lab, 0], truth[lab, 1], truth[lab, 2], grid[view, 0], grid[view, 1])
+    st = np.column_stack([s, t]) + rng.normal(0, 0.05, (len(s), 2))
+    pulled = rng.random(len(s)) < 0.3                    # centroids pulled by overlaps
+    st[pulled] += rng.normal(0, 2.0, (pulled.sum(), 2))
+    owner = np.where(rng.random(len(s)) < 0.1, -1, lab)
+    start = truth + rng.normal(0, 0.2, truth.shape)
+    start[3] = np.nan
+    for particles in (np.arange(12), np.array([1, 3, 5, 8]), np.array([], dtype=np.int64)):
+        args = (dlfc, st, view, grid, owner, start, particles, 6, 1.0)
+        want_owner, want_pos = allpairs._trim_refit(*args)
+        got_owner, got_pos = perspective._trim_refit(*args)
+        assert np.array_equal(got_owner, want_owner)
+        assert np.array_equal(got_pos, want_pos, equal_nan=True)
+        assert np.any(want_owner != owner) == (len(particles) > 0)
+
+
+def _use_all_pairs(monkeypatch):
+    for name in ("_add_centroids", "_merge_duplicates", "_release_single_large",
+                 "_explained_by_others", "_trim_refit"):
+        monkeypatch.setattr(perspective, name, getattr(allpairs, name))
+    for name in ("_lloyd", "_kmeanspp_topup"):
+        monkeypatch.setattr(cluster, name, getattr(allpairs, name))
+
+
+@pytest.mark.parametrize("n_particles, diameter_mm", [(80, 0.2), (30, None)])
+def test_locate_frame_matches_all_pairs_steps(small_calibrated, monkeypatch, n_particles,
+                                              diameter_mm):
+    optics, calib = small_calibrated
+    scene = make_scene(calib.camera, n_particles=n_particles, seed=3, diameter_mm=diameter_mm)
+    raw = _frame(optics, scene.truth, 3)
+    new = perspective.locate_frame(raw, calib)
+    with monkeypatch.context() as m:
+        _use_all_pairs(m)
+        old = perspective.locate_frame(raw, calib)
+    assert len(new.particles) >= 0.9 * n_particles
+    assert new.particles.equals(old.particles)
+    assert new.detections.equals(old.detections)
