@@ -54,7 +54,7 @@ ellipsoid is bit-identical to the sphere.
 
 Lens effects (:class:`~.realism.LensEffects`, see :mod:`.optics`). With any of axis offset,
 MLA tilt, Seidel terms or front stop on (``par[LENS_ON]``), every kernel takes a second
-code path, :func:`_lens_ray` for the rays and the general branch of :func:`_bundle` for
+code path, :func:`_lens_ray_at` for the rays and the general branch of :func:`_bundle` for
 the bounds; with all of them off the original expressions run unchanged, so ideal images
 keep their bytes. The bounds of the general branch: a ray leaving lens ``C`` crosses the
 main-lens plane within ``r_h`` of ``h0`` (thin tilted-microlens model), its point on the
@@ -77,7 +77,8 @@ CELL_R, HALF_DIAG, INRADIUS_IMG, INV_SCALE, INV_P2, INV_RS2, R_AP = range(21, 28
 LENS_ON, AXX, AXY, TX, TY, SEID_A, SEID_B, COMA_K, E_DEF, E_COMA = range(28, 38)
 VIG_ON, VIG_L, VIG_R2, VIG_R = range(38, 42)
 HL_ON, HL_S, HL_EXP, HL_LX, HL_LY, HL_LZ = range(42, 48)
-N_PAR = 48
+INV_F_ML, INV_S_O, CONJ = range(48, 51)
+N_PAR = 51
 
 N_SHAPE_BASE = 7
 """Columns of the ``shapes`` rows of spheres and ellipsoids without particle effects."""
@@ -98,8 +99,11 @@ def pack_params(optics) -> np.ndarray:
     par[COLS] = cols
     par[SCALE] = optics.image_scale
     par[F_ML] = optics.f_ml
+    par[INV_F_ML] = 1.0 / optics.f_ml
     par[S_I] = optics.s_i
     par[S_O] = optics.s_o
+    par[INV_S_O] = 1.0 / optics.s_o
+    par[CONJ] = -optics.s_o / optics.s_i
     par[R_AP2] = optics.aperture_radius ** 2
     par[K1] = optics.k1
     par[K2] = optics.k2
@@ -198,37 +202,44 @@ def _lens_geom(cx, cy, par):
 
 
 @njit(cache=True)
-def _lens_ray(px, py, qx, qy, cx, cy, par):
+def _lens_consts(cx, cy, par):
+    """``(1 / d, s_l, delta / s_l)`` of lens C (:func:`_lens_geom`)."""
+    delta, d, s_l = _lens_geom(cx, cy, par)
+    return 1.0 / d, s_l, delta / s_l
+
+
+@njit(cache=True)
+def _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w):
     """Object-side ray of sensor point P through point Q of lens C with the lens effects.
 
+    ``inv_d, s_l, w`` are lens C's :func:`_lens_consts`, computed once per lens by the
+    sample loops (multiplications by reciprocals instead of per-sample divisions).
     Returns (ok, hx, hy, dx, dy): ``ok`` False when the ray is stopped by the aperture or
     the front stop; otherwise the ray ``H + Z (d, 1)`` relative to the optical axis.
     """
-    delta, d, s_l = _lens_geom(cx, cy, par)
     # Thin microlens at distance d from the sensor: slope out = (Q - P) / d - (Q - C) / f.
-    sx = (qx - px) / d - (qx - cx) / par[F_ML]
-    sy = (qy - py) / d - (qy - cy) / par[F_ML]
+    sx = (qx - px) * inv_d - (qx - cx) * par[INV_F_ML]
+    sy = (qy - py) * inv_d - (qy - cy) * par[INV_F_ML]
     hx = qx + sx * s_l - par[AXX]
     hy = qy + sy * s_l - par[AXY]
     h2 = hx * hx + hy * hy
     if h2 > par[R_AP2]:
         return False, hx, hy, 0.0, 0.0
     # Point of the nominal MLA plane (Z = -s_i) on the ray, relative to the axis.
-    w = delta / s_l
     ux = qx - par[AXX]
     uy = qy - par[AXY]
     ux += (ux - hx) * w
     uy += (uy - hy) * w
     rho2 = (ux * ux + uy * uy) * par[INV_RN2]
     g = 1.0 + par[K1] * rho2 + par[K2] * rho2 * rho2
-    conj = -par[S_O] / par[S_I]
+    conj = par[CONJ]
     hu = hx * ux + hy * uy
     # Seidel transverse errors on the focal plane (module notes of .optics).
     ex = par[SEID_A] * rho2 * hx + par[SEID_B] * hu * ux * par[INV_RN2]
     ey = par[SEID_A] * rho2 * hy + par[SEID_B] * hu * uy * par[INV_RN2]
     ex += par[COMA_K] * (h2 * ux + 2.0 * hu * hx)
     ey += par[COMA_K] * (h2 * uy + 2.0 * hu * hy)
-    inv_so = 1.0 / par[S_O]
+    inv_so = par[INV_S_O]
     dx = (ux * conj * g + ex - hx) * inv_so
     dy = (uy * conj * g + ey - hy) * inv_so
     if par[VIG_ON] != 0.0:
@@ -285,20 +296,25 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
     conj = -s_o / par[S_I]
     per_sample = lens_i < -(1 << 40)
     cx, cy = 0.0, 0.0
+    lens_on = par[LENS_ON] != 0.0
+    inv_d, s_l, w = 0.0, 0.0, 0.0
     if not per_sample:
         cx, cy = _lens_center(lens_i, lens_j, par)
+        if lens_on:
+            inv_d, s_l, w = _lens_consts(cx, cy, par)
     lit = 0
-    lens_on = par[LENS_ON] != 0.0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
         py = y0 + samples[k, 1]
         if per_sample:
             i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
             cx, cy = _lens_center(i, j, par)
+            if lens_on:
+                inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
         if lens_on:
-            ok, hx, hy, dx, dy = _lens_ray(px, py, qx, qy, cx, cy, par)
+            ok, hx, hy, dx, dy = _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w)
             if not ok:
                 continue
             if _ray_blocked(hx, hy, dx, dy, occluders, cand, nc, shapes, has_shapes):
@@ -351,20 +367,25 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
     per_sample = lens_i < -(1 << 40)
     has_t = samples.shape[1] > 4
     cx, cy = 0.0, 0.0
+    lens_on = par[LENS_ON] != 0.0
+    inv_d, s_l, w = 0.0, 0.0, 0.0
     if not per_sample:
         cx, cy = _lens_center(lens_i, lens_j, par)
+        if lens_on:
+            inv_d, s_l, w = _lens_consts(cx, cy, par)
     total = 0.0
-    lens_on = par[LENS_ON] != 0.0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
         py = y0 + samples[k, 1]
         if per_sample:
             i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
             cx, cy = _lens_center(i, j, par)
+            if lens_on:
+                inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
         if lens_on:
-            ok, hx, hy, dx, dy = _lens_ray(px, py, qx, qy, cx, cy, par)
+            ok, hx, hy, dx, dy = _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w)
             if not ok:
                 continue
         else:
