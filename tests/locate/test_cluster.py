@@ -12,9 +12,9 @@ from plenoptrack.locate.cluster import (ProjectionGeometry, _kmeanspp_topup, _ll
                                         size_thresholds)
 
 try:
-    from . import _allpairs as allpairs
+    from . import _previous as previous
 except ImportError:  # tests/locate is not a package
-    import _allpairs as allpairs
+    import _previous as previous
 
 CAMERA = preset("hall2019")
 AXIS = (271.5, 180.5)
@@ -244,13 +244,13 @@ def test_grid_search_kernels_match_all_pairs_search(block):
     for seed in range(block * 40, (block + 1) * 40):
         rng, pts, centres = _point_sets(seed)
         want_c, got_c = centres.copy(), centres.copy()
-        want = allpairs._lloyd(pts, want_c, 50)
+        want = previous._lloyd(pts, want_c, 50)
         assert np.array_equal(_lloyd(pts, got_c, 50), want), seed
         assert np.array_equal(got_c, want_c), seed
         k0 = int(rng.integers(0, len(centres) + 1))
         uniforms = rng.random(10)
         assert np.array_equal(_kmeanspp_topup(pts, centres[:k0].copy(), 10, uniforms),
-                              allpairs._kmeanspp_topup(pts, centres[:k0].copy(), 10, uniforms))
+                              previous._kmeanspp_topup(pts, centres[:k0].copy(), 10, uniforms))
 
 
 def test_clustering_unchanged_by_grid_search(monkeypatch):
@@ -259,8 +259,8 @@ def test_clustering_unchanged_by_grid_search(monkeypatch):
     det = _detections(np.random.default_rng(11), 150, n_spurious=300)
     alphas = plane_alphas(CAMERA, DEPTHS, 10)
     got = cluster_detections(det, GEOM, alphas, seed=2)
-    monkeypatch.setattr(cluster_module, "_lloyd", allpairs._lloyd)
-    monkeypatch.setattr(cluster_module, "_kmeanspp_topup", allpairs._kmeanspp_topup)
+    monkeypatch.setattr(cluster_module, "_lloyd", previous._lloyd)
+    monkeypatch.setattr(cluster_module, "_kmeanspp_topup", previous._kmeanspp_topup)
     want = cluster_detections(det, GEOM, alphas, seed=2)
     assert got.n_clusters > 100
     assert got.detections.equals(want.detections)

@@ -1,21 +1,22 @@
 """The locator's steps that compare particles with each other or with centroids, against
-the all-pairs versions they replaced (``_allpairs.py``): identical outputs on random
+the all-pairs versions they replaced (``_previous.py``): identical outputs on random
 inputs (NaN predictions, views without centroids, tied distances, confidences and
-centroid counts) and identical particle tables from :func:`locate_frame`."""
+centroid counts) and, with every replaced step (k-means and triangulation included) put
+back, identical particle tables from :func:`locate_frame`."""
 
 import numpy as np
 import pytest
 
-from plenoptrack.locate import cluster, perspective
+from plenoptrack.locate import cluster, perspective, triangulate
 from plenoptrack.locate.dlfc import fit_dlfc
 from plenoptrack.simulate import make_scene
 
 try:
-    from . import _allpairs as allpairs
+    from . import _previous as previous
     from .test_dlfc import PlenopticModel, dot_cards, views
     from .test_perspective import _frame
 except ImportError:  # tests/locate is not a package
-    import _allpairs as allpairs
+    import _previous as previous
     from test_dlfc import PlenopticModel, dot_cards, views
     from test_perspective import _frame
 
@@ -72,7 +73,7 @@ def test_add_centroids_matches_all_pairs():
         for tol in (0.5, 1.0):
             args = (a["pred"], a["st"], a["view"], a["owner"], a["residual"],
                     a["confidence"], tol)
-            want = allpairs._add_centroids(*args)
+            want = previous._add_centroids(*args)
             assert np.array_equal(perspective._add_centroids(*args), want), (seed, tol)
             changed += int(np.any(want != a["owner"]))
     assert changed > 60
@@ -84,7 +85,7 @@ def test_merge_duplicates_matches_all_pairs():
         a = _state(seed)
         for merge_px in (0.5, 1.0, 2.0):
             args = (a["pred"], a["st"], a["view"], a["owner"], a["n_views"], merge_px)
-            want = allpairs._merge_duplicates(*args)
+            want = previous._merge_duplicates(*args)
             assert np.array_equal(perspective._merge_duplicates(*args), want), (seed, merge_px)
             changed += int(np.any(want != a["owner"]))
     assert changed > 30
@@ -95,7 +96,7 @@ def test_explained_by_others_matches_all_pairs():
     for seed in SEEDS:
         a = _state(seed)
         args = (a["pred"], a["st"], a["view"], a["owner"], a["radius"], a["ok"])
-        want = allpairs._explained_by_others(*args)
+        want = previous._explained_by_others(*args)
         assert np.array_equal(perspective._explained_by_others(*args), want), seed
         hits += int(np.any(want > 0))
     assert hits > 30
@@ -120,7 +121,7 @@ def test_release_single_large_matches_all_pairs():
         owner = np.where(rng.random(len(a["owner"])) < 0.5, perspective._MERGED, a["owner"])
         round_ = rng.random(len(owner)) < 0.8
         args = (_ShiftModel(), positions, views, a["st"], a["view"], owner, a["radius"], round_)
-        want = allpairs._release_single_large(*args)
+        want = previous._release_single_large(*args)
         assert np.array_equal(perspective._release_single_large(*args), want), seed
         released += int(np.any(want != owner))
     assert released > 30
@@ -144,30 +145,31 @@ def test_trim_refit_matches_per_particle_scan():
     start[3] = np.nan
     for particles in (np.arange(12), np.array([1, 3, 5, 8]), np.array([], dtype=np.int64)):
         args = (dlfc, st, view, grid, owner, start, particles, 6, 1.0)
-        want_owner, want_pos = allpairs._trim_refit(*args)
+        want_owner, want_pos = previous._trim_refit(*args)
         got_owner, got_pos = perspective._trim_refit(*args)
         assert np.array_equal(got_owner, want_owner)
         assert np.array_equal(got_pos, want_pos, equal_nan=True)
         assert np.any(want_owner != owner) == (len(particles) > 0)
 
 
-def _use_all_pairs(monkeypatch):
+def _use_previous_steps(monkeypatch):
     for name in ("_add_centroids", "_merge_duplicates", "_release_single_large",
                  "_explained_by_others", "_trim_refit"):
-        monkeypatch.setattr(perspective, name, getattr(allpairs, name))
+        monkeypatch.setattr(perspective, name, getattr(previous, name))
     for name in ("_lloyd", "_kmeanspp_topup"):
-        monkeypatch.setattr(cluster, name, getattr(allpairs, name))
+        monkeypatch.setattr(cluster, name, getattr(previous, name))
+    monkeypatch.setattr(triangulate, "_triangulate", previous._triangulate)
 
 
 @pytest.mark.parametrize("n_particles, diameter_mm", [(80, 0.2), (30, None)])
-def test_locate_frame_matches_all_pairs_steps(small_calibrated, monkeypatch, n_particles,
+def test_locate_frame_matches_previous_steps(small_calibrated, monkeypatch, n_particles,
                                               diameter_mm):
     optics, calib = small_calibrated
     scene = make_scene(calib.camera, n_particles=n_particles, seed=3, diameter_mm=diameter_mm)
     raw = _frame(optics, scene.truth, 3)
     new = perspective.locate_frame(raw, calib)
     with monkeypatch.context() as m:
-        _use_all_pairs(m)
+        _use_previous_steps(m)
         old = perspective.locate_frame(raw, calib)
     assert len(new.particles) >= 0.9 * n_particles
     assert new.particles.equals(old.particles)

@@ -15,8 +15,10 @@ from plenoptrack.locate.triangulate import (FLAG_DESCRIPTIONS, TriangulationFlag
                                             triangulate_clusters)
 
 try:
+    from . import _previous as previous
     from .test_dlfc import PlenopticModel, dot_cards, views
 except ImportError:  # tests/locate is not a package
+    import _previous as previous
     from test_dlfc import PlenopticModel, dot_cards, views
 
 F = TriangulationFlag
@@ -216,3 +218,38 @@ def test_200_particles_all_converge_without_warnings(model, dlfc):
         warnings.simplefilter("error")
         res = triangulate_clusters(dlfc, det, start, n_possible_views=149)
     assert len(res) == 200 and np.all(res.flags & F.CONVERGED)
+
+
+@pytest.mark.parametrize("solver", ["lm", "scipy"])
+def test_rejection_rounds_match_the_previous_solve(model, dlfc, monkeypatch, solver):
+    """Re-testing only the clusters solved in a round gives what re-testing every
+    centroid in every round gave (``_previous.py``), to the bit."""
+    import plenoptrack.locate.triangulate as triangulate_module
+
+    n = 40 if solver == "lm" else 8
+    results = {}
+    for version in ("new", "previous"):
+        with monkeypatch.context() as m:
+            if version == "previous":
+                m.setattr(triangulate_module, "_triangulate", previous._triangulate)
+            runs = []
+            for seed in range(3):
+                truth, start = random_particles(n, seed=10 + seed)
+                det = particle_detections(model, truth, noise_px=0.05, seed=seed)
+                rng = np.random.default_rng(seed)
+                bad = rng.random(len(det)) < 0.15              # outliers in most clusters
+                det.loc[bad, ["s", "t"]] += rng.normal(0, 3.0, (bad.sum(), 2))
+                det.loc[rng.random(len(det)) < 0.05, "cluster"] = -1
+                det.loc[det["cluster"] == 3, "cluster"] = np.where(
+                    np.arange((det["cluster"] == 3).sum()) < 2, 3, -1)   # a 2-view cluster
+                runs.append(triangulate_clusters(dlfc, det, start, n_possible_views=149,
+                                                 min_views=6, solver=solver))
+            runs.append(triangulate_cluster(dlfc, det["u"][:60], det["v"][:60],
+                                            det["s"][:60], det["t"][:60], start[0],
+                                            solver=solver))
+            results[version] = runs
+    assert any(np.any(r.flags & F.OUTLIERS_REMOVED) for r in results["new"])
+    for new, old in zip(results["new"], results["previous"], strict=True):
+        for name in ("clusters", "positions", "sigma", "residual_px", "mean_residual_px",
+                     "n_views", "confidence", "flags", "inliers"):
+            assert np.array_equal(getattr(new, name), getattr(old, name), equal_nan=True), name

@@ -372,30 +372,37 @@ def _triangulate(dlfc, u, v, s, t, labels, cluster_ids, x0, n_possible_views,
     rejected_any = np.zeros(n_k, dtype=bool)
     can_reject = n_start > min_views
     model = _ClusterModel(dlfc, u, v, obs, labels, n_k)
+    err = np.full(len(u), np.nan)
     while active.any():
         p, conv = _SOLVERS[solver](model, keep, positions, active, max_iter)
         positions[active] = p[active]
         converged[active] = conv[active]
-        err = np.hypot(*model.residuals(positions).T)
-        new_out = _outliers(err, model, keep, n_k, reject_k, min_views, min_threshold_px)
-        new_out &= can_reject[labels]
-        if not new_out.any():
+        # Only the clusters just solved can lose centroids: the others kept their
+        # positions and centroids, and found no outlier last round.
+        clusters = np.flatnonzero(active)
+        rows = model.rows_of(clusters)
+        err[rows] = np.hypot(*model.residuals(positions, clusters, rows).T)
+        out = _outliers(err, model, keep, clusters, rows, reject_k, min_views,
+                        min_threshold_px)
+        out = out[can_reject[labels[out]]]
+        if len(out) == 0:
             break
-        keep &= ~new_out
-        active = np.bincount(labels[new_out], minlength=n_k) > 0
+        keep[out] = False
+        active = np.bincount(labels[out], minlength=n_k) > 0
         rejected_any |= active
     return _summarise(model, cluster_ids, positions, keep, converged, solvable, rejected_any,
                       min_views, n_possible_views, volume_depth_mm)
 
 
 @numba.njit(cache=True)
-def _robust_thresholds(err, order, bounds, keep, k_sigma, floor):  # pragma: no cover
-    """Per-cluster ``max(median + k_sigma * MAD, floor)`` of ``err`` over kept rows
-    (NaN for clusters without kept rows or with a NaN median)."""
+def _robust_thresholds(err, order, bounds, keep, clusters, k_sigma, floor):  # pragma: no cover
+    """Per-cluster ``max(median + k_sigma * MAD, floor)`` of ``err`` over kept rows, for
+    ``clusters`` (NaN for the others, for clusters without kept rows or with a NaN
+    median)."""
     n_k = len(bounds) - 1
     out = np.full(n_k, np.nan)
     buf = np.empty(len(err))
-    for k in range(n_k):
+    for k in clusters:
         m = 0
         for r in range(bounds[k], bounds[k + 1]):
             i = order[r]
@@ -412,24 +419,30 @@ def _robust_thresholds(err, order, bounds, keep, k_sigma, floor):  # pragma: no 
     return out
 
 
-def _outliers(err, model, keep, n_k, reject_k, min_views, min_threshold_px) -> np.ndarray:
-    """(M,) mask of kept centroids to reject now, never leaving fewer than ``min_views``."""
+def _outliers(err, model, keep, clusters, rows, reject_k, min_views,
+              min_threshold_px) -> np.ndarray:
+    """Kept centroids of ``clusters`` to reject now, never leaving fewer than ``min_views``.
+
+    ``rows`` are the rows of ``clusters`` (:meth:`_ClusterModel.rows_of`). Returns row
+    indices, worst first within each cluster.
+    """
     labels = model.labels
-    threshold = _robust_thresholds(err, model.order, model.bounds, keep,
+    threshold = _robust_thresholds(err, model.order, model.bounds, keep, clusters,
                                    reject_k * _MAD_TO_SIGMA, min_threshold_px)
+    lab = labels[rows]
     with np.errstate(invalid="ignore"):
-        cand = np.flatnonzero(keep & (err > threshold[labels]))
+        cand = rows[keep[rows] & (err[rows] > threshold[lab])]
     if cand.size == 0:
-        return np.zeros(len(err), dtype=bool)
-    allowed = np.maximum(np.bincount(labels[keep], minlength=n_k) - min_views, 0)
-    order = np.lexsort((-err[cand], labels[cand]))      # worst first within each cluster
+        return cand
+    allowed = np.maximum(np.bincount(lab[keep[rows]], minlength=model.n_k) - min_views, 0)
+    # Worst first within each cluster; rows come grouped by cluster and ascending within,
+    # so ties keep the ascending row order.
+    order = np.lexsort((-err[cand], labels[cand]))
     cand = cand[order]
     cl = labels[cand]
     first = np.searchsorted(cl, cl, side="left")
     rank = np.arange(len(cand)) - first
-    out = np.zeros(len(err), dtype=bool)
-    out[cand[rank < allowed[cl]]] = True
-    return out
+    return cand[rank < allowed[cl]]
 
 
 def _powers(values: np.ndarray, top: int) -> np.ndarray:
@@ -611,16 +624,16 @@ def _lm_kernel(p, idx, mom, wo, oo, ref, xyz_e, tensor, centre, scale, max_iter,
 
 
 @numba.njit(cache=True)
-def _moments_kernel(w, obs, labels, keep, active, n_k):  # pragma: no cover - compiled
-    """``M`` (K, B, B), ``b`` (K, B, 2), ``sum |o|^2`` (K,) over kept centroids of active
-    clusters (zero for the others)."""
+def _moments_kernel(w, obs, labels, keep, rows, n_k):  # pragma: no cover - compiled
+    """``M`` (K, B, B), ``b`` (K, B, 2), ``sum |o|^2`` (K,) over the kept centroids among
+    ``rows`` (zero for clusters without any)."""
     n_b = w.shape[1]
     mom = np.zeros((n_k, n_b, n_b))
     wo = np.zeros((n_k, n_b, 2))
     oo = np.zeros(n_k)
-    for i in range(w.shape[0]):
+    for i in rows:
         k = labels[i]
-        if not (keep[i] and active[k]):
+        if not keep[i]:
             continue
         o0, o1 = obs[i, 0], obs[i, 1]
         oo[k] += o0 * o0 + o1 * o1
@@ -638,28 +651,30 @@ def _moments_kernel(w, obs, labels, keep, active, n_k):  # pragma: no cover - co
 
 
 @numba.njit(cache=True)
-def _residual_kernel(positions, w, obs, labels, ref, xyz_e, tensor, centre,
+def _residual_kernel(positions, clusters, rows, w, obs, labels, ref, xyz_e, tensor, centre,
                      scale):  # pragma: no cover - compiled
-    """(M, 2) measured minus predicted ``(s, t)`` of every centroid."""
+    """(len(rows), 2) measured minus predicted ``(s, t)`` of the centroids ``rows``, all of
+    which belong to ``clusters``."""
     n_k = positions.shape[0]
     n_b = tensor.shape[1]
     top = xyz_e.max()
     powers = np.empty((3, top + 1))
     coef = np.empty((n_k, n_b, 2))
     no_deriv = np.empty((0, n_b, 2))
-    for k in range(n_k):
+    for k in clusters:
         _coefficients_one(positions[k], xyz_e, tensor, centre, scale, powers, coef[k],
                           no_deriv)
         coef[k, 0, 0] -= ref[k, 0]
         coef[k, 0, 1] -= ref[k, 1]
-    out = np.empty((w.shape[0], 2))
-    for i in range(w.shape[0]):
+    out = np.empty((len(rows), 2))
+    for r in range(len(rows)):
+        i = rows[r]
         k = labels[i]
         for ch in range(2):
             acc = 0.0
             for b in range(n_b):
                 acc += w[i, b] * coef[k, b, ch]
-            out[i, ch] = obs[i, ch] - acc
+            out[r, ch] = obs[i, ch] - acc
     return out
 
 
@@ -698,13 +713,20 @@ class _ClusterModel:
         self.order = np.argsort(labels, kind="stable")
         self.bounds = np.searchsorted(labels[self.order], np.arange(n_k + 1))
 
+    def rows_of(self, clusters: np.ndarray) -> np.ndarray:
+        """Rows of the centroids of ``clusters`` (ascending labels), grouped by cluster
+        in the order of ``clusters`` and ascending within each."""
+        clusters = np.asarray(clusters, dtype=np.int64)
+        lo = self.bounds[clusters]
+        n = self.bounds[clusters + 1] - lo
+        offset = np.repeat(lo - (np.cumsum(n) - n), n)
+        return self.order[offset + np.arange(offset.size)]
+
     def moments(self, keep: np.ndarray, clusters: np.ndarray):
         """``M`` (K, B, B), ``b`` (K, B, 2), ``sum |o|^2`` (K,) over kept centroids of
         ``clusters`` (zero for the other clusters)."""
-        active = np.zeros(self.n_k, dtype=bool)
-        active[clusters] = True
         return _moments_kernel(self.w, self.obs, self.labels, np.asarray(keep, dtype=bool),
-                               active, self.n_k)
+                               self.rows_of(clusters), self.n_k)
 
     def normal_equations(self, positions, idx, moments):
         """J^T J (k, 3, 3), J^T r (k, 3) and SSR (k,) of clusters ``idx``.
@@ -717,10 +739,15 @@ class _ClusterModel:
                               np.asarray(idx, dtype=np.int64), mom, wo, oo, self.ref,
                               self.xyz_e, self.tensor, self.centre, self.scale)
 
-    def residuals(self, positions) -> np.ndarray:
-        """(M, 2) measured minus predicted (s, t) of every centroid, view pixels."""
-        return _residual_kernel(np.ascontiguousarray(positions, dtype=np.float64), self.w,
-                                self.obs, self.labels, self.ref, self.xyz_e, self.tensor,
+    def residuals(self, positions, clusters=None, rows=None) -> np.ndarray:
+        """Measured minus predicted (s, t), view pixels: (M, 2) for every centroid, or
+        (len(rows), 2) for ``rows``, the rows of ``clusters`` (:meth:`rows_of`)."""
+        if clusters is None:
+            clusters, rows = np.arange(self.n_k), np.arange(len(self.labels))
+        return _residual_kernel(np.ascontiguousarray(positions, dtype=np.float64),
+                                np.asarray(clusters, dtype=np.int64),
+                                np.asarray(rows, dtype=np.int64), self.w, self.obs,
+                                self.labels, self.ref, self.xyz_e, self.tensor,
                                 self.centre, self.scale)
 
 

@@ -1,11 +1,11 @@
-"""The all-pairs versions of the locator steps that compare every particle with every
-other particle, every centroid or every k-means centre, as they were before the spatial
-searches replaced them (copied unchanged).
+"""The locator steps as they were before they were made linear in the number of
+particles (copied unchanged): the steps that compare every particle with every other
+particle, every centroid or every k-means centre, and the triangulation that re-tests
+every centroid in every outlier-rejection round.
 
-They are the independent reference of ``test_perspective_steps.py`` and
-``test_cluster.py`` and the baseline of ``benchmarks/bench_locate.py --scaling``: each
-builds the full (particles x particles x views), (centroids x particles) or
-(points x centres) comparison and is exact by construction.
+They are the independent reference of ``test_perspective_steps.py``,
+``test_cluster.py`` and ``test_triangulate.py`` and the baseline of
+``benchmarks/bench_locate.py --scaling``.
 """
 # ruff: noqa: PLR1730
 
@@ -15,9 +15,15 @@ import warnings
 import numba
 import numpy as np
 
-from plenoptrack.errors import NoParticlesWarning
+from plenoptrack.errors import NoParticlesWarning, SettingsError
 from plenoptrack.locate.perspective import _MERGED, _predict_all
-from plenoptrack.locate.triangulate import triangulate_cluster
+from plenoptrack.locate.triangulate import (
+    _MAD_TO_SIGMA,
+    _SOLVERS,
+    _ClusterModel,
+    _summarise,
+    triangulate_cluster,
+)
 
 
 def _add_centroids(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np.ndarray,
@@ -341,3 +347,92 @@ def _kmeanspp_topup(points, centres, n_extra, uniforms):  # pragma: no cover - c
             if d < d2[i]:
                 d2[i] = d
     return out[:m]
+
+
+def _triangulate(dlfc, u, v, s, t, labels, cluster_ids, x0, n_possible_views,
+                 volume_depth_mm, reject_k, min_views, min_threshold_px, max_iter, solver):
+    """Solve, reject outliers and re-solve until stable; then uncertainty and flags."""
+    if solver not in ("lm", "scipy"):
+        raise SettingsError(f"solver must be 'lm' or 'scipy'; got {solver!r}")
+    if min_views < 2:
+        raise SettingsError(f"min_views must be at least 2 (3 unknowns, 2 equations per view); "
+                         f"got {min_views}")
+    if not reject_k > 0:
+        raise SettingsError(f"reject_k must be positive (np.inf disables rejection); got {reject_k!r}")
+    n_k = len(cluster_ids)
+    bad_start = ~np.all(np.isfinite(x0), axis=1)
+    if bad_start.any():
+        raise SettingsError(f"initial position is NaN or infinite for cluster(s) "
+                         f"{np.asarray(cluster_ids)[bad_start][:10].tolist()}; give a finite "
+                         "starting guess (x, y, z in mm) for every cluster")
+    if n_k == 0:
+        warnings.warn("no clustered detections to triangulate; returning an empty result",
+                      NoParticlesWarning, stacklevel=3)
+    obs = np.column_stack([s, t]) if len(s) else np.zeros((0, 2))
+    keep = np.ones(len(u), dtype=bool)
+    n_start = np.bincount(labels, minlength=n_k)
+    solvable = n_start >= 2
+    positions = np.where(solvable[:, None], x0, np.nan)
+    converged = np.zeros(n_k, dtype=bool)
+    active = solvable.copy()
+    rejected_any = np.zeros(n_k, dtype=bool)
+    can_reject = n_start > min_views
+    model = _ClusterModel(dlfc, u, v, obs, labels, n_k)
+    while active.any():
+        p, conv = _SOLVERS[solver](model, keep, positions, active, max_iter)
+        positions[active] = p[active]
+        converged[active] = conv[active]
+        err = np.hypot(*model.residuals(positions).T)
+        new_out = _outliers(err, model, keep, n_k, reject_k, min_views, min_threshold_px)
+        new_out &= can_reject[labels]
+        if not new_out.any():
+            break
+        keep &= ~new_out
+        active = np.bincount(labels[new_out], minlength=n_k) > 0
+        rejected_any |= active
+    return _summarise(model, cluster_ids, positions, keep, converged, solvable, rejected_any,
+                      min_views, n_possible_views, volume_depth_mm)
+
+
+@numba.njit(cache=True)
+def _robust_thresholds(err, order, bounds, keep, k_sigma, floor):  # pragma: no cover
+    """Per-cluster ``max(median + k_sigma * MAD, floor)`` of ``err`` over kept rows
+    (NaN for clusters without kept rows or with a NaN median)."""
+    n_k = len(bounds) - 1
+    out = np.full(n_k, np.nan)
+    buf = np.empty(len(err))
+    for k in range(n_k):
+        m = 0
+        for r in range(bounds[k], bounds[k + 1]):
+            i = order[r]
+            if keep[i]:
+                buf[m] = err[i]
+                m += 1
+        if m == 0:
+            continue
+        med = np.median(buf[:m])
+        if np.isnan(med):
+            continue
+        mad = np.median(np.abs(buf[:m] - med))
+        out[k] = max(med + k_sigma * mad, floor)
+    return out
+
+
+def _outliers(err, model, keep, n_k, reject_k, min_views, min_threshold_px) -> np.ndarray:
+    """(M,) mask of kept centroids to reject now, never leaving fewer than ``min_views``."""
+    labels = model.labels
+    threshold = _robust_thresholds(err, model.order, model.bounds, keep,
+                                   reject_k * _MAD_TO_SIGMA, min_threshold_px)
+    with np.errstate(invalid="ignore"):
+        cand = np.flatnonzero(keep & (err > threshold[labels]))
+    if cand.size == 0:
+        return np.zeros(len(err), dtype=bool)
+    allowed = np.maximum(np.bincount(labels[keep], minlength=n_k) - min_views, 0)
+    order = np.lexsort((-err[cand], labels[cand]))      # worst first within each cluster
+    cand = cand[order]
+    cl = labels[cand]
+    first = np.searchsorted(cl, cl, side="left")
+    rank = np.arange(len(cand)) - first
+    out = np.zeros(len(err), dtype=bool)
+    out[cand[rank < allowed[cl]]] = True
+    return out
