@@ -19,10 +19,32 @@ _SLACK = 1e-9            # relative widening of the search box; the exact test f
 
 
 @numba.njit(cache=True)
-def _scan(q_s, q_t, q_view, reach, start, s_sorted, t_sorted, t_min, height, n_bands,
-          fill, out_q, out_d):  # pragma: no cover - compiled
-    """Count (``fill`` False) or list (``fill`` True, into ``out_q``, ``out_d``) the data
-    points inside each query's box ``|ds| <= reach``, ``|dt| <= reach`` in its view.
+def _bucket(cell, s, n_cells):  # pragma: no cover - compiled
+    """Order of the data by cell and, within a cell, by ``s``; cell ``c`` holds
+    ``order[start[c]:start[c + 1]]``."""
+    n = len(cell)
+    start = np.zeros(n_cells + 1, dtype=np.int64)
+    for i in range(n):
+        start[cell[i] + 1] += 1
+    for c in range(n_cells):
+        start[c + 1] += start[c]
+    order = np.empty(n, dtype=np.int64)
+    fill = start[:-1].copy()
+    for i in range(n):
+        order[fill[cell[i]]] = i
+        fill[cell[i]] += 1
+    for c in range(n_cells):
+        if start[c + 1] - start[c] > 1:
+            seg = order[start[c]:start[c + 1]]
+            order[start[c]:start[c + 1]] = seg[np.argsort(s[seg], kind="mergesort")]
+    return order, start
+
+
+@numba.njit(cache=True)
+def _scan(q_s, q_t, q_view, reach, start, s_sorted, t_sorted, t_min, height,
+          n_bands):  # pragma: no cover - compiled
+    """Query and (sorted) data indices of the data points inside each query's box
+    ``|ds| <= reach``, ``|dt| <= reach`` in its view.
 
     The data are sorted by cell ``view * n_bands + band`` (bands of height ``height`` in
     ``t`` from ``t_min``), cell ``c`` holding ``start[c]:start[c + 1]``, and then by
@@ -30,6 +52,9 @@ def _scan(q_s, q_t, q_view, reach, start, s_sorted, t_sorted, t_min, height, n_b
     the box found by bisection.
     """
     n_views = (len(start) - 1) // n_bands
+    cap = max(16, len(q_s))
+    out_q = np.empty(cap, dtype=np.int64)
+    out_d = np.empty(cap, dtype=np.int64)
     n = 0
     for i in range(len(q_s)):
         if q_view[i] >= n_views:
@@ -51,12 +76,18 @@ def _scan(q_s, q_t, q_view, reach, start, s_sorted, t_sorted, t_min, height, n_b
             j = b0 + np.searchsorted(s_sorted[b0:b1], s_lo)
             while j < b1 and s_sorted[j] <= s_hi:
                 if abs(t_sorted[j] - q_t[i]) <= r:
-                    if fill:
-                        out_q[n] = i
-                        out_d[n] = j
+                    if n == cap:
+                        cap *= 2
+                        grown_q = np.empty(cap, dtype=np.int64)
+                        grown_d = np.empty(cap, dtype=np.int64)
+                        grown_q[:n] = out_q
+                        grown_d[:n] = out_d
+                        out_q, out_d = grown_q, grown_d
+                    out_q[n] = i
+                    out_d[n] = j
                     n += 1
                 j += 1
-    return n
+    return out_q[:n], out_d[:n]
 
 
 def pairs_within(query_st: np.ndarray, query_view: np.ndarray, radius,
@@ -116,19 +147,10 @@ def pairs_within(query_st: np.ndarray, query_view: np.ndarray, radius,
                  (t_max - t_min) * n_views / (4 * len(d_ok) + n_views), 1e-300)
     n_bands = int((t_max - t_min) / height) + 1
     band = np.minimum(((d_st[:, 1] - t_min) / height).astype(np.int64), n_bands - 1)
-    cell = d_view * n_bands + band
-    order = np.lexsort((d_st[:, 0], cell))
-    start = np.zeros(n_views * n_bands + 1, np.int64)
-    np.cumsum(np.bincount(cell, minlength=n_views * n_bands), out=start[1:])
-    args = (query_st[q_ok, 0].copy(), query_st[q_ok, 1].copy(), query_view[q_ok], reach,
-            start, d_st[order, 0].copy(), d_st[order, 1].copy(), t_min, height, n_bands)
-    none = np.zeros(0, np.int64)
-    n = _scan(*args, False, none, none)
-    if n == 0:
-        return empty
-    qi = np.empty(n, np.int64)
-    di = np.empty(n, np.int64)
-    _scan(*args, True, qi, di)
+    order, start = _bucket(d_view * n_bands + band, d_st[:, 0], n_views * n_bands)
+    qi, di = _scan(query_st[q_ok, 0].copy(), query_st[q_ok, 1].copy(), query_view[q_ok],
+                   reach, start, d_st[order, 0].copy(), d_st[order, 1].copy(), t_min,
+                   height, n_bands)
     qi = q_ok[qi]
     di = d_ok[order[di]]
     dist = np.hypot(query_st[qi, 0] - data_st[di, 0], query_st[qi, 1] - data_st[di, 1])

@@ -401,19 +401,19 @@ def _coincident_pairs(pred: np.ndarray, merge_px: float) -> tuple[np.ndarray, np
     Notes
     -----
     The median of ``V`` distances is at most ``merge_px`` only if at least
-    ``ceil(V / 2)`` of them are (for even ``V`` the lower of the two middle values is).
-    The pairs within ``merge_px`` in each view come from a spatial search; the exact
-    median (NaN, hence no merge, when a view's distance is NaN) is taken for the pairs
-    that pass the count.
+    ``ceil(V / 2)`` of them are (for even ``V`` the lower of the two middle values is),
+    so such a pair is within ``merge_px`` in at least one of any ``V - ceil(V / 2) + 1``
+    views. The pairs within ``merge_px`` in the first that many views come from a
+    spatial search; the exact median over all views (NaN, hence no merge, when a view's
+    distance is NaN) is taken for those pairs only.
     """
     n_k, n_v = pred.shape[:2]
-    views = np.tile(np.arange(n_v), n_k)
-    flat = pred.reshape(-1, 2)
-    q, d, _ = pairs_within(flat, views, merge_px, flat, views)
-    a, b = q // n_v, d // n_v
-    key = a[a < b] * n_k + b[a < b]
-    key, count = np.unique(key, return_counts=True)
-    key = key[count >= (n_v + 1) // 2]
+    n_probe = n_v - (n_v + 1) // 2 + 1
+    probe = pred[:, :n_probe].reshape(-1, 2)
+    views = np.tile(np.arange(n_probe), n_k)
+    q, d, _ = pairs_within(probe, views, merge_px, probe, views)
+    a, b = q // n_probe, d // n_probe
+    key = np.unique(a[a < b] * n_k + b[a < b])
     a, b = key // n_k, key % n_k
     median = np.median(np.hypot(pred[a, :, 0] - pred[b, :, 0], pred[a, :, 1] - pred[b, :, 1]),
                        axis=1)
