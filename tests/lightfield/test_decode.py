@@ -223,6 +223,28 @@ def test_white_decoded_once_equals_raw_white():
         decode(raw, grid, white=by_raw)          # already flat-fielded: not a white
 
 
+def test_black_samples_stay_valid_after_flat_fielding():
+    """A perfectly black particle (raw 0, no dark level) is data, not a hole: only samples
+    the white image leaves dark are set to 0, the invalid marker."""
+    grid = _lattice("hex")
+    radius = grid.pitch_px / 2
+
+    def white_f(dv, du, row, col):
+        return np.where(np.hypot(dv, du) < radius - 1.5, 3000.0, 0.0)
+
+    def scene_f(dv, du, row, col):   # a black disc over the middle of the sensor
+        black = np.hypot(row - 210.0, col - 260.0) < 60.0
+        return np.where(black, 0.0, white_f(dv, du, row, col))
+
+    lf = decode(_paint(grid, scene_f).astype(np.uint16), grid,
+                white=_paint(grid, white_f).astype(np.uint16))
+    c = lf.n_u // 2
+    central = lf.data[c, c][lf.spatial_mask]
+    assert central.min() == pytest.approx(1e-6) and (central == 0).sum() == 0
+    assert (central < 1e-3).sum() > 50           # the black disc: about 66 lenses
+    assert np.all(lf.data[c, 0][lf.spatial_mask] == 0.0)   # dark rim views: invalid
+
+
 def test_dark_white_raises(grid):
     with pytest.raises(InputFileError, match="white image is dark"):
         decode(np.zeros((420, 520), np.uint16), grid, white=np.zeros((420, 520), np.uint16))

@@ -399,7 +399,8 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: "np.ndarray | LightFiel
         flat-fielding many frames). When given, the light field is divided by the decoded
         white light field wherever the latter exceeds ``white_floor`` times the mean
         level of its brightest view, and set to zero (invalid: dead pixels, dark rims)
-        elsewhere. Division removes what the frames share with the white image: the
+        elsewhere; valid samples are at least 1e-6, so that a black one is not taken
+        for an invalid one. Division removes what the frames share with the white image: the
         back-light's shape, pixel gains, dust shadows on the sensor window.
         ``valid_fraction`` is the fraction of each view's pixel footprint inside the disc
         of radius ``grid.pitch_px / 2`` (the microlens image of a matched main lens); with
@@ -482,6 +483,10 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: "np.ndarray | LightFiel
                       flat_fielded=white is not None)
 
 
+_VALID_FLOOR = np.float32(1e-6)
+"""Smallest value of a valid flat-fielded sample (0 is reserved for invalid ones)."""
+
+
 def _flat_field(data: np.ndarray, wdata: np.ndarray, mask: np.ndarray, floor: float) -> np.ndarray:
     """Divide ``data`` by ``wdata`` in place where bright enough; return valid fractions."""
     n_v, n_u = data.shape[:2]
@@ -497,5 +502,9 @@ def _flat_field(data: np.ndarray, wdata: np.ndarray, mask: np.ndarray, floor: fl
         w = wdata[iv]
         bright = w > thresh
         np.divide(data[iv], w, out=data[iv], where=bright)
+        # 0 marks the samples without light in the white image; a black sample that is
+        # valid (a perfectly opaque particle on a sensor without a dark level) is kept
+        # just above it, or segmentation would take it for a hole in the data.
+        np.maximum(data[iv], _VALID_FLOOR, out=data[iv], where=bright)
         data[iv][~bright] = 0.0
     return np.clip(level / ref, 0.0, 1.0)
