@@ -2,6 +2,7 @@
 
     python benchmarks/bench_locate.py                  # hall2019, 100 particles of 1 mm
     python benchmarks/bench_locate.py --preset small --particles 20
+    python benchmarks/bench_locate.py --scaling        # 100, 400, 1000 particles of 0.5 mm
 
 The calibration (lenslet grid from a simulated white image, DLFC from seven simulated
 dot cards) and the raw image are simulated once and cached in ``--workdir`` (a few
@@ -20,11 +21,30 @@ The baseline is the same call with the triangulation solved by one
 :func:`scipy.optimize.least_squares` call per particle (``solver="scipy"``), run once on
 the same image; the ratios are baseline time over plenoptrack time for the
 triangulate + addition + checks stages and for the whole call.
+
+``--scaling`` measures how the cost grows with the number of particles: on ideal optics,
+for each of ``--counts`` particles (default 100, 400 and 1000 of ``--diameter`` 0.5 mm:
+1000 particles of 1 mm overlap in most views of the default volume, and the locator
+then finds only about three quarters of them) and each scene seed of ``--seeds``, it
+times one call with one numba thread and reads the peak memory of that call
+(``VmHWM``, reset before it). The baseline is the same call, in the same run, with the
+steps that compared every particle with every other particle, centroid or k-means centre
+put back as they were (``tests/locate/_previous.py``: duplicate merging, centroid
+addition, the merged-region and explained-centroid checks, the trimmed refit, Lloyd
+iterations, k-means++ seeding, and the triangulation that re-tested every centroid in
+every outlier-rejection round); both must give the same particles and detections
+tables. Printed per count: seconds per frame and per particle (mean over the seeds),
+peak MB (largest over the seeds), the per-stage seconds of both, and the ratio baseline
+over plenoptrack.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
+import functools
+import importlib.util
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -39,7 +59,21 @@ def _vm_hwm_mb() -> float:
     return float("nan")
 
 
-def _prepare(preset_name: str, n: int, seed: int, workdir: Path):
+def _reset_hwm() -> None:
+    """Give freed memory back to the system, then reset the process's peak resident
+    memory (``VmHWM``) to its current size (Linux; elsewhere a no-op)."""
+    import ctypes
+    import gc
+
+    gc.collect()
+    with contextlib.suppress(OSError, AttributeError):
+        ctypes.CDLL("libc.so.6").malloc_trim(0)
+    with contextlib.suppress(OSError):
+        Path("/proc/self/clear_refs").write_text("5")
+
+
+def _prepare(preset_name: str, n: int, seed: int, workdir: Path,
+             diameter_mm: float | None = None):
     import pandas as pd
 
     from plenoptrack import preset
@@ -54,8 +88,9 @@ def _prepare(preset_name: str, n: int, seed: int, workdir: Path):
     camera = preset(preset_name)
     workdir.mkdir(parents=True, exist_ok=True)
     calib_path = workdir / f"{preset_name}_calibration.json"
-    raw_path = workdir / f"{preset_name}_{n}_seed{seed}_raw.npy"
-    optics = make_optics(camera, seed=0)
+    size = "" if diameter_mm is None else f"_d{diameter_mm:g}"
+    raw_path = workdir / f"{preset_name}_{n}_seed{seed}{size}_raw.npy"
+    optics = make_optics(camera, seed=0, realism="ideal")
     if not calib_path.exists():
         t0 = time.perf_counter()
         white = render_white(optics, seed=np.random.default_rng([0, 2]))
@@ -71,7 +106,7 @@ def _prepare(preset_name: str, n: int, seed: int, workdir: Path):
         dlfc = fit_dlfc(pd.concat(points, ignore_index=True), order=4, group_by="z", reject_k=5)
         save_calibration(calib.with_dlfc(dlfc), calib_path)
         print(f"simulated and calibrated in {time.perf_counter() - t0:.0f} s -> {calib_path}")
-    scene = make_scene(camera, n_particles=n, seed=seed)
+    scene = make_scene(camera, n_particles=n, seed=seed, diameter_mm=diameter_mm)
     if not raw_path.exists():
         np.save(raw_path, render_frame(optics, scene.truth, seed=np.random.default_rng([seed, 3, 0])))
     return load_calibration(calib_path), np.load(raw_path), scene.truth
@@ -86,6 +121,104 @@ def _best(fn, repeat: int) -> tuple[float, object]:
     return best, out
 
 
+def _load_previous():
+    """The previous versions of the replaced steps, kept with the tests."""
+    path = Path(__file__).resolve().parents[1] / "tests" / "locate" / "_previous.py"
+    spec = importlib.util.spec_from_file_location("_previous", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module   # numba's cache finds compiled kernels by module name
+    spec.loader.exec_module(module)
+    return module
+
+
+@contextlib.contextmanager
+def _previous_steps(previous):
+    """Put the previous steps back into the locator for the duration of the block."""
+    from plenoptrack.locate import cluster, perspective, triangulate
+
+    swaps = [(perspective, name) for name in ("_add_centroids", "_merge_duplicates",
+                                              "_release_single_large",
+                                              "_explained_by_others", "_trim_refit")]
+    swaps += [(cluster, name) for name in ("_lloyd", "_kmeanspp_topup")]
+    swaps += [(triangulate, "_triangulate")]
+    saved = [(mod, name, getattr(mod, name)) for mod, name in swaps]
+    try:
+        for mod, name in swaps:
+            setattr(mod, name, getattr(previous, name))
+        yield
+    finally:
+        for mod, name, fn in saved:
+            setattr(mod, name, fn)
+
+
+def _timed_call(fn) -> tuple[float, float, object]:
+    """Seconds and peak MB (``VmHWM`` reset before) of one call, and its result."""
+    _reset_hwm()
+    t0 = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t0, _vm_hwm_mb(), out
+
+
+def scaling(args) -> None:
+    """Time per frame, per particle and peak memory against the previous steps."""
+    import numba
+
+    from plenoptrack.evaluate import evaluate_particles
+    from plenoptrack.locate.perspective import locate_frame
+
+    numba.set_num_threads(1)
+    previous = _load_previous()
+    stages = ("decode", "segment", "cluster", "triangulate", "checks")
+    rows = []
+    warm = False
+    for n in args.counts:
+        acc = {"new": [], "old": [], "new_mb": [], "old_mb": [], "recall": [],
+               "new_st": np.zeros(len(stages)), "old_st": np.zeros(len(stages))}
+        for seed in args.seeds:
+            calib, raw, truth = _prepare(args.preset, n, seed, args.workdir, args.diameter)
+            call = functools.partial(locate_frame, raw, calib)
+            if not warm:  # compile (or load) the kernels of both versions
+                call()
+                with _previous_steps(previous):
+                    call()
+                warm = True
+            t_new, mb_new, new = _timed_call(call)
+            with _previous_steps(previous):
+                t_old, mb_old, old = _timed_call(call)
+            if not (new.particles.equals(old.particles)
+                    and new.detections.equals(old.detections)):
+                raise SystemExit(f"{n} particles, seed {seed}: the previous steps give a "
+                                 "different result")
+            acc["new"].append(t_new)
+            acc["old"].append(t_old)
+            acc["new_mb"].append(mb_new)
+            acc["old_mb"].append(mb_old)
+            acc["new_st"] += [new.stage_seconds[k] for k in stages]
+            acc["old_st"] += [old.stage_seconds[k] for k in stages]
+            acc["recall"].append(evaluate_particles(new.particles, truth,
+                                                    tolerance_mm=2.0).recall)
+            print(f"  {n} particles, seed {seed}: {len(new.particles)} located, "
+                  f"{t_new:.2f} s ({mb_new:.0f} MB) vs previous {t_old:.2f} s "
+                  f"({mb_old:.0f} MB), same particles table", flush=True)
+            del new, old, raw, call
+        k = len(args.seeds)
+        rows.append((n, np.mean(acc["new"]), max(acc["new_mb"]), np.mean(acc["old"]),
+                     max(acc["old_mb"]), np.mean(acc["recall"]), acc["new_st"] / k,
+                     acc["old_st"] / k))
+
+    print(f"\n{args.preset}, ideal optics, particles of {args.diameter:g} mm, seeds "
+          f"{list(args.seeds)}, one numba thread; mean over the seeds (peak: largest)")
+    print(f"{'particles':>9} {'recall':>6} | {'s/frame':>8} {'ms/part':>8} {'peak MB':>8} | "
+          f"{'previous s':>11} {'ms/part':>8} {'peak MB':>8} | {'ratio':>6}")
+    for n, t_new, mb_new, t_old, mb_old, recall, _, _ in rows:
+        print(f"{n:>9} {recall:>6.3f} | {t_new:>8.2f} {1e3 * t_new / n:>8.2f} {mb_new:>8.0f} | "
+              f"{t_old:>11.2f} {1e3 * t_old / n:>8.2f} {mb_old:>8.0f} | {t_old / t_new:>5.1f}x")
+    print("\nstage seconds (plenoptrack / previous): " + ", ".join(stages))
+    for n, *_, st_new, st_old in rows:
+        print(f"{n:>9}  " + "  ".join(f"{a:6.2f} / {b:6.2f}" for a, b in zip(st_new, st_old,
+                                                                        strict=True)))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="hall2019")
@@ -93,12 +226,24 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--workdir", type=Path, default=Path(tempfile.gettempdir()) / "plenoptrack-bench")
+    ap.add_argument("--scaling", action="store_true",
+                    help="time --counts particles against the previous steps")
+    ap.add_argument("--counts", type=int, nargs="+", default=[100, 400, 1000])
+    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
+    ap.add_argument("--diameter", type=float, default=None,
+                    help="particle diameter, mm (default: the preset's; 0.5 with --scaling)")
     args = ap.parse_args()
+    if args.scaling:
+        if args.diameter is None:
+            args.diameter = 0.5
+        scaling(args)
+        return
 
     from plenoptrack.evaluate import evaluate_particles
     from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
 
-    calib, raw, truth = _prepare(args.preset, args.particles, args.seed, args.workdir)
+    calib, raw, truth = _prepare(args.preset, args.particles, args.seed, args.workdir,
+                                 args.diameter)
     base_mb = _vm_hwm_mb()
     locator = PerspectiveLocator()
     locate_frame(raw, calib, locator=locator)  # warm-up (compiled kernels)
