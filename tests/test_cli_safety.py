@@ -427,21 +427,21 @@ def test_ctrl_c_during_locate_keeps_the_old_table(work, delay_s):
 def test_ctrl_c_during_locate_with_partial_keeps_the_complete_frames(work, data):
     """Interrupted after some frames, ``--partial`` writes exactly those frames' particles.
 
-    The raw file repeats the three frames eight times; the signal is sent later and later
-    until it lands after the first frame and before the last. Every run on the way must
-    have a clean outcome too.
+    The raw file repeats the three frames forty times (several seconds of locating); the
+    signal is sent later and later until it lands after the first frame and before the
+    last. Every run on the way must have a clean outcome too.
     """
     full = read_table(data / "particles.parquet")
     frames = read_frames(work / "frames.tif")
-    n_long = 8 * len(frames)
-    tifffile.imwrite(work / "long.tif", np.concatenate([frames] * 8), photometric="minisblack")
+    n_long = 40 * len(frames)
+    tifffile.imwrite(work / "long.tif", np.concatenate([frames] * 40), photometric="minisblack")
 
     def expected(done: int) -> pd.DataFrame:
         parts = [full[full["frame"] == f % len(frames)].assign(frame=f) for f in range(done)]
         return pd.concat(parts, ignore_index=True)
 
     seen_partial = False
-    for delay_s in (0.3, 1.0, 2.0, 4.0, 8.0):
+    for delay_s in (0.3, 0.6, 1.0, 2.0, 4.0, 8.0):
         out = work / f"part_{delay_s}.parquet"
         proc = _start(["locate", "long.tif", "--calib", "calib.json", "--out", out.name,
                        "--partial"], work)
