@@ -385,9 +385,16 @@ def test_version():
 # --------------------------------------------------------------------------- Ctrl-C, for real
 
 
+def _default_sigint() -> None:
+    # A shell starts background jobs with SIGINT ignored, and children inherit that: the
+    # command under test must see Ctrl-C as it would in a terminal.
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start(args, cwd: Path) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "plenoptrack", *map(str, args)], cwd=cwd,
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_default_sigint)
 
 
 def _interrupt_when(proc: subprocess.Popen, ready, delay_s: float, timeout_s: float = 120.0):

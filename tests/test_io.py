@@ -178,12 +178,16 @@ def test_interrupts_are_deferred_to_the_end_of_the_block():
     import signal
 
     done = []
-    with pytest.raises(KeyboardInterrupt):
-        with interrupts_deferred():
+    # a shell starts background jobs with SIGINT ignored: give the test the usual handler
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt), interrupts_deferred():
             # raise_signal delivers to this thread; os.kill may pick another thread of the
             # process (numba's workers), whose handler can run after the block has ended
             signal.raise_signal(signal.SIGINT)
             done.append("finished the block first")
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert done == ["finished the block first"]
 
 
