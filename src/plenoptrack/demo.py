@@ -61,6 +61,7 @@ def run_demo(out_dir: str | Path, *, seed: int = 0, n_particles: int = 20,
     -------
     DemoSummary
     """
+    from ._precompile import finish_background, start_background
     from .calibrate import calibrate
     from .calibration import record_white, save_calibration
     from .camera import preset
@@ -73,14 +74,25 @@ def run_demo(out_dir: str | Path, *, seed: int = 0, n_particles: int = 20,
     summary = DemoSummary()
     camera = preset("small")
 
+    # On a first run, the kernels of calibrating and locating are compiled by a second
+    # process while this one simulates (see plenoptrack._precompile).
+    steps = ("calibrate", "locate")
+    child = start_background(steps)
     t0 = time.perf_counter()
     kwargs = {} if diameter_mm is None else {"diameter_mm": diameter_mm}
-    sim = simulate_dataset(camera, out_dir / "sim", seed=seed, n_particles=n_particles,
-                           progress=progress, **kwargs)
+    try:
+        sim = simulate_dataset(camera, out_dir / "sim", seed=seed, n_particles=n_particles,
+                               progress=progress, **kwargs)
+    except BaseException:
+        if child is not None:
+            child.kill()
+            child.wait()
+        raise
     summary.rows.append(("simulate", f"{len(sim.truth)} particles, {len(sim.dotcard_paths)} dot cards",
                          time.perf_counter() - t0))
 
     t0 = time.perf_counter()
+    finish_background(child, steps)
     calib, report = calibrate(sim.white_path, sim.dotcards_path.parent, sim.camera, progress=progress)
     calib = record_white(calib, sim.white_path, calibration_path=out_dir / "calib.json")
     save_calibration(calib, out_dir / "calib.json")

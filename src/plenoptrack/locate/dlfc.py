@@ -153,6 +153,18 @@ def monomial_exponents(order: int = 4) -> np.ndarray:
 
 # --- compiled kernels ----------------------------------------------------------------
 
+# The kernels are called with the read-only coefficient arrays that a DLFC holds; the fit
+# passes read-only views too, so that numba compiles one specialisation, not two (the
+# read-only flag is part of an array's numba type).
+
+
+def _readonly(arr: np.ndarray) -> np.ndarray:
+    """A read-only view of ``arr`` (same data, no copy)."""
+    view = arr.view()
+    view.setflags(write=False)
+    return view
+
+
 _BLOCK = 128  # points per block: the block's monomials stay in cache
 
 
@@ -620,7 +632,7 @@ def fit_dlfc(data, *, order: int = 4, group_by=None, reject_k: float | None = No
     for round_ in range(max_reject_iter + 2):
         factor = _factor_gram(gram, order)
         coef = cho_solve(factor, atb).T.copy()
-        model, _ = _eval_kernel(q, parent, var, coef, False)
+        model, _ = _eval_kernel(q, parent, var, _readonly(coef), False)
         resid = st - model.T
         if reject_k is None or round_ > max_reject_iter:
             break
@@ -641,7 +653,7 @@ def fit_dlfc(data, *, order: int = 4, group_by=None, reject_k: float | None = No
     # one step of iterative refinement on the final point set
     _, atr = _normal_equations(q[:, keep], resid[keep], parent, var, with_gram=False)
     coef = coef + cho_solve(factor, atr).T
-    model, _ = _eval_kernel(q, parent, var, coef, False)
+    model, _ = _eval_kernel(q, parent, var, _readonly(coef), False)
     resid = st - model.T
     report = _fit_report(resid, keep, groups, group_name)
     return DLFC(order=order, coefficients=coef, centre=centre, scale=scale, report=report)
