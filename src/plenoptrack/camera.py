@@ -93,12 +93,12 @@ class CameraSpec:
     # --- derived first-order optics -------------------------------------------------
     @property
     def image_distance_mm(self) -> float:
-        """Main lens to microlens array distance s_i = F (1 + |M|), mm."""
+        """Main lens to microlens array distance ``s_i = F (1 + |M|)``, mm."""
         return self.focal_length_mm * (1.0 + abs(self.magnification))
 
     @property
     def object_distance_mm(self) -> float:
-        """Main lens to nominal focal plane distance s_o = F (1 + 1/|M|), mm."""
+        """Main lens to nominal focal plane distance ``s_o = F (1 + 1/|M|)``, mm."""
         return self.focal_length_mm * (1.0 + 1.0 / abs(self.magnification))
 
     @property

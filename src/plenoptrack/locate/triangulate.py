@@ -1,7 +1,7 @@
 """3D particle location from clustered view detections through the DLFC.
 
 Each particle is seen as a cluster of centroids ``(u_i, v_i, s_i, t_i)``, one per view
-it was found in. Its object-space position solves the non-linear least-squares problem
+it was found in. Its object-space position solves the non-linear least-squares problem::
 
     min over (x, y, z) of  sum_i | P(x, y, z, u_i, v_i) - (s_i, t_i) |^2
 
