@@ -61,18 +61,20 @@ from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings)
 from .triangulate import triangulate_clusters
-from .uncertainty import total_sigma
+from .uncertainty import reduced_chi2, total_sigma
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
            "solve_particles", "grow_particles", "check_particles", "measure_particles"]
 
 PARTICLE_COLUMNS = (T_COLUMN, *POS_COLUMNS, "sigma_x", "sigma_y", "sigma_z", "n_views",
-                    "confidence", "residual_px", "diameter", "major_axis", "minor_axis",
+                    "confidence", "residual_px", "chi2", "diameter", "major_axis", "minor_axis",
                     "orientation", "flags")
 """Columns of a particles table: ``frame``; ``x, y, z`` and their standard uncertainties
 ``sigma_*`` (mm); ``n_views`` (centroids used); ``confidence`` (eq. 3 of the paper);
-``residual_px`` (RMS reprojection error, view pixels); ``diameter`` (equivalent diameter),
+``residual_px`` (RMS reprojection error, view pixels); ``chi2`` (fit quality: the reduced
+chi-square of the particle's centroids against the frame's typical centroid scatter, about
+1 for a clean fit, large when overlapping images pull some centroids); ``diameter`` (equivalent diameter),
 ``major_axis``, ``minor_axis`` (mm, in the x-y plane); ``orientation`` (rad, major axis
 from +x towards +y); ``flags`` (:class:`~plenoptrack.locate.triangulate.TriangulationFlag`)."""
 
@@ -496,6 +498,8 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     particles[sigma] = total_sigma(particles[sigma].to_numpy(float), ctx.dlfc,
                                    error_scale=solve.error_scale,
                                    include_model_error=solve.model_error)
+    particles["chi2"] = reduced_chi2(particles["residual_px"].to_numpy(float),
+                                     particles["n_views"].to_numpy(float))
     particles.insert(0, T_COLUMN, frame)
     particles["diameter"] = shape.loc[keep, "diameter_px"].to_numpy() / mag
     particles["major_axis"] = shape.loc[keep, "major_px"].to_numpy() / mag

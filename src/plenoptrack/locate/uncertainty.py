@@ -27,7 +27,7 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["total_sigma", "model_error_mm"]
+__all__ = ["total_sigma", "model_error_mm", "reduced_chi2"]
 
 
 def model_error_mm(dlfc) -> np.ndarray:
@@ -61,3 +61,35 @@ def total_sigma(sigma_stat: np.ndarray, dlfc, *, error_scale: float,
     sigma_stat = np.asarray(sigma_stat, dtype=float)
     model = model_error_mm(dlfc) if include_model_error else np.zeros(3)
     return np.sqrt((error_scale * sigma_stat) ** 2 + model[None, :] ** 2)
+
+
+def reduced_chi2(residual_px: np.ndarray, n_views: np.ndarray) -> np.ndarray:
+    """Fit quality of each particle: reduced chi-square against the frame's typical scatter.
+
+    Parameters
+    ----------
+    residual_px : (N,) float ndarray
+        RMS reprojection error ``sqrt(SSR / n)`` of each particle, view pixels.
+    n_views : (N,) float ndarray
+        Centroids ``n`` of each particle (``2n`` equations, 3 unknowns).
+
+    Returns
+    -------
+    (N,) float ndarray
+        ``s_i^2 / median_j s_j^2`` with ``s^2 = SSR / (2n - 3)`` the per-coordinate
+        centroid variance about the fit. The frame's particles share the camera, the
+        noise and the calibration, so their median scatter is the typical centroid noise;
+        a particle far above 1 has centroids that disagree with its position more than
+        usual (overlapping images, a merged image taken for one particle). NaN where
+        ``2n - 3 <= 0``; all 1 for a frame of one particle.
+    """
+    residual_px = np.asarray(residual_px, dtype=float)
+    n_views = np.asarray(n_views, dtype=float)
+    dof = 2 * n_views - 3
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s2 = np.where(dof > 0, residual_px ** 2 * n_views / dof, np.nan)
+    finite = np.isfinite(s2)
+    if not finite.any():
+        return s2
+    typical = np.median(s2[finite])
+    return s2 / typical if typical > 0 else np.full_like(s2, np.nan)
