@@ -66,8 +66,11 @@ def _table(step):
 @pytest.mark.parametrize("step", ["calibrate", "locate"])
 def test_table_is_what_the_step_compiles(compiled, step):
     """Exactly the listed kernels, each with exactly the listed signature: a missing or
-    different entry would leave a kernel to compile on the first run."""
-    assert compiled[step] == _table(step)
+    different entry would leave a kernel to compile on the first run. Helpers compiled
+    into their callers hold signatures only when the callers were compiled in that
+    process (not when loaded from the cache), so they are left out."""
+    seen = {k: v for k, v in compiled[step].items() if k not in _precompile.HELPERS}
+    assert seen == _table(step)
 
 
 def test_precompiled_kernels_are_found_by_later_processes(tmp_path):

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from numba import types as nt
 
-__all__ = ["KERNELS", "STEPS", "kernels_for", "missing", "precompile", "start_background",
+__all__ = ["KERNELS", "STEPS", "HELPERS", "kernels_for", "missing", "precompile", "start_background",
            "finish_background"]
 
 
@@ -79,13 +79,30 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
 Pinned by ``tests/test_precompile.py`` against the signatures a real run compiles."""
 
 STEPS: dict[str, tuple[str, ...]] = {
-    "calibrate": ("grid", "decode", "segment", "dlfc_eval", "dlfc_design"),
+    "calibrate": ("grid", "decode", "segment", "dlfc_eval", "dlfc_design",
+                  # the dots' position errors through the fitted DLFC (its model error)
+                  "robust_thresholds", "normal", "lm", "moments", "residual"),
     "locate": ("decode", "segment", "dlfc_eval", "kmeans_lloyd", "kmeans_topup",
                "kmeans_evaluate", "robust_thresholds", "normal", "lm", "moments", "residual",
                "nearby_bucket", "nearby_scan", "first_untaken", "absorb"),
 }
 """The kernels each step needs (``calibrate``: lenslet grid and DLFC fit from a white image
 and dot cards; ``locate``: decoding and the perspective-shift locator)."""
+
+
+HELPERS: frozenset[str] = frozenset({
+    "plenoptrack.lightfield.decode._corner", "plenoptrack.lightfield.grid._symmetry_step",
+    "plenoptrack.lightfield.grid._bilinear", "plenoptrack.lightfield.grid._reflected_step",
+    "plenoptrack.locate.cluster._centre_grid", "plenoptrack.locate.cluster._nearest_two",
+    "plenoptrack.locate.segment._find", "plenoptrack.locate.segment._union",
+    "plenoptrack.locate.segment._block_mean", "plenoptrack.locate.segment._fill_nan",
+    "plenoptrack.locate.segment._interp_axis", "plenoptrack.locate.segment._grid_row",
+    "plenoptrack.locate.segment._at", "plenoptrack.locate.segment._segment_one",
+    "plenoptrack.locate.triangulate._coefficients_one",
+    "plenoptrack.locate.triangulate._normal_one", "plenoptrack.locate.triangulate._solve3",
+})
+"""Jitted functions called only from other kernels: compiled into their callers' cache
+entries, never needed on their own."""
 
 
 def kernels_for(steps) -> list[str]:
