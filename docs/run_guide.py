@@ -24,14 +24,15 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 PAGES = ["install.md", "guide/experiment.md", "guide/calibration.md", "guide/locating.md",
          "guide/uncertainty.md", "guide/tracking.md", "guide/batch.md"]
-_BLOCK = re.compile(r"^```bash\n(.*?)^```", re.S | re.M)
+_BLOCK = re.compile(r"^( *)```bash\n(.*?)^ *```", re.S | re.M)
 
 
 def blocks(page: Path) -> list[str]:
     """The ``bash`` code blocks of a Markdown page, install lines removed."""
     out = []
-    for block in _BLOCK.findall(page.read_text()):
-        lines = [line for line in block.splitlines()
+    for indent, block in _BLOCK.findall(page.read_text()):
+        lines = [line[len(indent):] for line in block.splitlines()]
+        lines = [line for line in lines
                  if "pip install" not in line and "python3 -m venv" not in line]
         # the install page calls the checkout's venv; use the current environment instead
         lines = [line.replace(".venv/bin/", "") for line in lines]
