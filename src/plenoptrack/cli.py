@@ -253,8 +253,8 @@ def simulate(
     shape: str = typer.Option("sphere", "--shape", help="Particle shape of the random scene: sphere, ellipsoid (prolate, random orientation, aspect ratio up to --max-aspect) or fragment (irregular faceted body, random orientation, aspect ratio of its equivalent ellipsoid up to --max-aspect)."),
     max_aspect: float = typer.Option(3.0, "--max-aspect", callback=_finite(at_least=1.0), help="Largest aspect ratio (long over short axis) of ellipsoids and fragments."),
     magnification: Optional[float] = typer.Option(None, "--magnification", callback=_finite(), help="Override the preset magnification (negative, e.g. -0.5); the f-number is re-set to keep the microlens images filled."),
-    frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
-    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification, seed and particles replace --preset, --magnification, --seed and the random-scene options."),
+    frames: Optional[int] = typer.Option(None, "--frames", min=1, help="Number of frames (default 1, or the scene's)."),
+    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification, seed and particles replace --preset, --magnification, --seed and the random-scene options. Or a built-in scene, 'fragments' (an expanding ring of metal fragments) or 'vortex-ring' (tracers in Hill's vortex), or a TOML file with scene = 'NAME' whose keys override that scene's parameters (a data set's scene.toml is one)."),
     samples: int = typer.Option(16, "--samples", min=1, max=4096, help="Ray samples per pixel."),
     optics_mode: Optional[str] = typer.Option(None, "--optics", help="realistic (default: spec-sheet errors, imperfect dot cards, diffraction, aberrations, dust, sensor defects and the other effects of plenoptrack.simulate.realism) or ideal (the exact geometric model); the optics table of a scene file applies when not given."),
 ) -> None:
@@ -262,6 +262,7 @@ def simulate(
     from .camera import preset
     from .io import check_outputs
     from .simulate import load_scene, simulate_dataset
+    from .simulate.scenes import builtin_scene, read_scene_spec
 
     if magnification == 0:
         raise typer.BadParameter("must be non-zero (negative for a real, inverted image)",
@@ -273,8 +274,20 @@ def simulate(
         raise typer.BadParameter(f"must be 'ideal' or 'realistic'; got {optics_mode!r}",
                                  param_hint="--optics")
     check_outputs({"--out": out_dir}, {"--scene": scene}, folders=["--out"])
-    scene_obj = None
-    if scene is not None:
+    scene_obj = scene_params = None
+    builtin = read_scene_spec(scene) if scene is not None else None
+    if builtin is not None:
+        name, overrides = builtin
+        overrides = {**overrides, **({"seed": seed} if seed is not None else {}),
+                     **({"frames": frames} if frames is not None else {}),
+                     **({"optics": optics_mode} if optics_mode is not None else {}),
+                     **({"camera": preset_name} if preset_name is not None else {})}
+        if magnification is not None:
+            raise typer.BadParameter("built-in scenes use their camera's magnification",
+                                     param_hint="--magnification")
+        scene_obj, scene_params = builtin_scene(name, overrides)
+        camera, seed, optics_mode = scene_obj.camera, scene_obj.seed, None
+    elif scene is not None:
         scene_obj = load_scene(scene)
         camera = scene_obj.camera
         if preset_name is not None and preset_name != camera.name:
@@ -291,10 +304,10 @@ def simulate(
         camera = preset(preset_name or "small")
     t0 = time.perf_counter()
     result = simulate_dataset(camera, out_dir, seed=seed, n_particles=particles,
-                              diameter_mm=diameter, magnification=magnification, frames=frames,
-                              scene=scene_obj, samples_per_pixel=samples, realism=optics_mode,
-                              shape=shape, max_aspect=max_aspect,
-                              progress=True)
+                              diameter_mm=diameter, magnification=magnification,
+                              frames=frames or 1, scene=scene_obj, samples_per_pixel=samples,
+                              realism=optics_mode, shape=shape, max_aspect=max_aspect,
+                              progress=True, scene_params=scene_params)
     if magnification is not None:
         console.print(f"magnification {result.camera.magnification:g}: main lens set to "
                       f"f/{result.camera.f_number:g} (working f-number "

@@ -15,6 +15,8 @@ Folder layout (the simulator part of the file contract in ``DESIGN.md``)::
                                  add transmission and velocity_x, velocity_y,
                                  velocity_z (mm per frame)
       truth_optics.json          true lenslet grid, MLA perturbation and distortion
+      scene.toml                 built-in scenes only: the scene's parameters (name, frame
+                                 interval, ...); ``--scene scene.toml`` repeats the run
 
 ``truth.parquet`` and ``truth_optics.json`` are ground truth for tests and evaluation;
 nothing on the locating path reads them.
@@ -95,7 +97,8 @@ def _progress(enabled: bool):
 
 
 DATASET_LAYOUT = {
-    ".": ("raw", "white.tif", "dotcards", "camera.toml", "truth.parquet", "truth_optics.json"),
+    ".": ("raw", "white.tif", "dotcards", "camera.toml", "truth.parquet", "truth_optics.json",
+          "scene.toml"),
     "raw": ("frame_*.tif",),
     "dotcards": ("card_*.tif", "dotcards.toml"),
 }
@@ -167,7 +170,7 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
                      sensor: SensorModel = SensorModel(),
                      realism: Realism | str | None = None,
                      progress: bool = False, shape: str = "sphere",
-                     max_aspect: float = 3.0) -> SimulationResult:
+                     max_aspect: float = 3.0, scene_params: dict | None = None) -> SimulationResult:
     """Simulate raw frames, a white image and dot cards, with ground truth, into a folder.
 
     Parameters
@@ -227,6 +230,9 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         :func:`~plenoptrack.simulate.scene.random_particles`.
     max_aspect : float
         Largest aspect (long over short semi-axis) of random ellipsoids or fragments, >= 1.
+    scene_params : dict, optional
+        Parameters of a built-in scene (:func:`~.scenes.builtin_scene`), written to
+        ``scene.toml``.
 
     Returns
     -------
@@ -304,6 +310,10 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
                          for z, p in zip(depths, placements)]}
         atomic_write_text(tmp / "truth_optics.json", json.dumps(optics_doc, indent=2))
         write_table(target_truth, tmp / "truth.parquet")
+        if scene_params is not None:
+            import tomli_w
+
+            atomic_write_text(tmp / "scene.toml", tomli_w.dumps(scene_params))
         write_tiff(tmp / "white.tif", render_white(
             optics, seed=np.random.default_rng([seed, 2]), samples_per_pixel=samples_per_pixel,
             sensor=sensor))
