@@ -610,15 +610,27 @@ def evaluate(
     tolerance: float = typer.Option(1.0, "--tolerance", callback=_finite(positive=True), help="Largest 3D distance of a match, mm."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
 ) -> None:
-    """Match measured particles to the truth (Hungarian, within a tolerance) and report errors."""
+    """Match measured particles to the truth (Hungarian, within a tolerance) and report errors.
+
+    A tracks table (`plenoptrack track`) against a truth with particle ids and velocities
+    also gets link recovery, velocity errors and the depth error before and after track
+    smoothing.
+    """
     import json
 
     from .evaluate import evaluate_particles
     from .io import read_table
 
-    ev = evaluate_particles(read_table(particles_file), read_table(truth_file), tolerance_mm=tolerance)
+    measured, truth = read_table(particles_file), read_table(truth_file)
+    ev = evaluate_particles(measured, truth, tolerance_mm=tolerance)
+    tracks_ev = None
+    if {"particle", "z_smooth", "velocity_x"} <= set(measured.columns) and {
+            "particle", "velocity_x"} <= set(truth.columns):
+        from .evaluate import evaluate_tracks
+
+        tracks_ev = evaluate_tracks(measured, truth, tolerance_mm=tolerance)
     if as_json:
-        print(json.dumps(ev.to_dict()))
+        print(json.dumps(ev.to_dict() | ({"tracks": tracks_ev.to_dict()} if tracks_ev else {})))
         return
     table = _quantity_table(f"{particles_file} against {truth_file} (tolerance {tolerance:g} mm)")
     table.add_row("true / measured / matched", f"{ev.n_true} / {ev.n_measured} / {ev.n_matched}")
@@ -628,7 +640,59 @@ def evaluate(
         mean, std = getattr(ev, f"mean_error_{axis}"), getattr(ev, f"std_error_{axis}")
         table.add_row(f"{axis} error mean / sd, mm", f"{mean:+.4f} / {std:.4f}")
     table.add_row("lateral RMS error, mm", f"{ev.rms_error_lateral:.4f}")
+    if tracks_ev is not None:
+        table.add_row("true links recovered", f"{tracks_ev.n_recovered_links} / "
+                      f"{tracks_ev.n_true_links} ({tracks_ev.link_recovery:.2%})")
+        table.add_row("false links", f"{tracks_ev.n_false_links}")
+        table.add_row("velocity RMS error / mean speed", f"{tracks_ev.velocity_rms_error:.4f} / "
+                      f"{tracks_ev.mean_speed:.4f} mm/frame")
+        table.add_row("z error sd, per frame / smoothed, mm",
+                      f"{tracks_ev.z_std_frame:.4f} / {tracks_ev.z_std_smooth:.4f}")
+        table.add_row("z error robust sd, per frame / smoothed, mm",
+                      f"{tracks_ev.z_rstd_frame:.4f} / {tracks_ev.z_rstd_smooth:.4f}")
     out.print(table)
+
+
+@app.command()
+@_reports_errors
+def track(
+    particles_file: Path = typer.Argument(..., help="Particle table of several frames (`plenoptrack locate` output, .parquet or .csv)."),
+    out_file: Path = typer.Option(Path("tracks.parquet"), "--out", "-o", help="Tracks table: one row per particle and frame with its track id (particle), smoothed position, velocity and acceleration."),
+    stats_file: Optional[Path] = typer.Option(None, "--stats", help="Also write one row per track (length, mean position, speed, size, shape)."),
+    search_range: float = typer.Option(1.0, "--search-range", callback=_finite(positive=True), help="Lateral (x, y) search range around each track's predicted position, mm."),
+    search_depth: float = typer.Option(3.0, "--search-depth", callback=_finite(positive=True), help="Depth (z) search range, mm (depth errors exceed lateral ones)."),
+    memory: int = typer.Option(2, "--memory", min=0, help="Frames a track may miss and still be continued."),
+    min_length: int = typer.Option(3, "--min-length", min=1, help="Drop tracks with fewer points."),
+    window: int = typer.Option(7, "--window", min=2, help="Points of each local fit along a track."),
+    order: int = typer.Option(2, "--order", min=0, max=3, help="Degree of the local fit: 1 constant velocity (ballistic), 2 constant acceleration."),
+    frame_interval: Optional[float] = typer.Option(None, "--frame-interval", callback=_finite(positive=True), help="Time between frames, s (adds speeds in m/s); a simulated data set's scene.toml gives it."),
+    no_predict: bool = typer.Option(False, "--no-predict", help="Link without the velocity predictor."),
+) -> None:
+    """Link particles over frames into 3D tracks; velocities, accelerations, track-refined depth."""
+    from .io import read_table, write_table
+    from .track import TrackSettings, track_particles
+
+    if window < order + 2:
+        raise typer.BadParameter(f"must be at least --order + 2 = {order + 2}; got {window}",
+                                 param_hint="--window")
+    settings = TrackSettings(search_range_mm=(search_range, search_depth), memory=memory,
+                             min_length=min_length, window=window, order=order,
+                             frame_interval_s=frame_interval, predict=not no_predict,
+                             passes=1 if no_predict else 2)
+    with _outputs({"--out": out_file, "--stats": stats_file},
+                  {"PARTICLES": particles_file}) as (out_tmp, stats_tmp):
+        t0 = time.perf_counter()
+        result = track_particles(read_table(particles_file), settings)
+        write_table(result.tracks, out_tmp)
+        if stats_tmp is not None:
+            write_table(result.statistics, stats_tmp)
+    table = _quantity_table(f"tracks of {particles_file}")
+    for name, value in result.summary().items():
+        table.add_row(name, f"{value:.3g}" if isinstance(value, float) else f"{value}")
+    out.print(table)
+    console.print(f"{len(result.statistics)} tracks in {time.perf_counter() - t0:.2f} s; "
+                  f"wrote {out_file}" + (f" and {stats_file}" if stats_file else ""),
+                  highlight=False)
 
 
 @app.command()
