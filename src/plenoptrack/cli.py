@@ -695,6 +695,97 @@ def track(
                   highlight=False)
 
 
+def _figure_outputs(png: Path) -> tuple[Path, Path]:
+    """A PNG path and the PDF beside it (same name, suffix .pdf)."""
+    if png.suffix.lower() != ".png":
+        raise typer.BadParameter(f"must end in .png (a .pdf is written beside it); got {png}",
+                                 param_hint="--out/--tracks-out")
+    return png, png.with_suffix(".pdf")
+
+
+@app.command()
+@_reports_errors
+def plot(
+    table_file: Path = typer.Argument(..., help="Particle table (`locate`) or tracks table (`track`)."),
+    out_file: Optional[Path] = typer.Option(Path("fragments.png"), "--out", "-o", help="Figure of one frame in the layout of the seed paper's Fig. 12 (PNG; a PDF is written beside it)."),
+    tracks_out: Optional[Path] = typer.Option(None, "--tracks-out", help="Also a figure of the tracks coloured by speed (tracks table only; PNG and PDF)."),
+    frame: Optional[int] = typer.Option(None, "--frame", help="Frame of the Fig. 12 figure (default: the frame with the most particles)."),
+    raw: Optional[Path] = typer.Option(None, "--raw", help="Raw image of that frame: its central view is drawn under the outlines (needs --calib)."),
+    calib_file: Optional[Path] = typer.Option(None, "--calib", help="Calibration file with a DLFC, to decode --raw and place the outlines."),
+    raw_frame: int = typer.Option(0, "--raw-frame", help="Frame of a multi-page --raw TIFF."),
+) -> None:
+    """Draw the fragment-field figure (central view, top, side and isometric views) and tracks."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from .io import read_table
+    from .plots import plot_fragment_field, plot_tracks
+
+    if (raw is None) != (calib_file is None):
+        raise typer.BadParameter("--raw and --calib go together", param_hint="--raw/--calib")
+    outputs = {}
+    if out_file is not None:
+        outputs["--out"], outputs["--out (pdf)"] = _figure_outputs(out_file)
+    if tracks_out is not None:
+        outputs["--tracks-out"], outputs["--tracks-out (pdf)"] = _figure_outputs(tracks_out)
+    if not outputs:
+        raise typer.BadParameter("nothing to draw: give --out or --tracks-out")
+    with _outputs(outputs, {"TABLE": table_file, "--raw": raw, "--calib": calib_file}) as tmps:
+        targets = dict(zip(outputs, tmps))
+        table = read_table(table_file)
+        if tracks_out is not None and "particle" not in table.columns:
+            raise typer.BadParameter(f"{table_file} has no tracks; run `plenoptrack track` first",
+                                     param_hint="--tracks-out")
+        if out_file is not None:
+            if "frame" in table.columns and len(table):
+                if frame is None:
+                    frame = int(table["frame"].value_counts().idxmax())
+                one = table[table["frame"] == frame]
+                if len(one) == 0:
+                    raise typer.BadParameter(f"no particles in frame {frame}", param_hint="--frame")
+            else:
+                one = table
+            view = dlfc = None
+            if raw is not None:
+                from .calibration import load_calibration
+                from .lightfield import decode
+
+                calib = load_calibration(calib_file)
+                dlfc = calib.dlfc
+                view = decode(_load_frame(raw, raw_frame, calib), calib.grid).view(0, 0)
+            fig = plot_fragment_field(one, view=view, dlfc=dlfc)
+            fig.savefig(targets["--out"], dpi=150, format="png")
+            fig.savefig(targets["--out (pdf)"], format="pdf")
+        if tracks_out is not None:
+            unit = "m/s" if "speed_m_per_s" in table.columns else "mm/frame"
+            fig = plot_tracks(table, speed_unit=unit)
+            fig.savefig(targets["--tracks-out"], dpi=150, format="png")
+            fig.savefig(targets["--tracks-out (pdf)"], format="pdf")
+    console.print("wrote " + ", ".join(str(p) for p in outputs.values()), highlight=False)
+
+
+@app.command()
+@_reports_errors
+def report(
+    table_file: Path = typer.Argument(..., help="Particle table (`locate`) or tracks table (`track`)."),
+    out_file: Path = typer.Option(Path("report.html"), "--out", "-o", help="Self-contained HTML file (plotly.js embedded; opens without network)."),
+    color_by: str = typer.Option("depth", "--color-by", help="Colour of the 3D view: depth or speed (tracks only)."),
+    title: str = typer.Option("plenoptrack report", "--title", help="Page title."),
+) -> None:
+    """Write an interactive HTML report: rotatable 3D particles and tracks, summary table."""
+    from .io import read_table
+    from .report import report_html
+
+    if color_by not in ("depth", "speed"):
+        raise typer.BadParameter(f"must be 'depth' or 'speed'; got {color_by!r}",
+                                 param_hint="--color-by")
+    with _outputs({"--out": out_file}, {"TABLE": table_file}) as (tmp,):
+        table = read_table(table_file)
+        tmp.write_text(report_html(table, color_by=color_by, title=title,
+                                   extra_rows=[("table", str(table_file))]), encoding="utf-8")
+    console.print(f"wrote {out_file}", highlight=False)
+
+
 @app.command()
 @_reports_errors
 def demo(
