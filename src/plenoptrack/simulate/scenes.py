@@ -111,14 +111,14 @@ class VortexRing:
 
     camera: str = "hall2019"
     seed: int = 0
-    frames: int = 20
+    frames: int = 12
     n_particles: int = 300
     diameter_mm: float = 0.5
     radius_mm: float = 12.0
     speed_mm_per_frame: float = 0.4
     axis: tuple[float, float, float] = (0.9, 0.0, 0.45)
-    stream_mm_per_frame: tuple[float, float, float] = (1.0, 0.0, 0.0)
-    start_mm: tuple[float, float, float] = (-16.0, 0.0, -4.0)
+    stream_mm_per_frame: tuple[float, float, float] = (3.0, 0.0, 0.0)
+    start_mm: tuple[float, float, float] = (-18.0, 0.0, -4.0)
     seed_radius_factor: float = 1.25
     substeps: int = 10
     frame_interval_s: float = 1e-3
