@@ -70,7 +70,7 @@ def test_track_refuses_bad_options_and_inputs(tables):
     result = run("track", tables / "particles.parquet", "--out", tables / "particles.parquet")
     assert result.exit_code == 2 and "input" in result.stderr
     result = run("track", tables / "particles.parquet", "--out", tables / "t.parquet",
-                 "--window", "3", "--order", "2")
+                 "--window", "5", "--order", "2")
     assert result.exit_code == 2 and "--window" in result.stderr
     bad = tables / "bad.csv"
     bad.write_text("frame,x\n0,1\n")

@@ -122,7 +122,7 @@ def test_smoother_is_exact_on_polynomials_and_weights_by_sigma():
     x = 1.0 + 0.5 * f - 0.03 * f ** 2
     t = pd.DataFrame({"frame": f, "particle": 0, "x": x, "y": 2.0 * f, "z": -f + 0.0,
                       "sigma_x": 0.1, "sigma_y": 0.1, "sigma_z": 0.3})
-    s = smooth_tracks(t, TrackSettings(window=5, order=2, clip=0))
+    s = smooth_tracks(t, TrackSettings(window=6, order=2, clip=0))
     np.testing.assert_allclose(s["x_smooth"], x, atol=1e-9)
     np.testing.assert_allclose(s["velocity_x"], 0.5 - 0.06 * f, atol=1e-9)
     np.testing.assert_allclose(s["acceleration_x"], -0.06, atol=1e-9)
@@ -172,6 +172,6 @@ def test_bad_input():
     with pytest.raises(SettingsError, match="search_range_mm"):
         TrackSettings(search_range_mm=(1.0, -2.0))
     with pytest.raises(SettingsError, match="window"):
-        TrackSettings(window=3, order=2)
+        TrackSettings(window=5, order=2)
     with pytest.raises(InputFileError, match="non-finite"):
         link_particles(pd.DataFrame({"frame": [0, 1], "x": [0.0, np.nan], "y": 0.0, "z": 0.0}))

@@ -672,9 +672,10 @@ def track(
     from .io import read_table, write_table
     from .track import TrackSettings, track_particles
 
-    if window < order + 2:
-        raise typer.BadParameter(f"must be at least --order + 2 = {order + 2}; got {window}",
-                                 param_hint="--window")
+    minimum = TrackSettings(order=order, window=64).min_window
+    if window < minimum:
+        raise typer.BadParameter(f"a fit of --order {order} needs at least {minimum} points; "
+                                 f"got {window}", param_hint="--window")
     settings = TrackSettings(search_range_mm=(search_range, search_depth), memory=memory,
                              min_length=min_length, window=window, order=order,
                              frame_interval_s=frame_interval, predict=not no_predict,

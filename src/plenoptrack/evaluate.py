@@ -237,7 +237,9 @@ def evaluate_tracks(tracks: pd.DataFrame, truth: pd.DataFrame, *, tolerance_mm: 
     z_true = tv.loc[key, "z"].to_numpy(float)
     dz = m["z"].to_numpy(float) - z_true
     dzs = m["z_smooth"].to_numpy(float) - z_true
-    n = len(m)
+    both = np.isfinite(dz) & np.isfinite(dzs)
+    dz, dzs = dz[both], dzs[both]
+    n = len(dz)
     std = (lambda a: float(np.std(a, ddof=1))) if n > 1 else (lambda a: float("nan"))
     return TrackEvaluation(
         n_true_links=n_true, n_recovered_links=n_rec,

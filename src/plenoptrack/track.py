@@ -80,7 +80,9 @@ class TrackSettings:
     min_length : int
         Tracks with fewer points are dropped from the output.
     window : int
-        Points of each local fit (odd numbers centre the window), at least ``order + 2``.
+        Points of each local fit (odd numbers centre the window): at least 3 for
+        ``order`` 1, ``2 order + 2`` above; the degree is lowered where fewer points are
+        available.
     order : int
         Degree of the local polynomial (1: constant velocity, 2: constant acceleration).
     clip : float
@@ -114,17 +116,28 @@ class TrackSettings:
                 raise SettingsError(f"{name} must be an integer >= {low}; got {value!r}")
         if self.passes > 2:
             raise SettingsError(f"passes must be 1 or 2; got {self.passes}")
-        if not (isinstance(self.window, (int, np.integer)) and self.window >= self.order + 2):
-            raise SettingsError(f"window must be an integer >= order + 2 = {self.order + 2}; "
-                                f"got {self.window!r}")
+        if not (isinstance(self.window, (int, np.integer)) and self.window >= self.min_window):
+            raise SettingsError(f"window must be an integer of at least {self.min_window} points "
+                                f"for a fit of order {self.order}; got {self.window!r}")
         if not (math.isfinite(self.clip) and self.clip >= 0):
             raise SettingsError(f"clip must be >= 0 (0: no rejection); got {self.clip!r}")
         if self.frame_interval_s is not None and not (
                 math.isfinite(self.frame_interval_s) and self.frame_interval_s > 0):
             raise SettingsError(f"frame_interval_s must be positive; got {self.frame_interval_s!r}")
 
+    @property
+    def min_window(self) -> int:
+        """Fewest points a fit of ``order`` uses: 1, 3, then ``2 order + 2``."""
+        return _min_points(self.order)
+
     def to_dict(self) -> dict:
         return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+
+def _min_points(degree: int) -> int:
+    """Points with weight a local fit of ``degree`` needs (a constant 1, a line 3, a
+    quadratic 6, a cubic 8): fewer leave too few degrees of freedom to average noise."""
+    return 1 if degree == 0 else 3 if degree == 1 else 2 * degree + 2
 
 
 # --------------------------------------------------------------------------------------
@@ -330,8 +343,7 @@ def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSetti
     ids = _link_once(particles, first_pass, None)
     if settings.predict and settings.passes == 2:
         first = smooth_tracks(particles.assign(**{ID_COLUMN: ids}),
-                              TrackSettings(window=min(5, settings.window), order=1, clip=0.0,
-                                            min_length=2))
+                              TrackSettings(window=5, order=1, clip=0.0, min_length=2))
         guess = {}
         for t, grp in first.groupby(T_COLUMN):
             ok = np.isfinite(grp[VELOCITY_COLUMNS[0]].to_numpy(float))
@@ -393,7 +405,9 @@ def _local_fit(t: np.ndarray, y: np.ndarray, w: np.ndarray, idx: np.ndarray, ord
     idx : (n, k) int
         Window rows of each row (-1: none).
     order : int
-        Polynomial degree (lowered per row where too few points have weight).
+        Polynomial degree, lowered per row where too few points have weight (a
+        quadratic needs 6, a cubic 8, a line 3): fits with few degrees of freedom follow
+        the noise.
 
     Returns
     -------
@@ -415,7 +429,7 @@ def _local_fit(t: np.ndarray, y: np.ndarray, w: np.ndarray, idx: np.ndarray, ord
     smoother = np.zeros((n, k))
     slope_row = np.zeros((n, k))
     for deg in range(order, -1, -1):
-        rows = (npts >= deg + 2) if deg > 0 else (npts >= 1)
+        rows = npts >= _min_points(deg)
         rows &= np.isnan(coef[:, 0])
         if not rows.any():
             continue
@@ -469,7 +483,8 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     With ``clip > 0`` the residuals of each coordinate, normalised by
     ``sigma sqrt(1 - h)`` (``h`` the point's weight in its own fit), are compared with
     ``clip`` times their robust scale ``s`` (1.4826 MAD over all rows); points beyond are
-    given weight 0 and the fits repeated (three rounds). The smoothed sigma is
+    given weight 0 and the fits repeated (three rounds); tracks shorter than
+    ``order + 4`` points keep every point. The smoothed sigma is
     ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's weights): ``s`` rescales the
     locator's sigmas to the scatter the tracks show.
     """
@@ -490,6 +505,8 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     idx = _windows(t, starts, lengths, settings.window)
     out = {}
     outlier = np.zeros(n, dtype=bool)
+    # too short to tell an outlier from the track: no rejection
+    long_track = lengths.repeat(lengths) >= settings.order + 4 if n else np.zeros(0, bool)
     for axis, c in enumerate(POS_COLUMNS):
         y = df[c].to_numpy(float)
         sig_name = SIGMA_COLUMNS[axis]
@@ -510,11 +527,15 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
                 scale = scale if scale > 0 else 1.0
             if settings.clip <= 0:
                 break
-            bad = np.isfinite(resid) & (np.abs(resid) > settings.clip * scale)
+            bad = np.isfinite(resid) & (np.abs(resid) > settings.clip * scale) & long_track
             new_w = np.where(bad, 0.0, w0)
             if np.array_equal(new_w, w):
                 break
             w = new_w
+        lost = np.isnan(coef[:, 0])
+        if lost.any():     # every point of the window rejected: fit them all, unweighted by it
+            coef_all, L_all, _ = _local_fit(t, y, w0, idx, settings.order)
+            coef[lost], L[lost] = coef_all[lost], L_all[lost]
         outlier |= w == 0
         valid = idx >= 0
         sig_win = np.where(valid, sigma[np.where(valid, idx, 0)], 0.0)
