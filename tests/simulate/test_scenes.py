@@ -141,3 +141,17 @@ def test_overrides_from_a_file_and_their_errors(tmp_path):
         scene_params("tornado")
     with pytest.raises(SettingsError, match="exposure_s"):
         scene_params("fragments", {"exposure_s": 1.0})
+
+
+def test_scene_camera_from_a_file(tmp_path):
+    from dataclasses import replace
+
+    from plenoptrack.camera import preset, save_camera
+
+    camera = replace(preset("small"), name="my-camera")
+    save_camera(camera, tmp_path / "camera.toml")
+    scene, doc = builtin_scene("vortex-ring", {"camera": str(tmp_path / "camera.toml"),
+                                               "n_particles": 3, "frames": 2, "radius_mm": 1.0})
+    assert scene.camera == camera and doc["camera"] == str(tmp_path / "camera.toml")
+    with pytest.raises(ValueError, match="unknown camera preset"):
+        builtin_scene("vortex-ring", {"camera": str(tmp_path / "missing.toml")})

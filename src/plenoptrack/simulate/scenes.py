@@ -27,6 +27,8 @@ vortex-ring
     by the exact velocity field (fourth-order Runge-Kutta, ``substeps`` steps per frame).
     The truth velocity of every row is the field at that position, mm per frame.
 
+``camera`` is a preset name or the path of a ``camera.toml``.
+
 Velocities are in the truth's ``velocity_x, velocity_y, velocity_z`` columns, mm per
 frame (world frame); with ``frame_interval_s`` a speed of ``v`` mm per frame is
 ``v / frame_interval_s / 1000`` m/s.
@@ -49,7 +51,7 @@ import pandas as pd
 
 from .._columns import (AXIS_COLUMNS, ASPECT_COLUMN, DIAMETER_COLUMN, ID_COLUMN, POS_COLUMNS,
                         SHAPE_COLUMN, SHAPE_SEED_COLUMN, T_COLUMN, VELOCITY_COLUMNS)
-from ..camera import preset
+from ..camera import PRESETS, CameraSpec, load_camera, preset
 from ..errors import InputFileError, SettingsError
 from .fragments import fragment_geometry
 from .realism import Realism
@@ -140,6 +142,13 @@ class VortexRing:
             raise SettingsError(f"exposure_fraction must be in [0, 1); got {self.exposure_fraction}")
 
 
+def _camera(spec: str) -> CameraSpec:
+    """A preset name, or the path of a ``camera.toml`` (a camera of one's own)."""
+    if spec in PRESETS or not Path(spec).is_file():
+        return preset(spec)
+    return load_camera(spec)
+
+
 def _check_common(params) -> None:
     if params.frames < 1:
         raise SettingsError(f"frames must be at least 1; got {params.frames}")
@@ -183,7 +192,7 @@ def fragment_field_scene(params: FragmentField = FragmentField()) -> Scene:
     default volume; up to 200 draws per fragment. Later frames may leave the field of
     view, as fast fragments do.
     """
-    camera = preset(params.camera)
+    camera = _camera(params.camera)
     rng = np.random.default_rng([params.seed, 11])
     e1, e2, axis = _ring_frame(params.tilt_deg)
     centre = np.asarray(params.centre_mm, dtype=float)
@@ -304,7 +313,7 @@ def vortex_ring_scene(params: VortexRing = VortexRing()) -> Scene:
     ``w`` and centre ``c(t) = start + (stream + U axis) t`` (t in frames).
     Tracers are seeded by random sequential placement at least one diameter apart.
     """
-    camera = preset(params.camera)
+    camera = _camera(params.camera)
     rng = np.random.default_rng([params.seed, 12])
     axis = np.asarray(params.axis, dtype=float)
     axis = axis / np.linalg.norm(axis)
