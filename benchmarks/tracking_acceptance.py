@@ -1,7 +1,7 @@
 """Tracking on simulated data with the real locator: the vortex ring and the fragment field.
 
 Takes data sets written by ``plenoptrack simulate --scene vortex-ring`` and
-``--scene fragments`` (and a calibration from one of them, or calibrates from the first),
+``--scene fragments`` (each calibrated from its own white image and dot cards),
 locates every frame with the default perspective-shift locator (flat-fielded), tracks, and
 prints, against the truth:
 
@@ -41,7 +41,7 @@ from plenoptrack.track import TrackSettings, track_particles
 
 
 def _calibration(data: Path, work: Path):
-    path = work / "calib.json"
+    path = work / f"{data.name}_calib.json"
     if path.exists():
         return load_calibration(path)
     from plenoptrack.camera import load_camera
@@ -137,18 +137,19 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--vortex", type=Path)
     ap.add_argument("--fragments", type=Path)
-    ap.add_argument("--calib-from", type=Path, help="data set whose white image and dot cards to calibrate with (default: --fragments or --vortex)")
+    ap.add_argument("--calib-from", type=Path, help="data set whose white image and dot cards calibrate both (default: each its own)")
     ap.add_argument("--work", type=Path, required=True)
     ap.add_argument("--tolerance", type=float, default=2.0, help="matching tolerance, mm")
     ap.add_argument("--min-diameter", type=float, default=1.0)
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
-    calib = _calibration(args.calib_from or args.fragments or args.vortex, args.work)
     report = {}
     if args.fragments:
+        calib = _calibration(args.calib_from or args.fragments, args.work)
         report["fragments"] = fragments(args.fragments, calib, args.work, args.tolerance,
                                         args.min_diameter)
     if args.vortex:
+        calib = _calibration(args.calib_from or args.vortex, args.work)
         report["vortex"] = vortex(args.vortex, calib, args.work, args.tolerance)
     print(json.dumps(report, indent=2, default=float))
 

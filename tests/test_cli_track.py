@@ -53,8 +53,10 @@ def test_track_writes_tracks_and_statistics(tables, tracked):
         assert col in tracks.columns
     assert stats["particle"].tolist() == sorted(tracks["particle"].unique())
     assert "tracks" in tracked.stdout and "depth scatter" in tracked.stdout
-    # the settings travel with the table
-    assert tracks.attrs["track_settings"]["frame_interval_s"] == 0.001
+    # the settings travel with the table, beside the particles' provenance
+    record = tracks.attrs["plenoptrack"]
+    assert record["tracking"]["settings"]["frame_interval_s"] == 0.001
+    assert record["tracking"]["scatter_scale"]["z"] > 0
 
 
 def test_evaluate_reports_link_recovery_of_a_tracks_table(tables, tracked):

@@ -128,7 +128,8 @@ def summary_rows(table: pd.DataFrame) -> list[tuple[str, str]]:
 
     Counts of frames, particles and tracks, track lengths, speeds, outliers, the depth
     range, and the estimated depth-scatter reduction of track smoothing; with tracking
-    settings in ``table.attrs["track_settings"]``, those too.
+    settings in the table's provenance (:func:`plenoptrack.track.tracking_record`), those
+    too.
     """
     rows = [("frames", f"{table[T_COLUMN].nunique() if T_COLUMN in table.columns else 1}"),
             ("particle positions", f"{len(table)}")]
@@ -150,7 +151,9 @@ def summary_rows(table: pd.DataFrame) -> list[tuple[str, str]]:
         ratio = depth_scatter_ratio(table)
         rows.append(("depth scatter, per frame / track-smoothed (estimated)",
                      f"{ratio:.2f}" if math.isfinite(ratio) else "-"))
-    settings = table.attrs.get("track_settings")
+    from .track import tracking_record
+
+    settings = tracking_record(table).get("settings")
     if settings:
         rows.append(("tracking settings", json.dumps(settings)))
     return rows

@@ -42,11 +42,12 @@ from scipy.spatial import cKDTree
 
 from ._columns import ID_COLUMN, POS_COLUMNS, T_COLUMN
 from .errors import InputFileError, NoParticlesWarning, SettingsError
+from .io import METADATA_KEY
 
 __all__ = ["TrackSettings", "TrackVelocityPredict", "link_particles", "smooth_tracks",
            "track_statistics", "track_particles", "TrackResult", "SIGMA_COLUMNS",
            "SMOOTH_COLUMNS", "VELOCITY_COLUMNS", "ACCELERATION_COLUMNS", "depth_scatter_ratio",
-           "estimate_drift"]
+           "estimate_drift", "tracking_record"]
 
 SIGMA_COLUMNS = ("sigma_x", "sigma_y", "sigma_z")
 """Standard uncertainties of ``x, y, z`` in a particles table, mm."""
@@ -472,7 +473,9 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
         velocity_z`` (mm per frame), ``acceleration_x, acceleration_y, acceleration_z``
         (mm per frame^2; 0 where the fit is linear), ``speed`` (mm per frame), with a
         frame interval also ``speed_m_per_s``, ``track_length`` (points) and ``outlier``
-        (True for points rejected from the fits in any coordinate).
+        (True for points rejected from the fits in any coordinate). Its
+        ``attrs["plenoptrack"]`` (the provenance :func:`plenoptrack.io.write_table` stores)
+        is that of ``linked`` with a ``tracking`` record added (:func:`tracking_record`).
 
     Notes
     -----
@@ -551,22 +554,30 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
         res["speed_m_per_s"] = res["speed"] / settings.frame_interval_s * 1e-3
     res["track_length"] = lengths.repeat(lengths) if n else np.zeros(0, np.int64)
     res["outlier"] = outlier
-    res.attrs["scatter_scale"] = {c: float(out[f"_scale_{c}"][0]) if n else float("nan")
-                                  for c in POS_COLUMNS}
-    res.attrs["track_settings"] = settings.to_dict()
+    scale = {c: float(out[f"_scale_{c}"][0]) if n else float("nan") for c in POS_COLUMNS}
+    res.attrs = {METADATA_KEY: {**(linked.attrs.get(METADATA_KEY) or {}),
+                                "tracking": {"settings": settings.to_dict(),
+                                             "scatter_scale": scale}}}
     return res
+
+
+def tracking_record(tracks: pd.DataFrame) -> dict:
+    """The tracking part of a tracks table's provenance: ``settings`` and
+    ``scatter_scale`` (per axis, the tracks' scatter over the locator's sigmas); {} when
+    absent."""
+    return (tracks.attrs.get(METADATA_KEY) or {}).get("tracking") or {}
 
 
 def depth_scatter_ratio(tracks: pd.DataFrame) -> float:
     """Estimated per-frame depth scatter over track-smoothed depth scatter (median over rows).
 
     The per-frame scatter of a row is its ``sigma_z`` times the tracks' scatter scale
-    (``tracks.attrs["scatter_scale"]["z"]``, 1 when absent); the smoothed one is
+    (:func:`tracking_record`, 1 when absent); the smoothed one is
     ``sigma_z_smooth``. Without ``sigma_z`` every row counts as equally uncertain.
     """
     if len(tracks) == 0:
         return float("nan")
-    scale = tracks.attrs.get("scatter_scale", {}).get("z", 1.0)
+    scale = tracking_record(tracks).get("scatter_scale", {}).get("z", 1.0)
     sig = tracks["sigma_z"].to_numpy(float) if "sigma_z" in tracks.columns else None
     smooth = tracks["sigma_z_smooth"].to_numpy(float)
     if sig is None:
@@ -695,6 +706,5 @@ def track_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSett
     linked = link_particles(particles, settings)
     tracks = smooth_tracks(linked, settings)
     stats = track_statistics(tracks, frame_interval_s=settings.frame_interval_s)
-    tracks.attrs["track_settings"] = settings.to_dict()
     return TrackResult(tracks=tracks, statistics=stats, n_input=len(particles),
                        depth_scatter_ratio=depth_scatter_ratio(tracks), settings=settings)
