@@ -287,7 +287,13 @@ def estimate_drift(particles: pd.DataFrame, *, max_displacement_mm: float,
     return d[near].mean(axis=0) / float(f1 - f0)
 
 
-def _link_once(particles: pd.DataFrame, settings: TrackSettings, guess) -> pd.DataFrame:
+def _link_once(particles: pd.DataFrame, settings: TrackSettings, guess) -> np.ndarray:
+    """Track id of every row of ``particles`` (trackpy numbering), one linking pass.
+
+    Without a ``guess`` field the predictor starts from the drift between the first two
+    frames (:func:`estimate_drift`, displacements up to ``5 lateral + depth`` search
+    ranges, bins of half the lateral range).
+    """
     import trackpy
 
     lateral, depth = settings.search_range_mm
@@ -302,9 +308,9 @@ def _link_once(particles: pd.DataFrame, settings: TrackSettings, guess) -> pd.Da
         if guess is None:
             drift = estimate_drift(particles, max_displacement_mm=5 * lateral + depth,
                                    bin_mm=0.5 * lateral)
-        linked = TrackVelocityPredict(guess, drift=drift).link_df(feats, search, memory=settings.memory,
-                                                     adaptive_stop=0.1 * lateral,
-                                                     adaptive_step=0.9)
+        predictor = TrackVelocityPredict(guess, drift=drift)
+        linked = predictor.link_df(feats, search, memory=settings.memory,
+                                   adaptive_stop=0.1 * lateral, adaptive_step=0.9)
     else:
         linked = trackpy.link(feats, search, pos_columns=list(POS_COLUMNS), t_column=T_COLUMN,
                               memory=settings.memory, adaptive_stop=0.1 * lateral,
