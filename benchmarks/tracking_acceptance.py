@@ -53,7 +53,7 @@ def _calibration(data: Path, work: Path):
     return calib
 
 
-def _locate(data: Path, calib, out: Path) -> pd.DataFrame:
+def _locate(data: Path, calib, out: Path, locator=None) -> pd.DataFrame:
     if out.exists():
         return read_table(out)
     white = decode(read_raw(data / "white.tif"), calib.grid)
@@ -62,7 +62,8 @@ def _locate(data: Path, calib, out: Path) -> pd.DataFrame:
     for f, path in enumerate(sorted((data / "raw").glob("frame_*.tif"))):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            tables.append(locate_frame(read_raw(path), calib, frame=f, white=white).particles)
+            tables.append(locate_frame(read_raw(path), calib, frame=f, white=white,
+                                       locator=locator).particles)
     particles = pd.concat(tables, ignore_index=True)
     write_table(particles, out)
     print(f"located {len(particles)} particles in {len(tables)} frames of {data} "
@@ -90,8 +91,9 @@ def vortex(data: Path, calib, work: Path, tolerance: float) -> dict:
             "estimated depth scatter ratio": result.depth_scatter_ratio}
 
 
-def fragments(data: Path, calib, work: Path, tolerance: float, min_diameter: float) -> dict:
-    particles = _locate(data, calib, work / "fragment_particles.parquet")
+def fragments(data: Path, calib, work: Path, tolerance: float, min_diameter: float,
+              locator=None) -> dict:
+    particles = _locate(data, calib, work / "fragment_particles.parquet", locator)
     truth = read_table(data / "truth.parquet")
     dt = tomllib.loads((data / "scene.toml").read_text())["frame_interval_s"]
     result = track_particles(particles, TrackSettings(order=1, window=6, search_range_mm=(1.5, 3.0),
@@ -141,13 +143,22 @@ def main() -> None:
     ap.add_argument("--work", type=Path, required=True)
     ap.add_argument("--tolerance", type=float, default=2.0, help="matching tolerance, mm")
     ap.add_argument("--min-diameter", type=float, default=1.0)
+    ap.add_argument("--fragment-settings", type=json.loads, default=None,
+                    help="locator settings for the fragments as JSON, e.g. "
+                         "'{\"segment\": {\"max_area_ratio\": 100, \"split_pairs\": false}}' "
+                         "(sizes spanning a decade are not merged images)")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     report = {}
     if args.fragments:
         calib = _calibration(args.calib_from or args.fragments, args.work)
+        locator = None
+        if args.fragment_settings:
+            from plenoptrack.locate.settings import PerspectiveLocator
+
+            locator = PerspectiveLocator.from_dict(args.fragment_settings)
         report["fragments"] = fragments(args.fragments, calib, args.work, args.tolerance,
-                                        args.min_diameter)
+                                        args.min_diameter, locator)
     if args.vortex:
         calib = _calibration(args.calib_from or args.vortex, args.work)
         report["vortex"] = vortex(args.vortex, calib, args.work, args.tolerance)

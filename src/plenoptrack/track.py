@@ -459,6 +459,21 @@ def _local_fit(t: np.ndarray, y: np.ndarray, w: np.ndarray, idx: np.ndarray, ord
     return coef, smoother, slope_row
 
 
+def _worst_third(bad: np.ndarray, score: np.ndarray, pid: np.ndarray,
+                 lengths: np.ndarray) -> np.ndarray:
+    """``bad`` limited to the ``floor(n / 3)`` highest-``score`` rows of each track of
+    ``n`` rows (rows sorted by track): a track keeps at least two thirds of its points,
+    enough for every window to fit its degree."""
+    if not bad.any():
+        return bad
+    n = len(bad)
+    order = np.lexsort((-score, pid))            # by track, worst first
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n) - np.repeat(starts, lengths)
+    return bad & (rank < np.repeat(lengths // 3, lengths))
+
+
 def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings()) -> pd.DataFrame:
     """Smoothed positions, velocities and accelerations along every track.
 
@@ -492,8 +507,9 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     With ``clip > 0`` the residuals of each coordinate, normalised by
     ``sigma sqrt(1 - h)`` (``h`` the point's weight in its own fit), are compared with
     ``clip`` times their robust scale ``s`` (1.4826 MAD over all rows); points beyond are
-    given weight 0 and the fits repeated (three rounds); tracks shorter than
-    ``order + 4`` points keep every point. The smoothed sigma is
+    given weight 0 and the fits repeated (three rounds); at most a third of a track's
+    points are rejected (the worst), and tracks shorter than ``order + 4`` points keep
+    every point. The smoothed sigma is
     ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's weights): ``s`` rescales the
     locator's sigmas to the scatter the tracks show.
     """
@@ -537,6 +553,7 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
             if settings.clip <= 0:
                 break
             bad = np.isfinite(resid) & (np.abs(resid) > settings.clip * scale) & long_track
+            bad = _worst_third(bad, np.abs(np.nan_to_num(resid)), pid, lengths)
             new_w = np.where(bad, 0.0, w0)
             if np.array_equal(new_w, w):
                 break
