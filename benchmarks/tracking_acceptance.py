@@ -141,7 +141,8 @@ def main() -> None:
     ap.add_argument("--fragments", type=Path)
     ap.add_argument("--calib-from", type=Path, help="data set whose white image and dot cards calibrate both (default: each its own)")
     ap.add_argument("--work", type=Path, required=True)
-    ap.add_argument("--tolerance", type=float, default=2.0, help="matching tolerance, mm")
+    ap.add_argument("--tolerance", type=float, default=0.5,
+                    help="matching tolerance, mm, laterally (three times that in depth)")
     ap.add_argument("--min-diameter", type=float, default=1.0)
     ap.add_argument("--fragment-settings", type=json.loads, default=None,
                     help="locator settings for the fragments as JSON, e.g. "

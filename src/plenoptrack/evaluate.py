@@ -177,15 +177,23 @@ class TrackEvaluation:
 
 
 def match_track_points(tracks: pd.DataFrame, truth: pd.DataFrame, *,
-                       tolerance_mm: float = 1.0) -> pd.Series:
+                       tolerance_mm: float = 1.0, depth_ratio: float = 3.0) -> pd.Series:
     """True particle id of every row of ``tracks`` (-1 where none lies within the tolerance).
 
     Rows are matched per frame, one to one (:func:`match_particles`), on the measured
-    ``x, y, z``; ``truth`` needs ``frame, particle, x, y, z``.
+    ``x, y`` and ``z / depth_ratio``: within an ellipsoid of half-axes ``tolerance_mm``
+    laterally and ``depth_ratio * tolerance_mm`` in depth, depth differences counting
+    ``1 / depth_ratio`` as much as lateral ones (a plenoptic camera's depth errors are
+    several times its lateral ones; matching on plain 3D distance pairs a point with a
+    large depth error with the particle in front of or behind its own). ``truth`` needs
+    ``frame, particle, x, y, z``.
     """
     from ._columns import ID_COLUMN
 
-    pairs = match_particles(tracks, truth, tolerance_mm=tolerance_mm)
+    if not depth_ratio > 0:
+        raise SettingsError(f"depth_ratio must be positive; got {depth_ratio!r}")
+    pairs = match_particles(tracks.assign(z=tracks["z"] / depth_ratio),
+                            truth.assign(z=truth["z"] / depth_ratio), tolerance_mm=tolerance_mm)
     ids = pd.Series(-1, index=tracks.index, dtype=np.int64)
     ids.loc[pairs["measured_index"].to_numpy()] = truth.loc[
         pairs["truth_index"].to_numpy(), ID_COLUMN].to_numpy(np.int64)
@@ -197,7 +205,7 @@ def _rstd(a: np.ndarray) -> float:
 
 
 def evaluate_tracks(tracks: pd.DataFrame, truth: pd.DataFrame, *, tolerance_mm: float = 1.0,
-                    max_gap: int = 3) -> TrackEvaluation:
+                    depth_ratio: float = 3.0, max_gap: int = 3) -> TrackEvaluation:
     """Link recovery, velocity and depth errors of ``tracks`` against ``truth``.
 
     Parameters
@@ -208,14 +216,16 @@ def evaluate_tracks(tracks: pd.DataFrame, truth: pd.DataFrame, *, tolerance_mm: 
     truth : DataFrame
         ``frame, particle`` (true id), ``x, y, z`` (mm) and
         ``velocity_x, velocity_y, velocity_z`` (mm per frame), e.g. a simulator truth.
-    tolerance_mm : float
-        Largest 3D distance of a match, mm.
+    tolerance_mm, depth_ratio : float
+        Matching ellipsoid: half-axes ``tolerance_mm`` laterally and ``depth_ratio``
+        times that in depth (:func:`match_track_points`).
     max_gap : int
         Largest frame difference of a true link (the tracker's memory plus one).
     """
     from ._columns import ID_COLUMN, VELOCITY_COLUMNS
 
-    true_id = match_track_points(tracks, truth, tolerance_mm=tolerance_mm).to_numpy()
+    true_id = match_track_points(tracks, truth, tolerance_mm=tolerance_mm,
+                                 depth_ratio=depth_ratio).to_numpy()
     t = tracks.assign(_true=true_id)
     m = t[t["_true"] >= 0].sort_values(["_true", T_COLUMN], kind="stable")
     tid = m["_true"].to_numpy()
