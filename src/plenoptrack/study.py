@@ -169,6 +169,14 @@ class StudyConfig:
         d["methods"] = list(self.methods)
         return d
 
+    @classmethod
+    def from_dict(cls, data: dict) -> "StudyConfig":
+        """Inverse of :meth:`to_dict` (e.g. a study folder's ``config.json``)."""
+        d = dict(data)
+        d["camera"] = CameraSpec.from_dict(d["camera"], source="study config")
+        d["methods"] = tuple(d["methods"])
+        return cls(**d)
+
 
 def paper_grid(camera: CameraSpec, *, magnifications=(0.25, 0.4, 0.5, 0.75),
                focal_lengths_mm=(85.0, 105.0, 135.0)) -> list[CameraSpec]:
