@@ -253,7 +253,7 @@ def main() -> None:
     st = result.stage_seconds
     t_solve = st["triangulate"] + st["checks"]
     t0 = time.perf_counter()
-    base = locate_frame(raw, calib, locator=PerspectiveLocator(solver="scipy"))
+    base = locate_frame(raw, calib, locator=PerspectiveLocator.from_dict({"solve": {"solver": "scipy"}}))
     t_base = time.perf_counter() - t0
     b_solve = base.stage_seconds["triangulate"] + base.stage_seconds["checks"]
 

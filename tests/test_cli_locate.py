@@ -12,6 +12,7 @@ from typer.testing import CliRunner
 
 from plenoptrack.cli import app
 from plenoptrack.evaluate import evaluate_particles
+from plenoptrack.calibration import file_sha256
 from plenoptrack.io import read_table
 from plenoptrack.locate.perspective import PARTICLE_COLUMNS
 
@@ -137,3 +138,69 @@ def test_demo_runs_end_to_end(tmp_path):
     truth = read_table(tmp_path / "demo" / "sim" / "truth.parquet")
     ev = evaluate_particles(particles, truth, tolerance_mm=1.0)
     assert ev.recall >= 0.9 and ev.precision >= 0.9
+
+
+def test_locate_config_settings_reach_the_locator_and_the_table_metadata(calibrated, tmp_path):
+    root, sim = calibrated
+    frame = sim / "raw" / "frame_0000.tif"
+    config = tmp_path / "locate.toml"
+    config.write_text("[segment]\nwindow = 41\ncore_contrast = false\n\n"
+                      "[cluster]\nn_planes = 12\n")
+    out = tmp_path / "p.csv"
+    ok("locate", frame, "--calib", root / "calib.json", "--config", config, "--planes", 14,
+       "--out", out, "--detections", tmp_path / "d.parquet")
+    meta = read_table(out).attrs["plenoptrack"]
+    assert meta["method"] == "perspective" and meta["package_version"]
+    seg = meta["settings"]["segment"]
+    assert seg["window"] == 41 and seg["core_contrast"] is None     # from the file
+    assert meta["settings"]["cluster"]["n_planes"] == 14           # the flag wins
+    assert meta["calibration"]["sha256"] == file_sha256(root / "calib.json")
+    assert meta["flat_field"]["white"].endswith("white.tif")
+    assert read_table(tmp_path / "d.parquet").attrs["plenoptrack"] == meta
+    # the settings written back from the table locate the same particles again
+    res = ok("settings", "--from-table", out)
+    again = tmp_path / "again.toml"
+    again.write_text(res.stdout)
+    ok("locate", frame, "--calib", root / "calib.json", "--config", again,
+       "--out", tmp_path / "again.csv")
+    pd.testing.assert_frame_equal(read_table(tmp_path / "again.csv"), read_table(out))
+
+
+@pytest.mark.parametrize("text, message", [
+    ("[segment]\nwindow = 2\n", "window must be an integer of at least 3"),
+    ("[segmnt]\nwindow = 41\n", "unknown section"),
+    ("[cluster]\nplanes = 4\n", "unknown setting"),
+    ("[solve\n", "not a valid TOML"),
+])
+def test_locate_bad_config_is_one_line_usage_error(calibrated, tmp_path, text, message):
+    root, sim = calibrated
+    config = tmp_path / "bad.toml"
+    config.write_text(text)
+    res = run("locate", sim / "raw" / "frame_0000.tif", "--calib", root / "calib.json",
+              "--config", config, "--out", tmp_path / "p.parquet")
+    assert res.exit_code == 2, res.stderr
+    assert message in res.stderr and str(config) in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "p.parquet").exists()
+
+
+@pytest.mark.parametrize("method", ["refocus", "hybrid"])
+def test_locate_other_methods_write_the_same_columns(calibrated, method):
+    root, sim = calibrated
+    frames = sorted((sim / "raw").glob("frame_*.tif"))[:1]
+    out = root / f"particles_{method}.csv"
+    ok("locate", *frames, "--calib", root / "calib.json", "--out", out, "--method", method,
+       "--stack-planes", 60)
+    particles = read_table(out)
+    assert list(particles.columns) == list(PARTICLE_COLUMNS)
+    truth = read_table(sim / "truth.parquet")
+    ev = evaluate_particles(particles, truth[truth["frame"] == 0], tolerance_mm=2.0)
+    assert ev.n_matched >= (3 if method == "refocus" else 0.9 * ev.n_true)
+
+
+def test_locate_refuses_unknown_method(calibrated):
+    root, sim = calibrated
+    frames = sorted((sim / "raw").glob("frame_*.tif"))[:1]
+    result = run("locate", *frames, "--calib", root / "calib.json", "--out", root / "x.csv",
+                 "--method", "magic")
+    assert result.exit_code == 2 and "perspective, refocus or hybrid" in result.stderr

@@ -283,3 +283,22 @@ def test_truncated_files_raise_only_project_errors(tmp_path_factory, valid_files
             (folder / card.name).write_bytes(card.read_bytes())
     path.write_bytes(full[: int(len(full) * fraction)])
     _only_own_errors(_readers(tmp_path_factory)[kind], path)
+
+
+@pytest.mark.parametrize("suffix", [".parquet", ".csv"])
+def test_table_metadata_round_trips(tmp_path, suffix):
+    from plenoptrack.io import METADATA_KEY, read_table, write_table
+
+    df = pd.DataFrame({"frame": [0, 1], "x": [0.5, -1.25], "z": [3.0, float("nan")]})
+    meta = {"method": "perspective", "settings": {"segment": {"area_range": [2.0, 7.5]}}}
+    df.attrs[METADATA_KEY] = meta
+    path = write_table(df, tmp_path / f"t{suffix}")
+    back = read_table(path)
+    assert back.attrs[METADATA_KEY] == meta
+    pd.testing.assert_frame_equal(back, df)
+    if suffix == ".csv":   # other tools read the table by skipping the comment line
+        pd.testing.assert_frame_equal(pd.read_csv(path, comment="#"), df)
+        plain = write_table(pd.DataFrame(df.to_dict("list")),
+                            tmp_path / "plain.csv")
+        assert not plain.read_text().startswith("#")
+        assert METADATA_KEY not in read_table(plain).attrs

@@ -474,9 +474,10 @@ def locate(
     calib_file: Path = typer.Option(..., "--calib", help="Calibration file with a DLFC (`plenoptrack calibrate`)."),
     out_file: Path = typer.Option(Path("particles.parquet"), "--out", "-o", help="Particle table (.parquet or .csv)."),
     detections_file: Optional[Path] = typer.Option(None, "--detections", help="Also write every centroid found in every view."),
-    window: int = typer.Option(31, "--window", min=3, help="Local-threshold window of the segmentation, view pixels (at least 3)."),
-    contrast: float = typer.Option(0.15, "--contrast", callback=_finite(positive=True, below=1.0), help="Relative darkness a particle pixel needs (between 0 and 1)."),
-    planes: int = typer.Option(10, "--planes", min=2, help="Refocus planes of the clustering (at least 2)."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Locator settings (TOML, one table per stage; `plenoptrack settings` writes every default)."),
+    window: Optional[int] = typer.Option(None, "--window", min=3, help="Local-threshold window of the segmentation, view pixels (at least 3; default 31). Overrides --config."),
+    contrast: Optional[float] = typer.Option(None, "--contrast", callback=_finite(positive=True, below=1.0), help="Relative darkness a particle pixel needs (between 0 and 1; default 0.15). Overrides --config."),
+    planes: Optional[int] = typer.Option(None, "--planes", min=2, help="Refocus planes of the clustering (at least 2; default 10). Overrides --config."),
     white: Optional[Path] = typer.Option(None, "--white", "-w", help="White (flat-field) image to divide every frame by (default: the one the calibration file records)."),
     flat_field: bool = typer.Option(True, "--flat-field/--no-flat-field", help="Divide every frame by the white image (recommended: dust shadows and dead pixels are otherwise taken for particles)."),
     partial: bool = typer.Option(False, "--partial", help="On Ctrl-C, keep the frames already located (default: write nothing)."),
@@ -486,25 +487,27 @@ def locate(
     """Locate particles in 3D (perspective-shift method by default) and write a particle table.
 
     Every frame is divided by the white image (flat-fielded) first: by default the white
-    image the calibration file records, if it is still there unchanged.
+    image the calibration file records, if it is still there unchanged. The table's
+    metadata records the settings, the calibration and the package version
+    (`plenoptrack settings --from-table TABLE` writes its settings back as TOML).
     """
     from rich.progress import Progress
 
     from .calibration import load_calibration
     from .io import count_frames, read_frames
-    from .locate.perspective import PerspectiveLocator
-
     if white is not None and not flat_field:
         raise typer.BadParameter("--white and --no-flat-field contradict each other; give one",
                                  param_hint="--white")
-    locator = PerspectiveLocator(window=window, contrast=contrast, n_planes=planes)
+    locator = _locator_settings(config, window=window, contrast=contrast, planes=planes)
     locator = _method_locator(method, locator, stack_planes)
     with _outputs({"--out": out_file, "--detections": detections_file},
-                  {"RAW": raw, "--calib": calib_file, "--white": white}) as (out_tmp, det_tmp):
+                  {"RAW": raw, "--calib": calib_file, "--white": white, "--config": config}
+                  ) as (out_tmp, det_tmp):
         calib = load_calibration(calib_file)
         calib.dlfc  # refuse a calibration without a DLFC before any work
         n_frames = sum(count_frames(path) for path in raw)  # every input readable, up front
-        white_lf = _flat_field_white(calib, calib_file, white) if flat_field else None
+        white_file, white_lf = (_flat_field_white(calib, calib_file, white) if flat_field
+                                else (None, None))
         tables, detections, frame, empty = [], [], 0, 0
         interrupted = False
         t0 = time.perf_counter()
@@ -528,7 +531,12 @@ def locate(
             if not (partial and _interrupted(exc) and tables):
                 raise
             interrupted = True
-        particles = _write_particles(tables, detections, out_tmp, det_tmp)
+        from .provenance import provenance
+
+        record = provenance(method=method, settings=locator.to_dict(), calibration=calib,
+                            calibration_file=calib_file, white_file=white_file,
+                            inputs=[p.resolve() for p in raw])
+        particles = _write_particles(tables, detections, out_tmp, det_tmp, record)
     if interrupted:
         _error_line(f"interrupted after {frame} of {n_frames} frame(s); --partial: wrote "
                     f"their {len(particles)} particles to {out_file}")
@@ -538,8 +546,23 @@ def locate(
                   f"{time.perf_counter() - t0:.2f} s; wrote {out_file}", highlight=False)
 
 
+def _locator_settings(config: Path | None, **flags):
+    """Locator settings: the defaults, then the --config file, then the given flags."""
+    from .locate import PerspectiveLocator, read_settings
+
+    locator = read_settings(config) if config is not None else PerspectiveLocator()
+    sections = {"window": "segment", "contrast": "segment", "planes": "cluster"}
+    names = {"planes": "n_planes"}
+    changes: dict = {}
+    for flag, value in flags.items():
+        if value is not None:
+            changes.setdefault(sections[flag], {})[names.get(flag, flag)] = value
+    return locator.updated(changes, source="command line")
+
+
 def _flat_field_white(calib, calib_file: Path, white: Path | None):
-    """The decoded white light field to flat-field the frames with, or None (warned)."""
+    """The white image file and its decoded light field to flat-field the frames with, or
+    (None, None) (warned)."""
     from .calibration import find_white
     from .errors import FlatFieldWarning
     from .io import read_raw, warn_exposure
@@ -552,11 +575,11 @@ def _flat_field_white(calib, calib_file: Path, white: Path | None):
                           "pixels may be taken for particles; pass the white image with "
                           "--white (or --no-flat-field to locate without one)",
                           FlatFieldWarning, stacklevel=2)
-            return None
+            return None, None
     image = read_raw(white)
     calib.check_image(image, source=str(white))
     warn_exposure(image, calib.camera.full_scale, source=f"white image {white}")
-    return decode(image, calib.grid)
+    return white, decode(image, calib.grid)
 
 
 def _method_locator(method: str, perspective, stack_planes: int):
@@ -566,10 +589,10 @@ def _method_locator(method: str, perspective, stack_planes: int):
     if method == "perspective":
         return perspective
     if method == "refocus":
-        return RefocusLocator(n_planes=stack_planes, window=perspective.window,
-                              contrast=perspective.contrast)
+        return RefocusLocator(n_planes=stack_planes, window=perspective.segment.window,
+                              contrast=perspective.segment.contrast)
     if method == "hybrid":
-        return HybridLocator(perspective=perspective, contrast=perspective.contrast)
+        return HybridLocator(perspective=perspective, contrast=perspective.segment.contrast)
     raise typer.BadParameter(f"must be perspective, refocus or hybrid; got {method!r}",
                              param_hint="--method")
 
@@ -594,16 +617,53 @@ def _locate_one(image, calib, frame: int, locator, *, source: str, white=None):
     return result, empty
 
 
-def _write_particles(tables, detections, out_tmp, det_tmp):
+def _write_particles(tables, detections, out_tmp, det_tmp, record: dict):
     import pandas as pd
 
-    from .io import write_table
+    from .io import METADATA_KEY, write_table
 
     particles = pd.concat(tables, ignore_index=True)
+    particles.attrs[METADATA_KEY] = record
     write_table(particles, out_tmp)
     if det_tmp is not None:
-        write_table(pd.concat(detections, ignore_index=True), det_tmp)
+        det = pd.concat(detections, ignore_index=True)
+        det.attrs[METADATA_KEY] = record
+        write_table(det, det_tmp)
     return particles
+
+
+@app.command("settings")
+@_reports_errors
+def settings_cmd(
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Start from this settings file (TOML) instead of the defaults."),
+    from_table: Optional[Path] = typer.Option(None, "--from-table", help="Take the settings a particle table was made with (its metadata)."),
+    out_file: Optional[Path] = typer.Option(None, "--out", "-o", help="Write the TOML here instead of printing it."),
+) -> None:
+    """Print (or write) the locator settings as TOML, ready for `locate --config`.
+
+    Without options: every default, one table per stage of the locator.
+    """
+    from .io import atomic_write_text, check_outputs, read_table
+    from .locate import PerspectiveLocator, read_settings, settings_toml
+    from .provenance import table_provenance
+
+    if config is not None and from_table is not None:
+        raise typer.BadParameter("give --config or --from-table, not both", param_hint="--config")
+    check_outputs({"--out": out_file}, {"--config": config, "--from-table": from_table})
+    if from_table is not None:
+        record = table_provenance(read_table(from_table)) or {}
+        if "settings" not in record:
+            raise UsageError(f"{from_table}: the table records no locator settings (not written "
+                             "by `plenoptrack locate`, or by an older version)")
+        locator = PerspectiveLocator.from_dict(record["settings"], source=str(from_table))
+    else:
+        locator = read_settings(config) if config is not None else PerspectiveLocator()
+    text = settings_toml(locator)
+    if out_file is None:
+        print(text, end="")
+    else:
+        atomic_write_text(out_file, text)
+        console.print(f"wrote {out_file}", highlight=False)
 
 
 @app.command()

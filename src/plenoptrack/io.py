@@ -10,6 +10,7 @@ names the file and says what to do.
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import shutil
 import signal
@@ -27,7 +28,7 @@ from .errors import ExposureWarning, ImageSizeError, InputFileError, OutputConfl
 __all__ = [
     "check_outputs", "staged_outputs", "atomic_path", "atomic_folder", "atomic_write_text",
     "default_file_mode", "interrupts_deferred", "exposure_problem", "warn_exposure", "read_raw", "read_frames", "count_frames",
-    "write_tiff", "read_table", "write_table", "check_image_shape",
+    "write_tiff", "read_table", "write_table", "check_image_shape", "METADATA_KEY",
 ]
 
 
@@ -464,26 +465,60 @@ def check_image_shape(image: np.ndarray, expected: tuple[int, int], *, source: s
             f"expects {expected[0]} x {expected[1]}; use the matching camera or calibration")
 
 
+METADATA_KEY = "plenoptrack"
+"""Key of a table's provenance in ``DataFrame.attrs`` (settings, calibration, package
+version; see :func:`plenoptrack.provenance.provenance`)."""
+
+_CSV_METADATA_PREFIX = "# plenoptrack-metadata: "
+
+
 def read_table(path: str | Path) -> pd.DataFrame:
-    """Read a Parquet table, or CSV when the path ends in ``.csv``."""
+    """Read a Parquet table, or CSV when the path ends in ``.csv``.
+
+    The provenance a table was written with (:func:`write_table`) comes back in
+    ``df.attrs["plenoptrack"]``: Parquet keeps it in the file's schema metadata, CSV in a
+    first comment line ``# plenoptrack-metadata: {json}``.
+    """
     path = Path(path)
     if not path.is_file():
         raise InputFileError(f"{path}: table not found; check the path")
     try:
         if path.suffix.lower() == ".csv":
-            return pd.read_csv(path)
+            meta = _csv_metadata(path)
+            df = pd.read_csv(path, comment="#" if meta is not None else None)
+            if meta is not None:
+                df.attrs[METADATA_KEY] = meta
+            return df
         return pd.read_parquet(path)
     except Exception as exc:
         kind = "CSV" if path.suffix.lower() == ".csv" else "Parquet"
         raise InputFileError(f"{path}: not a readable {kind} table ({type(exc).__name__}: {exc})") from None
 
 
+def _csv_metadata(path: Path) -> dict | None:
+    """The provenance of a CSV table from its first comment line, or None."""
+    with open(path, encoding="utf-8", errors="replace") as f:
+        first = f.readline()
+    if not first.startswith(_CSV_METADATA_PREFIX):
+        return None
+    return json.loads(first[len(_CSV_METADATA_PREFIX):])
+
+
 def write_table(df: pd.DataFrame, path: str | Path) -> Path:
-    """Write ``df`` atomically as Parquet, or CSV when the path ends in ``.csv``."""
+    """Write ``df`` atomically as Parquet, or CSV when the path ends in ``.csv``.
+
+    ``df.attrs["plenoptrack"]`` (the provenance of the table), if present, is stored with
+    it: in the Parquet schema metadata, or as a first comment line of a CSV file
+    (``pandas.read_csv(path, comment="#")`` skips it).
+    """
     path = Path(path)
     with atomic_path(path) as tmp:
         if path.suffix.lower() == ".csv":
-            df.to_csv(tmp, index=False)
+            with open(tmp, "w", encoding="utf-8", newline="") as f:
+                meta = df.attrs.get(METADATA_KEY)
+                if meta is not None:
+                    f.write(_CSV_METADATA_PREFIX + json.dumps(meta, default=str) + "\n")
+                df.to_csv(f, index=False)
         else:
             df.to_parquet(tmp, index=False)
     return path

@@ -16,7 +16,7 @@ import numba
 import numpy as np
 
 from plenoptrack.errors import NoParticlesWarning, SettingsError
-from plenoptrack.locate.perspective import _MERGED, _predict_all
+from plenoptrack.locate._assign import _MERGED, _predict_all
 from plenoptrack.locate.triangulate import (
     _MAD_TO_SIGMA,
     _SOLVERS,

@@ -94,28 +94,29 @@ def test_no_particles_gives_empty_table_and_warning(small):
     assert result.particles["flags"].dtype == np.uint8
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    ({"window": 2}, "window"),
-    ({"contrast": 1.5}, "contrast"),
-    ({"core_contrast": 0.1}, "core_contrast"),
-    ({"min_views": 1}, "min_views"),
-    ({"depth_range_mm": (5.0, -5.0)}, "depth_range_mm"),
+@pytest.mark.parametrize("settings, match", [
+    ({"segment": {"window": 2}}, "window"),
+    ({"segment": {"contrast": 1.5}}, "contrast"),
+    ({"segment": {"core_contrast": 0.1}}, "core_contrast"),
+    ({"solve": {"min_views": 1}}, "min_views"),
+    ({"cluster": {"depth_range_mm": (5.0, -5.0)}}, "depth_range_mm"),
 ])
-def test_locator_settings_are_validated(kwargs, match):
+def test_locator_settings_are_validated(settings, match):
     with pytest.raises(ValueError, match=match):
-        PerspectiveLocator(**kwargs)
+        PerspectiveLocator.from_dict(settings)
 
 
 def test_locator_repr_and_settings():
-    loc = PerspectiveLocator(core_contrast=None, merge_distance_px=2.0)
+    loc = PerspectiveLocator.from_dict({"segment": {"core_contrast": None},
+                                        "grow": {"merge_distance_px": 2.0}})
     assert "merge_distance_px=2.0" in repr(loc)
-    assert loc.settings()["core_contrast"] is None
+    assert loc.settings()["segment"]["core_contrast"] is None
 
 
 def test_split_pairs_places_halves_from_moments():
     # Two discs of radius r with centres c +- a e: second moments r^2/4 + a^2 along e and
     # r^2/4 across it; the halves land on the disc centres.
-    from plenoptrack.locate.perspective import _split_pairs
+    from plenoptrack.locate._regions import _split_pairs
 
     r, a, theta = 4.0, 3.0, 0.4
     single = dict(frame=0, u=0.0, v=0.0, s=10.0, t=10.0, area=50, diameter_px=8.0,

@@ -7,7 +7,7 @@ back, identical particle tables from :func:`locate_frame`."""
 import numpy as np
 import pytest
 
-from plenoptrack.locate import cluster, perspective, triangulate
+from plenoptrack.locate import _assign, cluster, perspective, triangulate
 from plenoptrack.locate.dlfc import fit_dlfc
 from plenoptrack.simulate import make_scene
 
@@ -74,7 +74,7 @@ def test_add_centroids_matches_all_pairs():
             args = (a["pred"], a["st"], a["view"], a["owner"], a["residual"],
                     a["confidence"], tol)
             want = previous._add_centroids(*args)
-            assert np.array_equal(perspective._add_centroids(*args), want), (seed, tol)
+            assert np.array_equal(_assign._add_centroids(*args), want), (seed, tol)
             changed += int(np.any(want != a["owner"]))
     assert changed > 60
 
@@ -86,7 +86,7 @@ def test_merge_duplicates_matches_all_pairs():
         for merge_px in (0.5, 1.0, 2.0):
             args = (a["pred"], a["st"], a["view"], a["owner"], a["n_views"], merge_px)
             want = previous._merge_duplicates(*args)
-            assert np.array_equal(perspective._merge_duplicates(*args), want), (seed, merge_px)
+            assert np.array_equal(_assign._merge_duplicates(*args), want), (seed, merge_px)
             changed += int(np.any(want != a["owner"]))
     assert changed > 30
 
@@ -97,7 +97,7 @@ def test_explained_by_others_matches_all_pairs():
         a = _state(seed)
         args = (a["pred"], a["st"], a["view"], a["owner"], a["radius"], a["ok"])
         want = previous._explained_by_others(*args)
-        assert np.array_equal(perspective._explained_by_others(*args), want), seed
+        assert np.array_equal(_assign._explained_by_others(*args), want), seed
         hits += int(np.any(want > 0))
     assert hits > 30
 
@@ -118,11 +118,11 @@ def test_release_single_large_matches_all_pairs():
         positions = np.column_stack([rng.uniform(0, 30, (n_p, 2)), rng.uniform(-1, 1, n_p)])
         positions[rng.random(n_p) < 0.1] = np.nan
         views = rng.integers(-2, 3, (n_v, 2)).astype(float)
-        owner = np.where(rng.random(len(a["owner"])) < 0.5, perspective._MERGED, a["owner"])
+        owner = np.where(rng.random(len(a["owner"])) < 0.5, _assign._MERGED, a["owner"])
         round_ = rng.random(len(owner)) < 0.8
         args = (_ShiftModel(), positions, views, a["st"], a["view"], owner, a["radius"], round_)
         want = previous._release_single_large(*args)
-        assert np.array_equal(perspective._release_single_large(*args), want), seed
+        assert np.array_equal(_assign._release_single_large(*args), want), seed
         released += int(np.any(want != owner))
     assert released > 30
 
@@ -146,7 +146,7 @@ def test_trim_refit_matches_per_particle_scan():
     for particles in (np.arange(12), np.array([1, 3, 5, 8]), np.array([], dtype=np.int64)):
         args = (dlfc, st, view, grid, owner, start, particles, 6, 1.0)
         want_owner, want_pos = previous._trim_refit(*args)
-        got_owner, got_pos = perspective._trim_refit(*args)
+        got_owner, got_pos = _assign._trim_refit(*args)
         assert np.array_equal(got_owner, want_owner)
         assert np.array_equal(got_pos, want_pos, equal_nan=True)
         assert np.any(want_owner != owner) == (len(particles) > 0)

@@ -1,22 +1,32 @@
 """The perspective-shift particle locator: one raw image to a table of 3D particles.
 
-Composes the steps of section 2 of the method paper:
+:func:`locate_frame` is a short pipeline of named stages over one explicit state
+(section 2 of the method paper):
 
-1. decode the raw image and segment dark particles in every valid perspective view
-   (:mod:`~plenoptrack.locate.segment`); split regions holding several dark cores into
-   those cores and large elongated regions into the two particle images their second
-   moments imply; ignore views dominated by noise;
-2. group the centroids of each particle across views by k-means on projected refocus
-   planes, finished by a density sweep (:mod:`~plenoptrack.locate.cluster`); large
-   regions and split halves wait until particles are located and join the pool only
-   where no located particle accounts for them;
-3. solve each particle's (x, y, z) through the Direct Light Field Calibration with
-   outlier rejection (:mod:`~plenoptrack.locate.triangulate`);
-4. from the most confident particle down, add unassigned centroids that the particle's
-   position predicts in views where it has none, and solve again; cluster whatever
-   remains unassigned and repeat; drop particles that fail the consistency checks;
-5. measure in-plane size and shape from the member regions, converted to mm with the
-   local magnification of the calibration.
+1. :func:`segment_frame` -- decode the raw image and segment dark particles in every
+   valid perspective view (:mod:`~plenoptrack.locate.segment`); split regions holding
+   several dark cores into those cores and large elongated regions into the two particle
+   images their second moments imply; ignore views dominated by noise;
+2. :func:`cluster_unassigned` -- group the unassigned centroids of each particle across
+   views by k-means on projected refocus planes, finished by a density sweep
+   (:mod:`~plenoptrack.locate.cluster`); large regions and split halves wait until
+   particles are located and join the pool only where no located particle accounts for
+   them;
+3. :func:`solve_particles` -- solve each particle's (x, y, z) through the Direct Light
+   Field Calibration with outlier rejection (:mod:`~plenoptrack.locate.triangulate`);
+4. :func:`grow_particles` -- merge particles that are one, and from the most confident
+   particle down add unassigned centroids that its position predicts in views where it
+   has none; stages 2-4 repeat (``grow.passes``);
+5. :func:`check_particles` -- drop particles that fail the consistency checks (too few
+   or clustered views, residuals far above the typical one, built from merged images),
+   refit those whose centroids are partly pulled by overlapping images, and solve again;
+6. :func:`measure_particles` -- in-plane size and shape from the member regions,
+   converted to mm with the local magnification of the calibration.
+
+The frame's fixed data (detections, views, geometry) is a :class:`FrameContext`; what
+the stages change is a :class:`ParticleState`: which detection belongs to which particle
+and each particle's solution. Every stage takes its own settings section of
+:class:`~plenoptrack.locate.settings.PerspectiveLocator`.
 
 References
 ----------
@@ -27,26 +37,32 @@ Opt. Express 27 (2019).
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import time
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 
-import numba
 import numpy as np
 import pandas as pd
 
 from .._columns import POS_COLUMNS, T_COLUMN
-from ..errors import NoParticlesWarning, SettingsError
+from ..errors import NoParticlesWarning
 from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
-from ._nearby import pairs_within
+from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_duplicates,
+                      _predict_all, _release_single_large, _trim_refit)
+from ._regions import _region_shape, _split_merged, _split_pairs
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
-from .triangulate import triangulate_cluster, triangulate_clusters
+from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
+                       SegmentSettings, SolveSettings)
+from .triangulate import triangulate_clusters
 
-__all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult"]
+__all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
+           "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
+           "solve_particles", "grow_particles", "check_particles", "measure_particles"]
 
 PARTICLE_COLUMNS = (T_COLUMN, *POS_COLUMNS, "sigma_x", "sigma_y", "sigma_z", "n_views",
                     "confidence", "residual_px", "diameter", "major_axis", "minor_axis",
@@ -81,493 +97,128 @@ class LocateResult:
 
 
 @dataclass(frozen=True)
-class PerspectiveLocator:
-    """Settings of the perspective-shift locator.
+class FrameContext:
+    """What every stage reads about one frame and never changes.
 
-    Call :meth:`locate` (or :func:`locate_frame`) with a raw image and a calibration that
-    holds a DLFC.
-
-    Parameters
+    Attributes
     ----------
-    window : int
-        Side of the local-threshold window in each view, view pixels.
-    contrast : float
-        A particle pixel is darker than its local background by at least this fraction.
-    core_contrast : float or None
-        A second segmentation at this (higher) contrast finds the dark cores of the
-        particle images; a region that holds two or more cores is the merged image of
-        touching particles and is replaced by its cores. None disables the split.
-    area_range : (float, float)
-        Accepted region areas in a view, view pixels.
-    max_eccentricity : float
-        Regions more elongated than this are ignored (1 keeps all).
-    n_planes : int
-        Refocus planes of the clustering (10 in the paper).
-    depth_range_mm : (float, float), optional
-        Depth range to cluster over, mm; default the z range of the DLFC's dot cards.
-    reject_k : float
-        Outlier threshold of the triangulation, in robust standard deviations.
-    min_views : int
-        Fewest centroids a particle needs to be reported.
-    add_tolerance_px : float
-        A centroid is added to a particle when it lies within this distance (view
-        pixels) of where the particle's position predicts it, or within 3 times the
-        particle's RMS residual if that is larger.
-    passes : int
-        Rounds of "cluster the unassigned centroids, triangulate, add centroids".
-    merge_distance_px : float or None
-        Two particles whose predicted positions lie within this distance (view pixels)
-        of each other in most views (median over views) are one particle and are merged;
-        default half the median equivalent diameter of the detections.
-    max_residual_ratio : float
-        Particles whose RMS residual exceeds this multiple of the median over the frame
-        (and ``add_tolerance_px``) are dropped.
-    min_aperture_spread : float
-        Particles whose views span less than this fraction of the aperture (RMS
-        distance of their views' ``(u, v)`` from its mean, against that of all valid
-        views) are dropped: their depth rests on a narrow baseline.
-    max_area_ratio : float
-        Regions larger than this multiple of the median region area of the frame are
-        taken for merged images of several particles: they are neither clustered nor
-        added to particles (their centroids lie between the particles).
-    merged_elongation : float
-        After the first pass, large regions no more elongated than this (major over
-        minor axis) on which no located particle is predicted are returned to the pool:
-        they are single particles near the camera, imaged at a higher magnification.
-    split_pairs : bool
-        Replace regions larger than ``max_area_ratio`` times the median and more
-        elongated than ``merged_elongation`` by two half regions placed from their
-        second moments (the merged image of two particles); otherwise such regions are
-        left out.
-    max_explained : float
-        Particles for which, in more than this fraction of their views, two other
-        particles are predicted on the centroid are dropped (built from merged images).
-    max_explained_strong : float
-        The same limit for particles seen in at least a quarter of the valid views. A
-        phantom made of merged images exists only in the views where the images merge
-        (a part of the aperture, fractions near 1); a real particle in line with two
-        others in depth can be overlapped in three quarters of its many views.
-    max_view_ratio : float or None
-        Views with more than this multiple of the median number of regions per view are
-        dominated by noise (dim rim views) and are not used; None keeps every view.
-    solver : {"lm", "scipy"}
-        Least-squares solver of the triangulation (see
-        :func:`~plenoptrack.locate.triangulate.triangulate_clusters`).
-    seed : int
-        Seed of the k-means initialisation.
-    """
-
-    window: int = 31
-    contrast: float = 0.15
-    core_contrast: float | None = 0.93
-    area_range: tuple[float, float] = (2.0, math.inf)
-    max_eccentricity: float = 1.0
-    n_planes: int = 10
-    depth_range_mm: tuple[float, float] | None = None
-    reject_k: float = 3.0
-    min_views: int = 6
-    add_tolerance_px: float = 1.0
-    passes: int = 2
-    merge_distance_px: float | None = None
-    max_residual_ratio: float = 4.0
-    min_aperture_spread: float = 0.4
-    max_explained: float = 0.5
-    max_explained_strong: float = 0.85
-    max_area_ratio: float = 1.3
-    merged_elongation: float = 1.25
-    split_pairs: bool = True
-    max_view_ratio: float | None = 2.0
-    solver: str = "lm"
-    seed: int = 0
-
-    def __post_init__(self) -> None:
-        if self.window < 3:
-            raise SettingsError(f"window must be at least 3 view pixels; got {self.window}")
-        if not 0 < self.contrast < 1:
-            raise SettingsError(f"contrast must be between 0 and 1; got {self.contrast}")
-        if self.core_contrast is not None and not self.contrast < self.core_contrast < 1:
-            raise SettingsError(f"core_contrast must be None or between contrast "
-                             f"({self.contrast}) and 1; got {self.core_contrast}")
-        if self.n_planes < 2:
-            raise SettingsError(f"n_planes must be at least 2; got {self.n_planes}")
-        if self.min_views < 2:
-            raise SettingsError(f"min_views must be at least 2; got {self.min_views}")
-        if self.solver not in ("lm", "scipy"):
-            raise SettingsError(f"solver must be 'lm' or 'scipy'; got {self.solver!r}")
-        if self.max_view_ratio is not None and not self.max_view_ratio > 1:
-            raise SettingsError(f"max_view_ratio must be None or above 1; got {self.max_view_ratio}")
-        if self.passes < 1:
-            raise SettingsError(f"passes must be at least 1; got {self.passes}")
-        if self.depth_range_mm is not None and not self.depth_range_mm[1] > self.depth_range_mm[0]:
-            raise SettingsError(f"depth_range_mm must be (near, far) with far > near; got {self.depth_range_mm}")
-
-    def settings(self) -> dict:
-        """The settings as a plain dict (for provenance in output metadata)."""
-        return asdict(self)
-
-    def locate(self, raw_or_lf, calibration, *, frame: int = 0, white=None) -> LocateResult:
-        """Locate the particles of one frame; see :func:`locate_frame`."""
-        return locate_frame(raw_or_lf, calibration, frame=frame, locator=self, white=white)
-
-
-def _empty_particles() -> pd.DataFrame:
-    cols = {c: pd.Series(dtype=float) for c in PARTICLE_COLUMNS}
-    cols[T_COLUMN] = pd.Series(dtype=np.int64)
-    cols["n_views"] = pd.Series(dtype=np.int64)
-    cols["flags"] = pd.Series(dtype=np.uint8)
-    return pd.DataFrame(cols)
-
-
-def _initial_positions(clusters: pd.DataFrame, camera) -> pd.DataFrame:
-    """Thin-lens start for each cluster from its plane and mean projected position.
-
-    A cluster accepted at plane ``alpha`` with mean position ``X'`` (mm, camera frame,
-    on that plane) is imaged at ``d = alpha s_i``; its object lies at ``s_o + z`` with
-    ``z`` from the thin-lens equation, laterally at ``x = X' (s_o + z) / d`` (world
-    frame: the camera-frame inversion cancels the lens's).
-    """
-    alpha = clusters["alpha"].to_numpy(float)
-    z = camera.depth_for_alpha(alpha)
-    d = alpha * camera.image_distance_mm
-    scale = (camera.object_distance_mm + z) / d
-    return pd.DataFrame({"x": clusters["plane_x_mm"].to_numpy(float) * scale,
-                         "y": clusters["plane_y_mm"].to_numpy(float) * scale,
-                         "z": z}, index=clusters["cluster"].to_numpy())
-
-
-_MERGED = -2  # owner of regions taken for merged images of several particles
-
-
-def _view_index(detections: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
-    """Index of each detection's view and the (n_views, 2) table of view ``(u, v)``."""
-    uv = detections[["u", "v"]].to_numpy(float)
-    views, idx = np.unique(uv, axis=0, return_inverse=True)
-    return idx.ravel().astype(np.int64), views.reshape(-1, 2)
-
-
-def _predict_all(dlfc, positions: np.ndarray, views: np.ndarray) -> np.ndarray:
-    """(P, V, 2) predicted ``(s, t)`` of every particle in every view; NaN rows for
-    particles without a finite position."""
-    out = np.full((len(positions), len(views), 2), np.nan)
-    ok = np.all(np.isfinite(positions), axis=1)
-    if ok.any() and len(views):
-        p = positions[ok]
-        s, t = dlfc.predict(p[:, None, 0], p[:, None, 1], p[:, None, 2],
-                            views[None, :, 0], views[None, :, 1])
-        out[ok, :, 0] = s
-        out[ok, :, 1] = t
-    return out
-
-
-def _add_centroids(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np.ndarray,
-                   residual: np.ndarray, confidence: np.ndarray,
-                   tolerance_px: float) -> np.ndarray:
-    """Give unassigned centroids to the particle that predicts them (most confident first).
-
-    Parameters
-    ----------
-    pred : (P, V, 2) float ndarray
-        Predicted ``(s, t)`` of every particle in every view (:func:`_predict_all`).
+    lf : LightField
+        The decoded frame.
+    dlfc : DLFC
+        The calibration's Direct Light Field Calibration.
+    camera : CameraSpec
+        The calibration's nominal camera.
+    detections : DataFrame
+        The segmented regions of every view (:func:`segment_frame`), M rows.
     st : (M, 2) float ndarray
-        Measured centroids ``(s, t)``, view pixels.
+        Their centroids ``(s, t)``, view pixels.
     view : (M,) int ndarray
-        View index of each centroid.
-    owner : (M,) int ndarray
-        Particle row of each detection, -1 for unassigned.
-    residual, confidence : (P,) float ndarray
-        RMS reprojection error (view pixels) and confidence of each particle.
-
-    Returns
-    -------
-    (M,) int ndarray
-        Updated owners: an unassigned centroid joins the most confident particle that has
-        no centroid in its view yet and predicts it within the tolerance; a particle takes
-        at most one centroid per view (the nearest; the lowest row on a tie).
-
-    Notes
-    -----
-    The candidate (particle, centroid) pairs of each view come from a spatial search
-    (:func:`~plenoptrack.locate._nearby.pairs_within`); the greedy choice then runs over
-    the pairs ordered by particle rank, view, distance and row.
-    """
-    owner = owner.copy()
-    n_p, n_v = pred.shape[:2]
-    ok = np.all(np.isfinite(pred[:, 0]), axis=1)
-    free = np.flatnonzero(owner == -1)
-    if not ok.any() or len(free) == 0:
-        return owner
-    has = np.zeros((n_p, n_v), dtype=bool)
-    mine = owner >= 0
-    has[owner[mine], view[mine]] = True
-    tol = np.maximum(tolerance_px, 3.0 * np.nan_to_num(residual, nan=tolerance_px))
-    rank = np.argsort(-np.nan_to_num(confidence, nan=-np.inf), kind="stable")
-    place = np.empty(n_p, dtype=np.int64)
-    place[rank] = np.arange(n_p)
-    has_free = np.bincount(view[free], minlength=n_v) > 0
-    part, w = np.nonzero(ok[:, None] & ~has & has_free[None, :])
-    q, f, dist = pairs_within(pred[part, w], w, tol[part], st[free], view[free])
-    if len(q) == 0:
-        return owner
-    part, w, rows = part[q], w[q], free[f]
-    order = np.lexsort((rows, dist, w, place[part]))
-    part, w, rows = part[order], w[order], rows[order]
-    first = np.flatnonzero(np.r_[True, (part[1:] != part[:-1]) | (w[1:] != w[:-1])])
-    pick = _first_untaken(np.r_[first, len(rows)], rows, len(owner))
-    pick = pick[pick >= 0]
-    owner[rows[pick]] = part[pick]
-    return owner
-
-
-@numba.njit(cache=True)
-def _first_untaken(start, rows, n_rows):  # pragma: no cover - compiled
-    """Greedy choice over groups of candidate rows in preference order.
-
-    Group ``g`` is ``rows[start[g]:start[g + 1]]``; groups are visited in order and each
-    takes its first row that no earlier group took. Returns the position (in ``rows``)
-    of each group's choice, -1 when every candidate was taken.
-    """
-    taken = np.zeros(n_rows, dtype=np.bool_)
-    pick = np.full(len(start) - 1, -1, dtype=np.int64)
-    for g in range(len(start) - 1):
-        for i in range(start[g], start[g + 1]):
-            if not taken[rows[i]]:
-                taken[rows[i]] = True
-                pick[g] = i
-                break
-    return pick
-
-
-def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np.ndarray,
-                      n_views: np.ndarray, merge_px: float) -> np.ndarray:
-    """Merge particles whose predictions coincide in most views.
-
-    Two particles are the same when the median distance between their predicted
-    positions over all views is at most ``merge_px``. From the particle with most
-    centroids down, each particle not yet merged absorbs the same particles that have no
-    more centroids than it and have not been merged: the centroids of both are pooled
-    and, in each view, the one nearest the surviving particle's prediction is kept (the
-    others are released).
-
-    Returns
-    -------
-    (M,) int ndarray
-        Updated owners.
-    """
-    ok = np.flatnonzero(np.all(np.isfinite(pred[:, 0]), axis=1) & (n_views > 0))
-    if len(ok) < 2:
-        return owner
-    a, b = _coincident_pairs(pred[ok], merge_px)
-    if len(a) == 0:
-        return owner
-    # Both directions, each particle's partners in ascending order.
-    src, dst = np.r_[a, b], np.r_[b, a]
-    by = np.lexsort((dst, src))
-    start = np.searchsorted(src[by], np.arange(len(ok) + 1))
-    strength = n_views[ok]
-    into = _absorb(np.argsort(-strength, kind="stable"), start, dst[by], strength)
-    target = np.arange(len(pred))
-    target[ok] = ok[into]
-    owner = owner.copy()
-    mine = owner >= 0
-    owner[mine] = target[owner[mine]]
-    survivor = np.zeros(len(pred), dtype=bool)
-    survivor[target[target != np.arange(len(pred))]] = True
-    rows = np.flatnonzero(mine)
-    rows = rows[survivor[owner[rows]]]
-    k, vw = owner[rows], view[rows]
-    dist = np.hypot(st[rows, 0] - pred[k, vw, 0], st[rows, 1] - pred[k, vw, 1])
-    order = np.lexsort((dist, vw, k))
-    rows, k, vw = rows[order], k[order], vw[order]
-    first = np.r_[True, (k[1:] != k[:-1]) | (vw[1:] != vw[:-1])]
-    owner[rows[~first]] = -1
-    return owner
-
-
-def _coincident_pairs(pred: np.ndarray, merge_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs ``a < b`` of particles whose median predicted distance is <= ``merge_px``.
-
-    Parameters
-    ----------
-    pred : (K, V, 2) float ndarray
-        Predicted ``(s, t)`` of each particle in each view, view pixels.
+        Index of each detection's view into ``views``.
+    views : (V, 2) float ndarray
+        ``(u, v)`` of the views that have detections.
+    radius_px : (M,) float ndarray
+        Half the major axis of each region plus the grow tolerance, view pixels: a
+        particle predicted within it is seen in the region.
+    round_ : (M,) bool ndarray
+        Regions round enough to be one particle's image near the camera, or halves of a
+        split pair.
+    geometry : ProjectionGeometry
+        Conversion of view coordinates to the aperture and the microlens plane.
+    alphas : (n_planes,) float ndarray
+        Refocus planes of the clustering.
+    n_possible : int
+        Valid views of the light field.
+    volume_depth_mm : float
+        Depth of the clustered volume, mm.
     merge_px : float
-        Largest median distance over the ``V`` views, view pixels.
-
-    Returns
-    -------
-    a, b : (n,) int64 ndarray
-        Row indices into ``pred``, ``a < b``, sorted by ``a`` then ``b``.
-
-    Notes
-    -----
-    The median of ``V`` distances is at most ``merge_px`` only if at least
-    ``ceil(V / 2)`` of them are (for even ``V`` the lower of the two middle values is),
-    so such a pair is within ``merge_px`` in at least one of any ``V - ceil(V / 2) + 1``
-    views. The pairs within ``merge_px`` in the first that many views come from a
-    spatial search; the exact median over all views (NaN, hence no merge, when a view's
-    distance is NaN) is taken for those pairs only.
+        Distance under which two particles' predictions coincide, view pixels.
     """
-    n_k, n_v = pred.shape[:2]
-    n_probe = n_v - (n_v + 1) // 2 + 1
-    probe = pred[:, :n_probe].reshape(-1, 2)
-    views = np.tile(np.arange(n_probe), n_k)
-    q, d, _ = pairs_within(probe, views, merge_px, probe, views)
-    a, b = q // n_probe, d // n_probe
-    key = np.unique(a[a < b] * n_k + b[a < b])
-    a, b = key // n_k, key % n_k
-    median = np.median(np.hypot(pred[a, :, 0] - pred[b, :, 0], pred[a, :, 1] - pred[b, :, 1]),
-                       axis=1)
-    close = median <= merge_px
-    return a[close], b[close]
+
+    lf: LightField
+    dlfc: object
+    camera: object
+    detections: pd.DataFrame
+    st: np.ndarray
+    view: np.ndarray
+    views: np.ndarray
+    radius_px: np.ndarray
+    round_: np.ndarray
+    geometry: ProjectionGeometry
+    alphas: np.ndarray
+    n_possible: int
+    volume_depth_mm: float
+    merge_px: float
+
+    @classmethod
+    def build(cls, lf: LightField, calibration, detections: pd.DataFrame,
+              locator: PerspectiveLocator) -> "FrameContext":
+        """The context of a frame from its light field and non-empty detections."""
+        dlfc, camera = calibration.dlfc, calibration.camera
+        view, views = _view_index(detections)
+        elongation = (detections["major_axis_px"].to_numpy(float)
+                      / np.maximum(detections["minor_axis_px"].to_numpy(float), 1e-9))
+        z_lo, z_hi = (locator.cluster.depth_range_mm
+                      if locator.cluster.depth_range_mm is not None
+                      else (float(dlfc.bounds[0, 2]), float(dlfc.bounds[1, 2])))
+        merge_px = (locator.grow.merge_distance_px
+                    if locator.grow.merge_distance_px is not None
+                    else 0.5 * float(detections["diameter_px"].median()))
+        return cls(lf=lf, dlfc=dlfc, camera=camera, detections=detections,
+                   st=detections[["s", "t"]].to_numpy(float), view=view, views=views,
+                   radius_px=(0.5 * detections["major_axis_px"].to_numpy(float)
+                              + locator.grow.add_tolerance_px),
+                   round_=(elongation <= locator.segment.merged_elongation) | _split(detections),
+                   geometry=ProjectionGeometry.from_lightfield(lf, camera),
+                   alphas=plane_alphas(camera, (z_lo, z_hi), locator.cluster.n_planes),
+                   n_possible=int(lf.view_mask.sum()), volume_depth_mm=z_hi - z_lo,
+                   merge_px=merge_px)
 
 
-@numba.njit(cache=True)
-def _absorb(order, start, partner, strength):  # pragma: no cover - compiled
-    """Greedy merging: ``target[i]`` is the particle that particle ``i`` merges into.
+@dataclass(frozen=True)
+class ParticleState:
+    """Which detection belongs to which particle, and each particle's solution.
 
-    Particles are visited in ``order``; one that has not been merged takes each of its
-    partners ``partner[start[i]:start[i + 1]]`` that has not been merged and whose
-    ``strength`` does not exceed its own.
+    Attributes
+    ----------
+    owner : (M,) int ndarray
+        Particle row of each detection; -1 unassigned; ``_MERGED`` (-2) for regions held
+        back as merged images of several particles.
+    initial : (P, 3) float ndarray
+        Starting position of each particle's next solve, mm.
+    positions : (P, 3) float ndarray
+        Solved positions ``(x, y, z)``, mm; NaN rows for particles without a solution.
+    table : DataFrame
+        P rows: the solution of each particle (columns of
+        :meth:`~plenoptrack.locate.triangulate.Triangulation.to_frame`).
     """
-    target = np.arange(len(strength))
-    for a in order:
-        if target[a] != a:
-            continue
-        for j in range(start[a], start[a + 1]):
-            b = partner[j]
-            if target[b] == b and strength[b] <= strength[a]:
-                target[b] = a
-    return target
+
+    owner: np.ndarray
+    initial: np.ndarray
+    positions: np.ndarray
+    table: pd.DataFrame
+
+    @classmethod
+    def start(cls, ctx: FrameContext, segment: SegmentSettings) -> "ParticleState":
+        """No particles yet; large regions and split halves are held back as merged."""
+        area = ctx.detections["area"].to_numpy(float)
+        owner = np.full(len(area), -1, dtype=np.int64)
+        owner[area > segment.max_area_ratio * np.median(area)] = _MERGED
+        # Halves of split merged images wait, like merged regions, until particles have
+        # been located: only those no located particle accounts for join the pool.
+        owner[_split(ctx.detections)] = _MERGED
+        empty = np.zeros((0, 3))
+        return cls(owner=owner, initial=empty, positions=empty, table=pd.DataFrame())
+
+    @property
+    def n_particles(self) -> int:
+        return len(self.initial)
 
 
-def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_):
-    """Return large round regions that no located particle is predicted on to the pool.
-
-    A region taken for a merged image (owner ``_MERGED``) that is round and has no
-    located particle predicted inside it (within ``radius_px``) is the image of one
-    particle near the camera, larger than the typical image; it is released (owner -1)
-    so that the next clustering pass can find that particle.
-    """
-    rows = np.flatnonzero((owner == _MERGED) & round_)
-    ok = np.all(np.isfinite(positions), axis=1)
-    if len(rows) == 0 or not ok.any():
-        return owner
-    pred = _predict_all(dlfc, positions[ok], views)                       # (P, V, 2)
-    n_p, n_v = pred.shape[:2]
-    q, _, _ = pairs_within(st[rows], view[rows], radius_px[rows], pred.reshape(-1, 2),
-                           np.tile(np.arange(n_v), n_p))
-    empty = np.bincount(q, minlength=len(rows)) == 0
-    owner = owner.copy()
-    owner[rows[empty]] = -1
-    return owner
-
-
-def _explained_by_others(pred: np.ndarray, st: np.ndarray, view: np.ndarray,
-                         owner: np.ndarray, radius_px: np.ndarray, ok: np.ndarray
-                         ) -> np.ndarray:
-    """Fraction of each particle's centroids that two other particles' predictions fall on.
-
-    A region where the images of two particles merge has its centroid between them; a
-    spurious particle built from such regions has both neighbours predicted inside
-    (within ``radius_px``, the region radius) of nearly all its centroids. Only the
-    particles marked ``ok`` count as neighbours; with fewer than three every fraction
-    is 0.
-    """
-    n_p, n_v = pred.shape[:2]
-    frac = np.zeros(n_p)
-    idx = np.flatnonzero(ok)
-    if len(idx) < 3:
-        return frac
-    mine = np.flatnonzero(owner >= 0)
-    own = owner[mine]
-    q, d, _ = pairs_within(st[mine], view[mine], radius_px[mine], pred[idx].reshape(-1, 2),
-                           np.tile(np.arange(n_v), len(idx)))
-    other = idx[d // n_v] != own[q]
-    hit = np.bincount(q[other], minlength=len(mine)) >= 2
-    counts = np.bincount(own, minlength=n_p)
-    frac = np.bincount(own, hit.astype(float), minlength=n_p) / np.maximum(counts, 1)
-    return frac
-
-
-def _split_merged(coarse: pd.DataFrame, cores: pd.DataFrame) -> pd.DataFrame:
-    """Replace regions that hold two or more dark cores by those cores.
-
-    ``coarse`` are regions at the segmentation contrast, ``cores`` regions of the same
-    views at the (higher) core contrast. Each core joins the nearest coarse region of
-    its view within half the region's major axis plus a pixel; a coarse region with
-    several cores is the merged image of several particles.
-    """
-    if len(coarse) == 0 or len(cores) == 0:
-        return coarse
-    from scipy.spatial import cKDTree
-
-    def key(df):
-        return np.column_stack([df["s"].to_numpy() + 1e4 * (df["u"].to_numpy() + 100),
-                                df["t"].to_numpy() + 1e4 * (df["v"].to_numpy() + 100)])
-
-    dist, nearest = cKDTree(key(coarse)).query(key(cores))
-    reach = 0.5 * coarse["major_axis_px"].to_numpy()[np.minimum(nearest, len(coarse) - 1)] + 1.0
-    inside = np.isfinite(dist) & (dist <= reach)
-    n_cores = np.bincount(nearest[inside], minlength=len(coarse))
-    merged = n_cores >= 2
-    if not merged.any():
-        return coarse
-    replacement = cores[inside & merged[np.minimum(nearest, len(coarse) - 1)]]
-    out = pd.concat([coarse[~merged], replacement.assign(whole=False)], ignore_index=True)
-    out["whole"] = out["whole"].fillna(True).astype(bool)
-    return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)
-
-
-def _region_shape(detections: pd.DataFrame, owner: np.ndarray, n: int) -> pd.DataFrame:
-    """In-plane size and shape per particle from its member regions, view pixels.
-
-    The diameter is the median over members of the equivalent diameter of the region's
-    shadow, ``sqrt(4 dark_area / pi)`` (summed relative darkness: an opaque object's
-    area, nearly independent of defocus blur and of the threshold); the axes are the
-    members' second-moment axes scaled by the same shadow-to-threshold ratio; the
-    orientation is the axial mean of the members'. Whole regions are preferred over the
-    cores and halves that merged images were split into, which under-size a particle.
-    """
-    empty = pd.DataFrame({"diameter_px": np.full(n, np.nan), "major_px": np.full(n, np.nan),
-                          "minor_px": np.full(n, np.nan), "orientation": np.full(n, np.nan)})
-    mask = owner >= 0
-    if not mask.any():
-        return empty
-    d = detections.loc[mask, ["diameter_px", "major_axis_px", "minor_axis_px", "orientation",
-                              "dark_area"]].copy()
-    d["owner"] = owner[mask]
-    d["whole"] = (detections.loc[mask, "whole"].to_numpy(bool) if "whole" in detections.columns
-                  else True)
-    shadow = np.sqrt(4.0 * np.maximum(d["dark_area"].to_numpy(float), 0.0) / math.pi)
-    ratio = shadow / np.maximum(d["diameter_px"].to_numpy(float), 1e-9)
-    d["diameter_px"] = shadow
-    d["major_axis_px"] *= ratio
-    d["minor_axis_px"] *= ratio
-    # Orientation is axial (theta ~ theta + pi): average the doubled angle.
-    d["c2"] = np.cos(2 * d["orientation"])
-    d["s2"] = np.sin(2 * d["orientation"])
-    has_whole = d.groupby("owner")["whole"].transform("any").to_numpy(bool)
-    g = d[d["whole"].to_numpy(bool) | ~has_whole].groupby("owner")
-    med = g[["diameter_px", "major_axis_px", "minor_axis_px"]].median()
-    out = empty.copy()
-    idx = med.index.to_numpy()
-    out.loc[idx, "diameter_px"] = med["diameter_px"].to_numpy()
-    out.loc[idx, "major_px"] = med["major_axis_px"].to_numpy()
-    out.loc[idx, "minor_px"] = med["minor_axis_px"].to_numpy()
-    out.loc[idx, "orientation"] = 0.5 * np.arctan2(g["s2"].mean(), g["c2"].mean()).to_numpy()
-    return out
-
-
-def _solve(dlfc, detections, owner, initial, n_possible, volume_depth, locator):
-    """Triangulate every particle that owns centroids; returns the per-particle table and
-    the inlier mask of the detections."""
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NoParticlesWarning)
-        tri = triangulate_clusters(dlfc, detections.assign(_owner=owner), initial,
-                                   cluster_column="_owner", n_possible_views=n_possible,
-                                   volume_depth_mm=volume_depth, reject_k=locator.reject_k,
-                                   min_views=min(4, locator.min_views), solver=locator.solver)
-    return tri
+def _split(detections: pd.DataFrame) -> np.ndarray:
+    """(M,) bool: the detections that are halves of a split pair of merged images."""
+    if "split_pair" in detections.columns:
+        return detections["split_pair"].to_numpy(bool)
+    return np.zeros(len(detections), dtype=bool)
 
 
 def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
@@ -600,117 +251,205 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         or saturated raw frame also an :class:`~plenoptrack.errors.ExposureWarning`.
     """
     locator = PerspectiveLocator() if locator is None else locator
-    dlfc = calibration.dlfc
-    camera = calibration.camera
-    clock = {"decode": 0.0, "segment": 0.0, "cluster": 0.0, "triangulate": 0.0, "checks": 0.0}
-    t_last = time.perf_counter()
+    clock = _StageClock()
+    with clock("decode"):
+        lf = _decoded(raw_or_lf, calibration, frame, white)
+    with clock("segment"):
+        detections = segment_frame(lf, locator.segment, frame=frame)
+    if len(detections) == 0:
+        return _finish_empty(detections, frame, clock.seconds)
+    ctx = FrameContext.build(lf, calibration, detections, locator)
+    state = ParticleState.start(ctx, locator.segment)
+    for _ in range(locator.grow.passes):
+        with clock("cluster"):
+            state, n_new = cluster_unassigned(ctx, state, locator.cluster,
+                                              min_views=locator.solve.min_views)
+        if n_new == 0:
+            break
+        with clock("triangulate"):
+            for _round in range(3):
+                state = solve_particles(ctx, state, locator.solve)
+                state = grow_particles(ctx, state, locator.grow)
+    if state.n_particles == 0:
+        return _finish_empty(detections, frame, clock.seconds)
+    with clock("checks"):
+        state = check_particles(ctx, state, locator)
+        particles, detections = measure_particles(ctx, state, frame=frame,
+                                                  min_views=locator.solve.min_views)
+    if len(particles) == 0:
+        return _finish_empty(detections, frame, clock.seconds)
+    return LocateResult(particles=particles, detections=detections,
+                        stage_seconds=clock.seconds)
 
-    def lap(stage):
-        nonlocal t_last
-        now = time.perf_counter()
-        clock[stage] += now - t_last
-        t_last = now
 
+def _decoded(raw_or_lf, calibration, frame: int, white) -> LightField:
+    """The frame's light field, with the views the white image showed vignetted masked."""
     if isinstance(raw_or_lf, LightField):
         lf = raw_or_lf
     else:
         image = np.asarray(raw_or_lf)
         calibration.check_image(image)
-        warn_exposure(image, camera.full_scale, source=f"frame {frame}")
+        warn_exposure(image, calibration.camera.full_scale, source=f"frame {frame}")
         lf = decode(image, calibration.grid, white=white)
-    if calibration.vignetting is not None and calibration.vignetting.shape == lf.valid_fraction.shape:
-        # Views the white image showed to be vignetted are not searched.
-        lf = dataclasses.replace(lf, valid_fraction=np.minimum(lf.valid_fraction,
-                                                               calibration.vignetting))
+    vignetting = calibration.vignetting
+    if vignetting is not None and vignetting.shape == lf.valid_fraction.shape:
+        lf = dataclasses.replace(lf, valid_fraction=np.minimum(lf.valid_fraction, vignetting))
+    return lf
 
-    lap("decode")
-    detections = _segment(lf, frame, locator)
-    lap("segment")
-    if len(detections) == 0:
-        return _finish_empty(detections, frame, clock)
-    view, views = _view_index(detections)
-    st = detections[["s", "t"]].to_numpy(float)
-    owner = np.full(len(detections), -1, dtype=np.int64)
-    area = detections["area"].to_numpy(float)
-    elongation = (detections["major_axis_px"].to_numpy(float)
-                  / np.maximum(detections["minor_axis_px"].to_numpy(float), 1e-9))
-    owner[area > locator.max_area_ratio * np.median(area)] = _MERGED
-    # Halves of split merged images wait, like merged regions, until particles have
-    # been located: only those no located particle accounts for join the pool.
-    split = (detections["split_pair"].to_numpy(bool) if "split_pair" in detections.columns
-             else np.zeros(len(detections), dtype=bool))
-    owner[split] = _MERGED
-    z_lo, z_hi = (locator.depth_range_mm if locator.depth_range_mm is not None
-                  else (float(dlfc.bounds[0, 2]), float(dlfc.bounds[1, 2])))
-    volume_depth = z_hi - z_lo
-    alphas = plane_alphas(camera, (z_lo, z_hi), locator.n_planes)
-    geometry = ProjectionGeometry.from_lightfield(lf, camera)
-    n_possible = int(lf.view_mask.sum())
-    radius_px = 0.5 * detections["major_axis_px"].to_numpy(float) + locator.add_tolerance_px
-    merge_px = (locator.merge_distance_px if locator.merge_distance_px is not None
-                else 0.5 * float(detections["diameter_px"].median()))
 
-    def solve(owner, initial):
-        tri = _solve(dlfc, detections, owner, _initial_frame(initial, owner), n_possible,
-                     volume_depth, locator)
-        positions, table = _gather(tri, len(initial))
-        return np.where(tri.inliers | (owner == _MERGED), owner, -1), positions, table
+def segment_frame(lf: LightField, settings: SegmentSettings, *, frame: int = 0) -> pd.DataFrame:
+    """Stage 1: detections of every valid view, merged images split into particles.
 
-    def grow(owner, positions, table):
-        pred = _predict_all(dlfc, positions, views)
-        n_v = table["n_views"].to_numpy().astype(np.int64)
-        owner = _merge_duplicates(pred, st, view, owner, n_v, merge_px)
-        return _add_centroids(pred, st, view, owner, table["residual_px"].to_numpy(),
-                              table["confidence"].to_numpy(), locator.add_tolerance_px)
+    Parameters
+    ----------
+    lf : LightField
+        Decoded frame.
+    settings : SegmentSettings
+    frame : int
+        Written to the ``frame`` column.
 
-    positions = np.zeros((0, 3))
-    initial = np.zeros((0, 3))
-    for _ in range(locator.passes):
-        if len(positions):
-            owner = _release_single_large(dlfc, positions, views, st, view, owner, radius_px,
-                                          (elongation <= locator.merged_elongation)
-                                          | split)
-        free = np.flatnonzero(owner == -1)
-        if len(free) < locator.min_views:
-            break
-        lap("triangulate")
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", NoParticlesWarning)
-            clustering = cluster_detections(detections.iloc[free], geometry, alphas,
-                                            min_members=locator.min_views, seed=locator.seed)
-        lap("cluster")
-        if clustering.n_clusters == 0:
-            break
-        start = len(positions)
-        labels = clustering.detections["cluster"].to_numpy()
-        owner[free[labels >= 0]] = labels[labels >= 0] + start
-        init_new = _initial_positions(clustering.clusters, camera).to_numpy()
-        initial = np.vstack([initial, init_new])
-        # Solve, merge duplicates, grow particles with the centroids they predict.
-        for _grow in range(3):
-            owner, positions, table = solve(owner, initial)
-            owner = grow(owner, positions, table)
-            initial = np.where(np.isfinite(positions), positions, initial)
-    lap("triangulate")
-    if len(positions) == 0:
-        return _finish_empty(detections, frame, clock)
+    Returns
+    -------
+    DataFrame
+        :data:`~plenoptrack.locate.segment.DETECTION_COLUMNS` plus ``whole`` (False for
+        the cores and halves of split regions) and ``split_pair`` (halves of a pair
+        split from its second moments); index 0..M-1, sorted by view.
+    """
+    kw = dict(frame=frame, window=settings.window, area_range=settings.area_range,
+              max_eccentricity=settings.max_eccentricity)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NoParticlesWarning)
+        detections = segment_views(lf, contrast=settings.contrast, **kw)
+        if settings.core_contrast is not None and len(detections):
+            cores = segment_views(lf, contrast=settings.core_contrast,
+                                  **{**kw, "area_range": (1.0, math.inf),
+                                     "max_eccentricity": 1.0})
+            detections = _split_merged(detections, cores)
+    if len(detections) and settings.max_view_ratio is not None:
+        # A view with far more regions than the typical view is dominated by noise (a
+        # dim, partly vignetted rim view): its regions would only inflate k and the
+        # pool of false centroids.
+        _, view_of, counts = np.unique(detections[["v", "u"]].to_numpy(float), axis=0,
+                                       return_inverse=True, return_counts=True)
+        noisy = counts > settings.max_view_ratio * np.median(counts)
+        if noisy.any():
+            detections = detections[~noisy[view_of.ravel()]]
+    if len(detections) and settings.split_pairs:
+        detections = _split_pairs(detections, settings.max_area_ratio,
+                                  settings.merged_elongation)
+    return detections.reset_index(drop=True)
 
-    # Final checks: drop particles built from merged regions, too few or clustered
-    # views, or residuals far above the typical one; release their centroids to the
-    # others and solve once more.
-    owner, positions, table = solve(owner, initial)
-    tried = np.zeros(len(positions), dtype=bool)
-    for _check in range(3):
-        bad, refit = _inconsistent(positions, table, owner, view, views, st, radius_px,
-                                   lf.view_mask, lf.u, lf.v, dlfc, locator)
-        # A particle seen in many views whose only fault is a high residual has part of
-        # its centroids pulled by overlapping images: refit it on its best half first.
+
+def cluster_unassigned(ctx: FrameContext, state: ParticleState, settings: ClusterSettings, *,
+                       min_views: int) -> tuple[ParticleState, int]:
+    """Stage 2: new particles from the centroids no particle owns.
+
+    Large round regions on which no located particle is predicted are released to the
+    pool first (single particles near the camera, imaged larger than the rest). The pool
+    is clustered (:func:`~plenoptrack.locate.cluster.cluster_detections`); each cluster
+    becomes a particle with a thin-lens starting position.
+
+    Returns
+    -------
+    state : ParticleState
+        With the new particles appended (no solution yet: NaN positions).
+    n_new : int
+        Number of new particles; 0 when the pool is too small or nothing clustered.
+    """
+    owner = state.owner
+    if state.n_particles:
+        owner = _release_single_large(ctx.dlfc, state.positions, ctx.views, ctx.st, ctx.view,
+                                      owner, ctx.radius_px, ctx.round_)
+    free = np.flatnonzero(owner == -1)
+    if len(free) < min_views:
+        return dataclasses.replace(state, owner=owner), 0
+    kw = dataclasses.asdict(settings)
+    for name in ("n_planes", "depth_range_mm"):
+        kw.pop(name)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NoParticlesWarning)
+        clustering = cluster_detections(ctx.detections.iloc[free], ctx.geometry, ctx.alphas,
+                                        min_members=min_views, **kw)
+    if clustering.n_clusters == 0:
+        return dataclasses.replace(state, owner=owner), 0
+    start = state.n_particles
+    labels = clustering.detections["cluster"].to_numpy()
+    owner = owner.copy()
+    owner[free[labels >= 0]] = labels[labels >= 0] + start
+    initial = np.vstack([state.initial,
+                         _initial_positions(clustering.clusters, ctx.camera).to_numpy()])
+    n = len(initial)
+    positions = np.vstack([state.positions, np.full((n - start, 3), np.nan)])
+    return ParticleState(owner=owner, initial=initial, positions=positions,
+                         table=state.table.reindex(np.arange(n))), n - start
+
+
+def solve_particles(ctx: FrameContext, state: ParticleState,
+                    settings: SolveSettings) -> ParticleState:
+    """Stage 3: solve every particle that owns centroids, with outlier rejection.
+
+    Centroids rejected as outliers are released (owner -1); particles without centroids
+    get NaN positions and ``n_views`` 0.
+    """
+    owner = state.owner
+    used = np.unique(owner[owner >= 0])
+    initial = pd.DataFrame(state.initial[used], index=used, columns=list(POS_COLUMNS))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NoParticlesWarning)
+        tri = triangulate_clusters(ctx.dlfc, ctx.detections.assign(_owner=owner), initial,
+                                   cluster_column="_owner", n_possible_views=ctx.n_possible,
+                                   volume_depth_mm=ctx.volume_depth_mm,
+                                   reject_k=settings.reject_k,
+                                   min_views=min(4, settings.min_views), solver=settings.solver)
+    table = tri.to_frame().set_index("cluster").reindex(np.arange(state.n_particles))
+    table["n_views"] = table["n_views"].fillna(0)
+    table["flags"] = table["flags"].fillna(0)
+    positions = table[list(POS_COLUMNS)].to_numpy(float)
+    owner = np.where(tri.inliers | (owner == _MERGED), owner, -1)
+    return dataclasses.replace(state, owner=owner, positions=positions, table=table)
+
+
+def grow_particles(ctx: FrameContext, state: ParticleState,
+                   settings: GrowSettings) -> ParticleState:
+    """Stage 4: merge particles that are one, then add the centroids each one predicts.
+
+    Two particles whose predictions coincide in most views (``ctx.merge_px``) are merged;
+    then, from the most confident particle down, an unassigned centroid within
+    ``add_tolerance_px`` (or 3 times the particle's residual) of a particle's prediction
+    in a view where it has none joins it. The solved positions become the starting
+    positions of the next solve.
+    """
+    pred = _predict_all(ctx.dlfc, state.positions, ctx.views)
+    n_views = state.table["n_views"].to_numpy().astype(np.int64)
+    owner = _merge_duplicates(pred, ctx.st, ctx.view, state.owner, n_views, ctx.merge_px)
+    owner = _add_centroids(pred, ctx.st, ctx.view, owner, state.table["residual_px"].to_numpy(),
+                           state.table["confidence"].to_numpy(), settings.add_tolerance_px)
+    initial = np.where(np.isfinite(state.positions), state.positions, state.initial)
+    return dataclasses.replace(state, owner=owner, initial=initial)
+
+
+def check_particles(ctx: FrameContext, state: ParticleState,
+                    locator: PerspectiveLocator) -> ParticleState:
+    """Stage 5: drop inconsistent particles, refit overlapped ones, solve again.
+
+    Particles that fail a check (:func:`_inconsistent`) lose their centroids to the
+    others. A particle seen in many views whose only fault is a high residual has part
+    of its centroids pulled by overlapping images: it is refitted on its best half first
+    (once). Up to three rounds, each followed by growing and solving.
+    """
+    state = solve_particles(ctx, state, locator.solve)
+    tried = np.zeros(state.n_particles, dtype=bool)
+    for _round in range(3):
+        bad, refit = _inconsistent(ctx, state, locator.check, min_views=locator.solve.min_views,
+                                   tolerance_px=locator.grow.add_tolerance_px)
         refit &= ~tried
+        owner, positions, table = state.owner, state.positions, state.table.copy()
         if refit.any():
             tried |= refit
-            owner, positions = _trim_refit(dlfc, st, view, views, owner, positions,
-                                           np.flatnonzero(refit), locator.min_views,
-                                           locator.add_tolerance_px)
+            owner, positions = _trim_refit(ctx.dlfc, ctx.st, ctx.view, ctx.views, owner,
+                                           positions, np.flatnonzero(refit),
+                                           locator.solve.min_views,
+                                           locator.grow.add_tolerance_px)
             table.loc[refit, "residual_px"] = np.nan   # grow within add_tolerance_px only
             bad &= ~refit
         if not bad.any() and not refit.any():
@@ -718,14 +457,35 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         owner = np.where(bad[np.maximum(owner, 0)] & (owner >= 0), -1, owner)
         positions = np.where(bad[:, None], np.nan, positions)
         table.loc[bad, "n_views"] = 0
-        owner = grow(owner, positions, table)
-        initial = np.where(np.isfinite(positions), positions, initial)
-        owner, positions, table = solve(owner, initial)
-    keep = ((table["n_views"].to_numpy() >= locator.min_views)
+        state = dataclasses.replace(state, owner=owner, positions=positions, table=table)
+        state = grow_particles(ctx, state, locator.grow)
+        state = solve_particles(ctx, state, locator.solve)
+    return state
+
+
+def measure_particles(ctx: FrameContext, state: ParticleState, *, frame: int,
+                      min_views: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """Stage 6: the particle table (positions, uncertainties, size and shape in mm).
+
+    Particles with at least ``min_views`` centroids and a finite position are kept and
+    renumbered 0..n-1; size and shape come from their member regions
+    (:func:`~plenoptrack.locate._regions._region_shape`) divided by the DLFC's local
+    magnification at their position.
+
+    Returns
+    -------
+    particles : DataFrame
+        Columns :data:`PARTICLE_COLUMNS`.
+    detections : DataFrame
+        The frame's detections with ``particle`` (row in ``particles``, -1 unused) and
+        ``inlier``.
+    """
+    positions, table, owner = state.positions, state.table, state.owner
+    keep = ((table["n_views"].to_numpy() >= min_views)
             & np.all(np.isfinite(positions), axis=1))
     owner = np.where(keep[np.maximum(owner, 0)] & (owner >= 0), owner, -1)
-    shape = _region_shape(detections, owner, len(positions))
-    mag = dlfc.local_magnification(*positions[keep].T) if keep.any() else np.zeros(0)
+    shape = _region_shape(ctx.detections, owner, len(positions))
+    mag = ctx.dlfc.local_magnification(*positions[keep].T) if keep.any() else np.zeros(0)
     particles = table.loc[keep, ["x", "y", "z", "sigma_x", "sigma_y", "sigma_z", "n_views",
                                  "confidence", "residual_px", "flags"]].copy()
     particles.insert(0, T_COLUMN, frame)
@@ -740,96 +500,29 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     particles = particles[list(PARTICLE_COLUMNS)].reset_index(drop=True)
     particles["n_views"] = particles["n_views"].astype(np.int64)
     particles["flags"] = particles["flags"].astype(np.uint8)
-    detections = detections.assign(particle=particle_of, inlier=particle_of >= 0)
-    lap("checks")
-    if len(particles) == 0:
-        return _finish_empty(detections, frame, clock)
-    return LocateResult(particles=particles, detections=detections, stage_seconds=clock)
+    detections = ctx.detections.assign(particle=particle_of, inlier=particle_of >= 0)
+    return particles, detections
 
 
-def _segment(lf, frame: int, locator: PerspectiveLocator) -> pd.DataFrame:
-    """Detections of every valid view, merged regions split into their dark cores."""
-    kw = dict(frame=frame, window=locator.window, area_range=locator.area_range,
-              max_eccentricity=locator.max_eccentricity)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NoParticlesWarning)
-        detections = segment_views(lf, contrast=locator.contrast, **kw)
-        if locator.core_contrast is not None and len(detections):
-            cores = segment_views(lf, contrast=locator.core_contrast,
-                                  **{**kw, "area_range": (1.0, math.inf),
-                                     "max_eccentricity": 1.0})
-            detections = _split_merged(detections, cores)
-    if len(detections) and locator.max_view_ratio is not None:
-        # A view with far more regions than the typical view is dominated by noise (a
-        # dim, partly vignetted rim view): its regions would only inflate k and the
-        # pool of false centroids.
-        _, view_of, counts = np.unique(detections[["v", "u"]].to_numpy(float), axis=0,
-                                       return_inverse=True, return_counts=True)
-        noisy = counts > locator.max_view_ratio * np.median(counts)
-        if noisy.any():
-            detections = detections[~noisy[view_of.ravel()]]
-    if len(detections) and locator.split_pairs:
-        detections = _split_pairs(detections, locator.max_area_ratio,
-                                  locator.merged_elongation)
-    return detections.reset_index(drop=True)
-
-
-def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
-                 elongation: float) -> pd.DataFrame:
-    """Replace large elongated regions by the two particle images they are made of.
-
-    A region larger than ``max_area_ratio`` times the median area and more elongated
-    than ``elongation`` (major over minor axis) is taken for the merged image of two
-    equal particles. Two discs of radius ``r`` with centres ``c +- a e`` have second
-    moments ``r^2 / 4 + a^2`` along ``e`` and ``r^2 / 4`` across it, so
-    ``a = sqrt(l1 - l2)`` from the region's moments (``l = (axis / 4)^2``), ``e`` is its
-    major axis and ``2 r`` its minor axis. Each half gets half the area and a round
-    shape of the minor-axis diameter.
-    """
-    if "whole" not in detections.columns:
-        detections = detections.assign(whole=True)
-    area = detections["area"].to_numpy(float)
-    major = detections["major_axis_px"].to_numpy(float)
-    minor = detections["minor_axis_px"].to_numpy(float)
-    pair = (area > max_area_ratio * np.median(area)) & (major > elongation * minor)
-    if not pair.any():
-        return detections.assign(split_pair=False)
-    src = detections[pair]
-    half = np.sqrt(np.maximum((major[pair] / 4) ** 2 - (minor[pair] / 4) ** 2, 0.0))
-    theta = src["orientation"].to_numpy(float)
-    ds, dt = half * np.cos(theta), half * np.sin(theta)
-    halves = []
-    for sign in (-1.0, 1.0):
-        h = src.copy()
-        h["s"] = src["s"].to_numpy(float) + sign * ds
-        h["t"] = src["t"].to_numpy(float) + sign * dt
-        h["area"] = np.maximum(np.round(src["area"].to_numpy(float) / 2), 1).astype(
-            detections["area"].dtype)
-        h["diameter_px"] = np.sqrt(4.0 * h["area"].to_numpy(float) / math.pi)
-        h["major_axis_px"] = minor[pair]
-        h["eccentricity"] = 0.0
-        h["dark_area"] = src["dark_area"].to_numpy(float) / 2
-        h["split_pair"] = True
-        h["whole"] = False
-        halves.append(h)
-    out = pd.concat([detections[~pair].assign(split_pair=False), *halves], ignore_index=True)
-    return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)
-
-
-def _inconsistent(positions, table, owner, view, views, st, radius_px, view_mask, u_all,
-                  v_all, dlfc, locator) -> np.ndarray:
-    """(P,) mask of particles that fail the final consistency checks.
+def _inconsistent(ctx: FrameContext, state: ParticleState, settings: CheckSettings, *,
+                  min_views: int, tolerance_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """(P,) masks of the particles that fail the consistency checks, and of those to
+    refit on their best centroids instead.
 
     A particle fails when it has fewer than ``min_views`` centroids; when the views of
     its centroids span less than ``min_aperture_spread`` of the aperture (RMS distance
     from their mean ``(u, v)`` against that of all valid views); when its RMS residual
-    exceeds ``max_residual_ratio`` times the median over all particles; or when, in
-    more than ``max_explained`` of its views, two other particles are predicted on its
-    centroid (a particle made of merged images of two others).
+    exceeds ``max_residual_ratio`` times the median over all particles (and
+    ``tolerance_px``); or when, in more than ``max_explained`` of its views, two other
+    particles are predicted on its centroid (a particle made of merged images of two
+    others). Particles seen in at least a quarter of the valid views whose only fault is
+    the residual are to be refitted.
     """
+    positions, table, owner, view, views = (state.positions, state.table, state.owner,
+                                            ctx.view, ctx.views)
     n_v = table["n_views"].to_numpy()
     ok = np.all(np.isfinite(positions), axis=1) & (n_v > 0)
-    bad = ok & (n_v < locator.min_views)
+    bad = ok & (n_v < min_views)
     mine = owner >= 0
     own = owner[mine]
     cnt = np.maximum(np.bincount(own, minlength=len(positions)), 1)
@@ -839,83 +532,67 @@ def _inconsistent(positions, table, owner, view, views, st, radius_px, view_mask
     mv = np.bincount(own, vv, minlength=len(positions)) / cnt
     spread = np.sqrt(np.bincount(own, (uu - mu[own]) ** 2 + (vv - mv[own]) ** 2,
                                  minlength=len(positions)) / cnt)
-    vg, ug = np.meshgrid(v_all, u_all, indexing="ij")
-    ua, va = ug[view_mask], vg[view_mask]
+    lf = ctx.lf
+    vg, ug = np.meshgrid(lf.v, lf.u, indexing="ij")
+    ua, va = ug[lf.view_mask], vg[lf.view_mask]
     full = np.sqrt(np.mean((ua - ua.mean()) ** 2 + (va - va.mean()) ** 2))
-    bad |= ok & (spread < locator.min_aperture_spread * full)
+    bad |= ok & (spread < settings.min_aperture_spread * full)
     res = table["residual_px"].to_numpy()
     typical = np.nanmedian(res[ok]) if ok.any() else np.nan
-    res_bad = ok & (res > max(locator.max_residual_ratio * typical, locator.add_tolerance_px))
-    pred = _predict_all(dlfc, positions, views)
-    frac = _explained_by_others(pred, st, view, owner, radius_px, ok & ~bad & ~res_bad)
-    strong = n_v >= 0.25 * view_mask.sum()
-    bad |= ok & (frac > np.where(strong, locator.max_explained_strong, locator.max_explained))
+    res_bad = ok & (res > max(settings.max_residual_ratio * typical, tolerance_px))
+    pred = _predict_all(ctx.dlfc, positions, views)
+    frac = _explained_by_others(pred, ctx.st, view, owner, ctx.radius_px, ok & ~bad & ~res_bad)
+    strong = n_v >= 0.25 * lf.view_mask.sum()
+    bad |= ok & (frac > np.where(strong, settings.max_explained_strong, settings.max_explained))
     return bad | res_bad, res_bad & ~bad & strong
 
 
-def _trim_refit(dlfc, st, view, views, owner, positions, particles, min_views: int,
-                tolerance_px: float):
-    """Refit particles on the better half of their centroids (least trimmed squares).
+def _empty_particles() -> pd.DataFrame:
+    cols = {c: pd.Series(dtype=float) for c in PARTICLE_COLUMNS}
+    cols[T_COLUMN] = pd.Series(dtype=np.int64)
+    cols["n_views"] = pd.Series(dtype=np.int64)
+    cols["flags"] = pd.Series(dtype=np.uint8)
+    return pd.DataFrame(cols)
 
-    From the current position, the half of a particle's centroids (at least
-    ``min_views``) nearest their predictions are solved for a new position, and the
-    step is repeated until the position settles. Centroids farther than
-    ``tolerance_px`` from the final predictions are released (owner -1).
 
-    Returns
-    -------
-    owner : (M,) int ndarray
-    positions : (P, 3) float ndarray
-        Updated copies.
+def _initial_positions(clusters: pd.DataFrame, camera) -> pd.DataFrame:
+    """Thin-lens start for each cluster from its plane and mean projected position.
+
+    A cluster accepted at plane ``alpha`` with mean position ``X'`` (mm, camera frame,
+    on that plane) is imaged at ``d = alpha s_i``; its object lies at ``s_o + z`` with
+    ``z`` from the thin-lens equation, laterally at ``x = X' (s_o + z) / d`` (world
+    frame: the camera-frame inversion cancels the lens's).
     """
-    owner = owner.copy()
-    positions = positions.copy()
-    # Rows of each listed particle, found once (a refit releases only its own rows).
-    members = np.flatnonzero(np.isin(owner, particles))
-    members = members[np.argsort(owner[members], kind="stable")]
-    first = np.searchsorted(owner[members], particles, side="left")
-    last = np.searchsorted(owner[members], particles, side="right")
-    for k, lo, hi in zip(particles, first, last, strict=True):
-        rows = members[lo:hi]
-        pos = positions[k].copy()
-        if len(rows) < 2 * min_views or not np.all(np.isfinite(pos)):
-            continue
-        uv = views[view[rows]]
-        n_keep = max(min_views, len(rows) // 2)
-        for _ in range(8):
-            s, t = dlfc.predict(pos[0], pos[1], pos[2], uv[:, 0], uv[:, 1])
-            best = np.argsort(np.hypot(st[rows, 0] - s, st[rows, 1] - t))[:n_keep]
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", NoParticlesWarning)
-                tri = triangulate_cluster(dlfc, uv[best, 0], uv[best, 1], st[rows[best], 0],
-                                          st[rows[best], 1], pos, reject_k=np.inf,
-                                          min_views=min_views)
-            new = tri.positions[0]
-            if not np.all(np.isfinite(new)):
-                break
-            settled = np.max(np.abs(new - pos)) < 1e-4
-            pos = new
-            if settled:
-                break
-        s, t = dlfc.predict(pos[0], pos[1], pos[2], uv[:, 0], uv[:, 1])
-        owner[rows[np.hypot(st[rows, 0] - s, st[rows, 1] - t) > tolerance_px]] = -1
-        positions[k] = pos
-    return owner, positions
+    alpha = clusters["alpha"].to_numpy(float)
+    z = camera.depth_for_alpha(alpha)
+    d = alpha * camera.image_distance_mm
+    scale = (camera.object_distance_mm + z) / d
+    return pd.DataFrame({"x": clusters["plane_x_mm"].to_numpy(float) * scale,
+                         "y": clusters["plane_y_mm"].to_numpy(float) * scale,
+                         "z": z}, index=clusters["cluster"].to_numpy())
 
 
-def _initial_frame(initial: np.ndarray, owner: np.ndarray) -> pd.DataFrame:
-    """Starting positions indexed by particle row, for the rows that own centroids."""
-    used = np.unique(owner[owner >= 0])
-    return pd.DataFrame(initial[used], index=used, columns=list(POS_COLUMNS))
+def _view_index(detections: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
+    """Index of each detection's view and the (n_views, 2) table of view ``(u, v)``."""
+    uv = detections[["u", "v"]].to_numpy(float)
+    views, idx = np.unique(uv, axis=0, return_inverse=True)
+    return idx.ravel().astype(np.int64), views.reshape(-1, 2)
 
 
-def _gather(tri, n: int) -> tuple[np.ndarray, pd.DataFrame]:
-    """Scatter a triangulation (rows = particles owning centroids) into ``n`` rows."""
-    table = tri.to_frame().set_index("cluster").reindex(np.arange(n))
-    table["n_views"] = table["n_views"].fillna(0)
-    table["flags"] = table["flags"].fillna(0)
-    positions = table[list(POS_COLUMNS)].to_numpy(float)
-    return positions, table
+class _StageClock:
+    """Wall-clock seconds per named stage: ``with clock("segment"): ...``."""
+
+    def __init__(self) -> None:
+        self.seconds = {"decode": 0.0, "segment": 0.0, "cluster": 0.0, "triangulate": 0.0,
+                        "checks": 0.0}
+
+    @contextlib.contextmanager
+    def __call__(self, stage: str):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] += time.perf_counter() - t0
 
 
 def _finish_empty(detections: pd.DataFrame, frame: int, clock=None) -> LocateResult:

@@ -422,9 +422,13 @@ class RefocusLocator:
         if not self.window_margin_px >= 0:
             raise SettingsError(f"window_margin_px must be >= 0; got {self.window_margin_px}")
 
-    def settings(self) -> dict:
-        """The settings as a plain dict (for provenance in output metadata)."""
+    def to_dict(self) -> dict:
+        """The settings as nested plain data (for provenance in output metadata)."""
         return asdict(self)
+
+    def settings(self) -> dict:
+        """Same as :meth:`to_dict`."""
+        return self.to_dict()
 
     def locate(self, raw_or_lf, calibration, *, frame: int = 0, white=None) -> LocateResult:
         """Locate the particles of one frame; see :func:`locate_frame_refocus`."""
@@ -456,7 +460,7 @@ class HybridLocator:
         As in :class:`RefocusLocator`.
     """
 
-    perspective: PerspectiveLocator = PerspectiveLocator()
+    perspective: PerspectiveLocator = dataclasses.field(default_factory=PerspectiveLocator)
     n_planes: int = 41
     half_range_sigma: float = 4.0
     half_range_mm: tuple[float, float] = (0.5, 4.0)
@@ -474,9 +478,15 @@ class HybridLocator:
         if not self.max_depth_fraction >= 0:
             raise SettingsError(f"max_depth_fraction must be >= 0; got {self.max_depth_fraction}")
 
+    def to_dict(self) -> dict:
+        """The settings as nested plain data (the perspective step's by stage)."""
+        d = asdict(self)
+        d["perspective"] = self.perspective.to_dict()
+        return d
+
     def settings(self) -> dict:
-        """The settings as a plain dict (for provenance in output metadata)."""
-        return asdict(self)
+        """Same as :meth:`to_dict`."""
+        return self.to_dict()
 
     def locate(self, raw_or_lf, calibration, *, frame: int = 0, white=None) -> LocateResult:
         """Locate the particles of one frame; see :func:`locate_frame_hybrid`."""

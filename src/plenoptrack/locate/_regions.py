@@ -1,0 +1,124 @@
+"""Region-level steps of the perspective-shift locator: splitting merged particle images
+and measuring each particle's size and shape from its member regions.
+
+Regions are rows of a detections table (:data:`~plenoptrack.locate.segment.DETECTION_COLUMNS`,
+view pixels).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pandas as pd
+
+
+def _split_merged(coarse: pd.DataFrame, cores: pd.DataFrame) -> pd.DataFrame:
+    """Replace regions that hold two or more dark cores by those cores.
+
+    ``coarse`` are regions at the segmentation contrast, ``cores`` regions of the same
+    views at the (higher) core contrast. Each core joins the nearest coarse region of
+    its view within half the region's major axis plus a pixel; a coarse region with
+    several cores is the merged image of several particles.
+    """
+    if len(coarse) == 0 or len(cores) == 0:
+        return coarse
+    from scipy.spatial import cKDTree
+
+    def key(df):
+        return np.column_stack([df["s"].to_numpy() + 1e4 * (df["u"].to_numpy() + 100),
+                                df["t"].to_numpy() + 1e4 * (df["v"].to_numpy() + 100)])
+
+    dist, nearest = cKDTree(key(coarse)).query(key(cores))
+    reach = 0.5 * coarse["major_axis_px"].to_numpy()[np.minimum(nearest, len(coarse) - 1)] + 1.0
+    inside = np.isfinite(dist) & (dist <= reach)
+    n_cores = np.bincount(nearest[inside], minlength=len(coarse))
+    merged = n_cores >= 2
+    if not merged.any():
+        return coarse
+    replacement = cores[inside & merged[np.minimum(nearest, len(coarse) - 1)]]
+    out = pd.concat([coarse[~merged], replacement.assign(whole=False)], ignore_index=True)
+    out["whole"] = out["whole"].fillna(True).astype(bool)
+    return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)
+
+
+def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
+                 elongation: float) -> pd.DataFrame:
+    """Replace large elongated regions by the two particle images they are made of.
+
+    A region larger than ``max_area_ratio`` times the median area and more elongated
+    than ``elongation`` (major over minor axis) is taken for the merged image of two
+    equal particles. Two discs of radius ``r`` with centres ``c +- a e`` have second
+    moments ``r^2 / 4 + a^2`` along ``e`` and ``r^2 / 4`` across it, so
+    ``a = sqrt(l1 - l2)`` from the region's moments (``l = (axis / 4)^2``), ``e`` is its
+    major axis and ``2 r`` its minor axis. Each half gets half the area and a round
+    shape of the minor-axis diameter.
+    """
+    if "whole" not in detections.columns:
+        detections = detections.assign(whole=True)
+    area = detections["area"].to_numpy(float)
+    major = detections["major_axis_px"].to_numpy(float)
+    minor = detections["minor_axis_px"].to_numpy(float)
+    pair = (area > max_area_ratio * np.median(area)) & (major > elongation * minor)
+    if not pair.any():
+        return detections.assign(split_pair=False)
+    src = detections[pair]
+    half = np.sqrt(np.maximum((major[pair] / 4) ** 2 - (minor[pair] / 4) ** 2, 0.0))
+    theta = src["orientation"].to_numpy(float)
+    ds, dt = half * np.cos(theta), half * np.sin(theta)
+    halves = []
+    for sign in (-1.0, 1.0):
+        h = src.copy()
+        h["s"] = src["s"].to_numpy(float) + sign * ds
+        h["t"] = src["t"].to_numpy(float) + sign * dt
+        h["area"] = np.maximum(np.round(src["area"].to_numpy(float) / 2), 1).astype(
+            detections["area"].dtype)
+        h["diameter_px"] = np.sqrt(4.0 * h["area"].to_numpy(float) / math.pi)
+        h["major_axis_px"] = minor[pair]
+        h["eccentricity"] = 0.0
+        h["dark_area"] = src["dark_area"].to_numpy(float) / 2
+        h["split_pair"] = True
+        h["whole"] = False
+        halves.append(h)
+    out = pd.concat([detections[~pair].assign(split_pair=False), *halves], ignore_index=True)
+    return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)
+
+
+def _region_shape(detections: pd.DataFrame, owner: np.ndarray, n: int) -> pd.DataFrame:
+    """In-plane size and shape per particle from its member regions, view pixels.
+
+    The diameter is the median over members of the equivalent diameter of the region's
+    shadow, ``sqrt(4 dark_area / pi)`` (summed relative darkness: an opaque object's
+    area, nearly independent of defocus blur and of the threshold); the axes are the
+    members' second-moment axes scaled by the same shadow-to-threshold ratio; the
+    orientation is the axial mean of the members'. Whole regions are preferred over the
+    cores and halves that merged images were split into, which under-size a particle.
+    """
+    empty = pd.DataFrame({"diameter_px": np.full(n, np.nan), "major_px": np.full(n, np.nan),
+                          "minor_px": np.full(n, np.nan), "orientation": np.full(n, np.nan)})
+    mask = owner >= 0
+    if not mask.any():
+        return empty
+    d = detections.loc[mask, ["diameter_px", "major_axis_px", "minor_axis_px", "orientation",
+                              "dark_area"]].copy()
+    d["owner"] = owner[mask]
+    d["whole"] = (detections.loc[mask, "whole"].to_numpy(bool) if "whole" in detections.columns
+                  else True)
+    shadow = np.sqrt(4.0 * np.maximum(d["dark_area"].to_numpy(float), 0.0) / math.pi)
+    ratio = shadow / np.maximum(d["diameter_px"].to_numpy(float), 1e-9)
+    d["diameter_px"] = shadow
+    d["major_axis_px"] *= ratio
+    d["minor_axis_px"] *= ratio
+    # Orientation is axial (theta ~ theta + pi): average the doubled angle.
+    d["c2"] = np.cos(2 * d["orientation"])
+    d["s2"] = np.sin(2 * d["orientation"])
+    has_whole = d.groupby("owner")["whole"].transform("any").to_numpy(bool)
+    g = d[d["whole"].to_numpy(bool) | ~has_whole].groupby("owner")
+    med = g[["diameter_px", "major_axis_px", "minor_axis_px"]].median()
+    out = empty.copy()
+    idx = med.index.to_numpy()
+    out.loc[idx, "diameter_px"] = med["diameter_px"].to_numpy()
+    out.loc[idx, "major_px"] = med["major_axis_px"].to_numpy()
+    out.loc[idx, "minor_px"] = med["minor_axis_px"].to_numpy()
+    out.loc[idx, "orientation"] = 0.5 * np.arctan2(g["s2"].mean(), g["c2"].mean()).to_numpy()
+    return out

@@ -1,0 +1,436 @@
+"""Settings of the perspective-shift locator: one object, one section per stage.
+
+:class:`PerspectiveLocator` holds every setting of the locator, grouped by the stage that
+uses it (:class:`SegmentSettings`, :class:`ClusterSettings`, :class:`SolveSettings`,
+:class:`GrowSettings`, :class:`CheckSettings`). It reads and writes the same layout as a
+TOML file, one table per section, so that a run can be repeated from the settings stored
+in its output table (``plenoptrack locate --config locate.toml``)::
+
+    [segment]
+    window = 41
+    contrast = 0.2
+
+    [cluster]
+    n_planes = 20
+
+Keys left out keep their defaults; a setting whose default is derived from the image or
+the calibration (``depth_range_mm``, ``merge_distance_px``) is left out to keep that
+derivation; ``core_contrast = false`` and ``max_view_ratio = false`` switch those steps
+off. Every section validates its values when it is made and raises
+:class:`~plenoptrack.errors.SettingsError` naming the setting, the accepted range and the
+value it got.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import math
+import numbers
+import tomllib
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+from ..errors import InputFileError, SettingsError
+
+__all__ = ["PerspectiveLocator", "SegmentSettings", "ClusterSettings", "SolveSettings",
+           "GrowSettings", "CheckSettings", "read_settings", "settings_toml"]
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _require(ok: bool, name: str, expected: str, value) -> None:
+    if not ok:
+        raise SettingsError(f"{name} must be {expected}; got {value!r}")
+
+
+def _pair(name: str, value) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise SettingsError(f"{name} must be a pair (low, high); got {value!r}") from None
+    return lo, hi
+
+
+@dataclass(frozen=True)
+class SegmentSettings:
+    """Finding particle images in every perspective view (the ``[segment]`` section).
+
+    Parameters
+    ----------
+    window : int
+        Side of the local-threshold window in each view, view pixels.
+    contrast : float
+        A particle pixel is darker than its local background by at least this fraction.
+    core_contrast : float or None
+        A second segmentation at this (higher) contrast finds the dark cores of the
+        particle images; a region that holds two or more cores is the merged image of
+        touching particles and is replaced by its cores. None disables the split.
+    area_range : (float, float)
+        Accepted region areas in a view, view pixels.
+    max_eccentricity : float
+        Regions more elongated than this are ignored (1 keeps all).
+    max_view_ratio : float or None
+        Views with more than this multiple of the median number of regions per view are
+        dominated by noise (dim rim views) and are not used; None keeps every view.
+    max_area_ratio : float
+        Regions larger than this multiple of the median region area of the frame are
+        taken for merged images of several particles: they are neither clustered nor
+        added to particles until the located particles show whether they are.
+    merged_elongation : float
+        Large regions no more elongated than this (major over minor axis) are candidates
+        for single particles near the camera; more elongated ones for two merged images.
+    split_pairs : bool
+        Replace large regions more elongated than ``merged_elongation`` by two half
+        regions placed from their second moments (the merged image of two particles);
+        otherwise such regions are left out.
+    """
+
+    window: int = 31
+    contrast: float = 0.15
+    core_contrast: float | None = 0.93
+    area_range: tuple[float, float] = (2.0, math.inf)
+    max_eccentricity: float = 1.0
+    max_view_ratio: float | None = 2.0
+    max_area_ratio: float = 1.3
+    merged_elongation: float = 1.25
+    split_pairs: bool = True
+
+    def __post_init__(self) -> None:
+        _require(_is_int(self.window) and self.window >= 3, "window",
+                 "an integer of at least 3 view pixels", self.window)
+        _require(0 < self.contrast < 1, "contrast", "between 0 and 1", self.contrast)
+        _require(self.core_contrast is None or self.contrast < self.core_contrast < 1,
+                 "core_contrast", f"None or between contrast ({self.contrast}) and 1",
+                 self.core_contrast)
+        lo, hi = _pair("area_range", self.area_range)
+        _require(0 <= lo < hi, "area_range", "(low, high) with 0 <= low < high", self.area_range)
+        object.__setattr__(self, "area_range", (lo, hi))
+        _require(0 < self.max_eccentricity <= 1, "max_eccentricity", "in (0, 1]",
+                 self.max_eccentricity)
+        _require(self.max_view_ratio is None or self.max_view_ratio > 1, "max_view_ratio",
+                 "None or above 1", self.max_view_ratio)
+        _require(self.max_area_ratio > 1, "max_area_ratio", "above 1", self.max_area_ratio)
+        _require(self.merged_elongation >= 1, "merged_elongation", "at least 1",
+                 self.merged_elongation)
+
+
+@dataclass(frozen=True)
+class ClusterSettings:
+    """Grouping the centroids of one particle across views (the ``[cluster]`` section).
+
+    The clustering parameters of
+    :func:`~plenoptrack.locate.cluster.cluster_detections` (same names and defaults; see
+    its documentation), plus the refocus planes it visits.
+
+    Parameters
+    ----------
+    n_planes : int
+        Refocus planes of the clustering (10 in the paper).
+    depth_range_mm : (float, float) or None
+        Depth range to cluster over, mm; None: the z range of the DLFC's dot cards.
+    margin, noise_floor_samples, min_fraction, area_factor, max_trim, line_tol_samples,
+    max_rounds, k_growth, max_iter, density_sweep, sweep_min_fraction, sweep_max_trim
+        See :func:`~plenoptrack.locate.cluster.cluster_detections`.
+    seed : int
+        Seed of the k-means initialisation.
+    """
+
+    n_planes: int = 10
+    depth_range_mm: tuple[float, float] | None = None
+    margin: float = 1.2
+    noise_floor_samples: float = 1.0
+    min_fraction: float = 0.2
+    area_factor: float = 3.0
+    max_trim: float = 0.1
+    line_tol_samples: float = 1.0
+    max_rounds: int = 4
+    k_growth: float = 0.25
+    max_iter: int = 50
+    density_sweep: bool = True
+    sweep_min_fraction: float = 0.1
+    sweep_max_trim: float = 0.3
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        _require(_is_int(self.n_planes) and self.n_planes >= 2, "n_planes",
+                 "an integer of at least 2", self.n_planes)
+        if self.depth_range_mm is not None:
+            near, far = _pair("depth_range_mm", self.depth_range_mm)
+            _require(far > near, "depth_range_mm", "(near, far) with far > near",
+                     self.depth_range_mm)
+            object.__setattr__(self, "depth_range_mm", (near, far))
+        _require(self.margin > 0, "margin", "positive", self.margin)
+        _require(self.noise_floor_samples >= 0, "noise_floor_samples", "at least 0",
+                 self.noise_floor_samples)
+        for name in ("min_fraction", "max_trim", "sweep_min_fraction", "sweep_max_trim"):
+            value = getattr(self, name)
+            _require(0 <= value < 1, name, "in [0, 1)", value)
+        _require(self.area_factor >= 0, "area_factor", "at least 0 (0 disables)",
+                 self.area_factor)
+        _require(self.line_tol_samples > 0, "line_tol_samples", "positive", self.line_tol_samples)
+        _require(self.max_rounds >= 1, "max_rounds", "at least 1", self.max_rounds)
+        _require(self.k_growth > 0, "k_growth", "positive", self.k_growth)
+        _require(self.max_iter >= 1, "max_iter", "at least 1", self.max_iter)
+
+
+@dataclass(frozen=True)
+class SolveSettings:
+    """Solving each particle's position through the DLFC (the ``[solve]`` section).
+
+    Parameters
+    ----------
+    reject_k : float
+        Outlier threshold of the triangulation, in robust standard deviations.
+    min_views : int
+        Fewest centroids a particle needs to be reported (also the smallest cluster).
+    solver : {"lm", "scipy"}
+        Least-squares solver (see
+        :func:`~plenoptrack.locate.triangulate.triangulate_clusters`).
+    """
+
+    reject_k: float = 3.0
+    min_views: int = 6
+    solver: str = "lm"
+
+    def __post_init__(self) -> None:
+        _require(self.reject_k > 0, "reject_k", "positive", self.reject_k)
+        _require(_is_int(self.min_views) and self.min_views >= 2, "min_views",
+                 "an integer of at least 2", self.min_views)
+        _require(self.solver in ("lm", "scipy"), "solver", "'lm' or 'scipy'", self.solver)
+
+
+@dataclass(frozen=True)
+class GrowSettings:
+    """Adding centroids a particle predicts and merging duplicates (the ``[grow]`` section).
+
+    Parameters
+    ----------
+    passes : int
+        Rounds of "cluster the unassigned centroids, solve, add centroids".
+    add_tolerance_px : float
+        A centroid is added to a particle when it lies within this distance (view
+        pixels) of where the particle's position predicts it, or within 3 times the
+        particle's RMS residual if that is larger.
+    merge_distance_px : float or None
+        Two particles whose predicted positions lie within this distance (view pixels)
+        of each other in most views are one particle and are merged; None: half the
+        median equivalent diameter of the frame's detections.
+    """
+
+    passes: int = 2
+    add_tolerance_px: float = 1.0
+    merge_distance_px: float | None = None
+
+    def __post_init__(self) -> None:
+        _require(_is_int(self.passes) and self.passes >= 1, "passes",
+                 "an integer of at least 1", self.passes)
+        _require(self.add_tolerance_px > 0, "add_tolerance_px", "positive",
+                 self.add_tolerance_px)
+        _require(self.merge_distance_px is None or self.merge_distance_px > 0,
+                 "merge_distance_px", "None or positive", self.merge_distance_px)
+
+
+@dataclass(frozen=True)
+class CheckSettings:
+    """Final consistency checks of every particle (the ``[check]`` section).
+
+    Parameters
+    ----------
+    max_residual_ratio : float
+        Particles whose RMS residual exceeds this multiple of the median over the frame
+        (and the grow section's ``add_tolerance_px``) are dropped, or refitted on their
+        best half of centroids when they are seen in many views.
+    min_aperture_spread : float
+        Particles whose views span less than this fraction of the aperture (RMS
+        distance of their views' ``(u, v)`` from its mean, against that of all valid
+        views) are dropped: their depth rests on a narrow baseline.
+    max_explained : float
+        Particles for which, in more than this fraction of their views, two other
+        particles are predicted on the centroid are dropped (built from merged images).
+    max_explained_strong : float
+        The same limit for particles seen in at least a quarter of the valid views. A
+        phantom made of merged images exists only in the views where the images merge
+        (a part of the aperture, fractions near 1); a real particle in line with two
+        others in depth can be overlapped in three quarters of its many views.
+    """
+
+    max_residual_ratio: float = 4.0
+    min_aperture_spread: float = 0.4
+    max_explained: float = 0.5
+    max_explained_strong: float = 0.85
+
+    def __post_init__(self) -> None:
+        _require(self.max_residual_ratio > 1, "max_residual_ratio", "above 1",
+                 self.max_residual_ratio)
+        _require(0 <= self.min_aperture_spread < 1, "min_aperture_spread", "in [0, 1)",
+                 self.min_aperture_spread)
+        _require(0 < self.max_explained <= 1, "max_explained", "in (0, 1]", self.max_explained)
+        _require(0 < self.max_explained_strong <= 1, "max_explained_strong", "in (0, 1]",
+                 self.max_explained_strong)
+
+
+_SECTIONS = {"segment": SegmentSettings, "cluster": ClusterSettings, "solve": SolveSettings,
+             "grow": GrowSettings, "check": CheckSettings}
+
+
+@dataclass(frozen=True)
+class PerspectiveLocator:
+    """Every setting of the perspective-shift locator, one section per stage.
+
+    Call :meth:`locate` (or :func:`~plenoptrack.locate.perspective.locate_frame`) with a
+    raw image and a calibration that holds a DLFC.
+
+    Parameters
+    ----------
+    segment : SegmentSettings
+    cluster : ClusterSettings
+    solve : SolveSettings
+    grow : GrowSettings
+    check : CheckSettings
+
+    Examples
+    --------
+    >>> from plenoptrack.locate import PerspectiveLocator
+    >>> locator = PerspectiveLocator.from_dict({"segment": {"window": 41}})
+    >>> locator.segment.window, locator.cluster.n_planes
+    (41, 10)
+    >>> locator.updated({"cluster": {"n_planes": 20}}).cluster.n_planes
+    20
+    """
+
+    segment: SegmentSettings = field(default_factory=SegmentSettings)
+    cluster: ClusterSettings = field(default_factory=ClusterSettings)
+    solve: SolveSettings = field(default_factory=SolveSettings)
+    grow: GrowSettings = field(default_factory=GrowSettings)
+    check: CheckSettings = field(default_factory=CheckSettings)
+
+    def __post_init__(self) -> None:
+        for name, kind in _SECTIONS.items():
+            if not isinstance(getattr(self, name), kind):
+                raise SettingsError(f"{name} must be a {kind.__name__}; "
+                                    f"got {type(getattr(self, name)).__name__}")
+
+    @classmethod
+    def from_dict(cls, data: dict, *, source: str = "settings") -> "PerspectiveLocator":
+        """Settings from a nested mapping ``{section: {key: value}}``; missing keys keep
+        their defaults. Raises :class:`SettingsError` for an unknown section or key."""
+        return cls().updated(data, source=source)
+
+    def updated(self, data: dict, *, source: str = "settings") -> "PerspectiveLocator":
+        """A copy with the values of the nested mapping ``{section: {key: value}}``."""
+        if not isinstance(data, dict):
+            raise SettingsError(f"{source}: settings must be a mapping of sections; got "
+                                f"{type(data).__name__}")
+        unknown = set(data) - set(_SECTIONS)
+        if unknown:
+            raise SettingsError(f"{source}: unknown section(s) {sorted(unknown)}; the sections "
+                                f"are {list(_SECTIONS)}")
+        changes = {}
+        for name, values in data.items():
+            kind = _SECTIONS[name]
+            if not isinstance(values, dict):
+                raise SettingsError(f"{source}: [{name}] must be a table of settings; got "
+                                    f"{values!r}")
+            known = {f.name for f in fields(kind)}
+            bad = set(values) - known
+            if bad:
+                raise SettingsError(f"{source}: unknown setting(s) {sorted(bad)} in [{name}]; "
+                                    f"known: {sorted(known)}")
+            values = {k: (tuple(v) if isinstance(v, list)
+                          else None if v is False and k in _OFF_WITH_FALSE else v)
+                      for k, v in values.items()}
+            try:
+                changes[name] = dataclasses.replace(getattr(self, name), **values)
+            except SettingsError as exc:
+                raise SettingsError(f"{source}: [{name}] {exc}") from None
+            except TypeError as exc:
+                raise SettingsError(f"{source}: [{name}] {exc}") from None
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        """The settings as a nested plain dict ``{section: {key: value}}``."""
+        return {name: asdict(getattr(self, name)) for name in _SECTIONS}
+
+    def settings(self) -> dict:
+        """The settings as a nested plain dict (for provenance in output metadata)."""
+        return self.to_dict()
+
+    def digest(self) -> str:
+        """Short SHA-256 of the settings (the same settings give the same digest)."""
+        text = json.dumps(self.to_dict(), sort_keys=True, default=str)
+        return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+    def locate(self, raw_or_lf, calibration, *, frame: int = 0, white=None):
+        """Locate the particles of one frame; see
+        :func:`~plenoptrack.locate.perspective.locate_frame`."""
+        from .perspective import locate_frame
+
+        return locate_frame(raw_or_lf, calibration, frame=frame, locator=self, white=white)
+
+
+def read_settings(path: str | Path, *, base: PerspectiveLocator | None = None
+                  ) -> PerspectiveLocator:
+    """Read locator settings from a TOML file (sections as in :class:`PerspectiveLocator`).
+
+    Parameters
+    ----------
+    path : str or Path
+        TOML file with any of the tables ``[segment]``, ``[cluster]``, ``[solve]``,
+        ``[grow]``, ``[check]``.
+    base : PerspectiveLocator, optional
+        Settings the file's values are applied to; default the defaults.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputFileError(f"{path}: settings file not found; check the path "
+                             "(`plenoptrack settings --out FILE` writes one with every default)")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SettingsError(f"{path}: not a valid TOML settings file ({exc})") from None
+    return (base or PerspectiveLocator()).updated(data, source=str(path))
+
+
+def settings_toml(locator: PerspectiveLocator) -> str:
+    """The settings as TOML text, one table per section.
+
+    Settings left to their derived default (None) appear as comments, so that the text
+    read back (:func:`read_settings`) gives the same settings.
+    """
+    lines = []
+    for name, values in locator.to_dict().items():
+        lines.append(f"[{name}]")
+        for key, value in values.items():
+            if value is None and key in _OFF_WITH_FALSE:
+                lines.append(f"{key} = false  # off")
+            elif value is None:
+                lines.append(f"# {key} = ...  (left out: {_DERIVED.get(key, 'derived')})")
+            else:
+                lines.append(f"{key} = {_toml_value(value)}")
+        lines.append("")
+    return "\n".join(lines)
+
+
+_DERIVED = {
+    "depth_range_mm": "the z range of the calibration's dot cards, [near, far] in mm",
+    "merge_distance_px": "half the median equivalent diameter of the frame's regions",
+}
+
+_OFF_WITH_FALSE = {"core_contrast", "max_view_ratio"}
+"""Settings that None switches off; TOML has no None, so files write them ``false``."""
+
+
+def _toml_value(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (tuple, list)):
+        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
+    if isinstance(value, float):
+        return ("inf" if value > 0 else "-inf") if math.isinf(value) else repr(value)
+    if isinstance(value, str):
+        return json.dumps(value)
+    return str(value)
