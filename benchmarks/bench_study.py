@@ -13,8 +13,11 @@ Usage::
 
     python benchmarks/bench_study.py --study-dir STUDY/hall2019_M0.5_F105 --images 3
     python benchmarks/bench_study.py --preset small --images 3      # calibrates first
+    python benchmarks/bench_study.py --raw sim/raw/frame_0000.tif --calib calib.json \
+        --white sim/white.tif --images 2                             # any calibrated frame
 
-``--study-dir`` reuses the calibration and field of a ``plenoptrack study`` configuration
+``--raw`` times the locators on one existing frame (``--images`` timed runs after the
+warm-up run) with its calibration and white image. ``--study-dir`` reuses the calibration and field of a ``plenoptrack study`` configuration
 folder (``config.json``, ``calibration.json``, ``data/white.tif``); without it a
 configuration is calibrated in a temporary folder (slow on hall2019). ``--threads``
 sets the numba threads (default 1, as in a study worker). Timings on a shared machine are
@@ -65,6 +68,9 @@ def main() -> None:
     ap.add_argument("--images", type=int, default=3, help="timed images (traverse positions)")
     ap.add_argument("--threads", type=int, default=1, help="numba threads")
     ap.add_argument("--methods", default="perspective,refocus,hybrid")
+    ap.add_argument("--raw", type=Path, help="an existing raw frame to time on")
+    ap.add_argument("--calib", type=Path, help="its calibration file (with --raw)")
+    ap.add_argument("--white", type=Path, help="its white image (with --raw)")
     args = ap.parse_args()
 
     import numba
@@ -76,7 +82,20 @@ def main() -> None:
                                    locate_image, traverse_positions)
 
     with contextlib.ExitStack() as stack:
-        if args.study_dir is not None:
+        if args.raw is not None:
+            from plenoptrack.calibration import load_calibration
+            from plenoptrack.io import read_raw
+            from plenoptrack.lightfield import decode
+
+            calib = load_calibration(args.calib)
+            white = decode(read_raw(args.white), calib.grid) if args.white else None
+            raws = [read_raw(args.raw)] * (args.images + 1)
+
+            class _Label:
+                label = f"{calib.camera.name} ({args.raw})"
+                camera = calib.camera
+            cfg = _Label()
+        elif args.study_dir is not None:
             cdir = args.study_dir
             cfg = StudyConfig.from_dict(json.loads((cdir / "config.json").read_text()))
         else:
@@ -84,13 +103,14 @@ def main() -> None:
             cfg = StudyConfig(preset(args.preset), travel_mm=10, step_mm=1, repeats=1)
             print(f"calibrating {cfg.label} in {cdir} ...", flush=True)
             _prepare(cdir, cfg, None)
-        optics, calib, white, field = _setup(str(cdir), cfg)
-        pos = traverse_positions(cfg.travel_mm, cfg.step_mm)
-        picks = pos[np.linspace(0, len(pos) - 1, args.images + 1).round().astype(int)]
+        if args.raw is None:
+            optics, calib, white, field = _setup(str(cdir), cfg)
+            pos = traverse_positions(cfg.travel_mm, cfg.step_mm)
+            picks = pos[np.linspace(0, len(pos) - 1, args.images + 1).round().astype(int)]
+            raws = [render_frame(optics, _frame_particles(field, float(p), 0),
+                                 seed=np.random.default_rng([cfg.seed, 99, k]))
+                    for k, p in enumerate(picks)]
         methods = [m.strip() for m in args.methods.split(",")]
-        raws = [render_frame(optics, _frame_particles(field, float(p), 0),
-                             seed=np.random.default_rng([cfg.seed, 99, k]))
-                for k, p in enumerate(picks)]
         for m in methods:                                   # compile, warm caches
             locate_image(raws[0], calib, m, white=white)
         rows = {m: [] for m in methods}
