@@ -247,7 +247,7 @@ def study_field(config: StudyConfig) -> tuple[pd.DataFrame, float]:
     vol = default_volume(cam, depth_mm=hi - lo, diameter_mm=d)
     offset = float(rng.uniform(-1.0, 1.0))
     half_field = 0.5 * config.field_depth_mm
-    spacing = 4.0 * d
+    spacing = 3.0 * d
     heads = []
     for _ in range(200 * config.n_particles):
         if len(heads) == config.n_particles:
@@ -643,6 +643,8 @@ def run_study(configs: list[StudyConfig], out_dir: str | Path, *, workers: int =
     jobs = []
     bar_ctx = Progress(transient=False) if progress else nullcontext()
     with bar_ctx as bar:
+        for cfg in configs:
+            study_field(cfg)          # refuse a field that does not fit before any work
         for cfg in configs:
             cdir = out / cfg.label
             (cdir / "images").mkdir(parents=True, exist_ok=True)
