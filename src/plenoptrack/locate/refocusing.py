@@ -609,7 +609,8 @@ def locate_frame_refocus(raw_or_lf, calibration, *, frame: int = 0,
           ``sigma_x, sigma_y``: NaN (the method gives no lateral uncertainty);
         - ``n_views``: views added in the stack; ``confidence``: the focus peak over the
           curve's median; ``residual_px``: RMS distance (view px) between the
-          refocusing rays and the DLFC's prediction of the solved position;
+          refocusing rays and the DLFC's prediction of the solved position; ``chi2``:
+          NaN (no centroids are fitted);
         - ``diameter, major_axis, minor_axis`` (mm), ``orientation`` (NaN) from the
           dark region of the in-focus image; ``flags``: triangulation flags.
 
@@ -695,7 +696,7 @@ def locate_frame_refocus(raw_or_lf, calibration, *, frame: int = 0,
         "sigma_x": np.nan, "sigma_y": np.nan,
         "sigma_z": peaks["fwhm"].to_numpy()[idx] / 2.3548 * scale,
         "n_views": int(lf.view_mask.sum()), "confidence": peaks["ratio"].to_numpy()[idx],
-        "residual_px": tri.residual_px,
+        "residual_px": tri.residual_px, "chi2": np.nan,
         "diameter": focus["diameter_px"].to_numpy(float) / mag,
         "major_axis": focus["major_px"].to_numpy(float) / mag,
         "minor_axis": focus["minor_px"].to_numpy(float) / mag,
