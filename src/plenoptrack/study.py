@@ -415,8 +415,9 @@ def summarise(errors: pd.DataFrame, bins: pd.DataFrame, images: pd.DataFrame) ->
 
     ``images`` has one row per located image: ``n`` (particles found), ``seconds``,
     ``peak_mb``. Returns worst ``|mean|`` and worst standard deviation over the depth
-    bins (mm), the depth range with measurements (mm), matched particles, detections per
-    position (mean over images), images, seconds and peak memory per image.
+    bins (mm; bins with at least ``min_count`` measurements), the depth range of all
+    matched measurements (mm), matched particles, detections per position (mean over
+    images), images, seconds and peak memory per image.
     """
     def worst(col):
         return float(bins[col].abs().max()) if len(bins) else float("nan")
@@ -429,8 +430,8 @@ def summarise(errors: pd.DataFrame, bins: pd.DataFrame, images: pd.DataFrame) ->
         "worst_std_mm": worst("std_mm"), "worst_std_at_mm": at_worst("std_mm"),
         "worst_abs_mean_norm": worst("mean_norm") if "mean_norm" in bins else float("nan"),
         "worst_std_norm": worst("std_norm") if "std_norm" in bins else float("nan"),
-        "depth_range_mm": ([float(bins["depth_mm"].min()), float(bins["depth_mm"].max())]
-                           if len(bins) else None),
+        "depth_range_mm": ([float(errors["depth_mm"].min()), float(errors["depth_mm"].max())]
+                           if len(errors) else None),
         "matched_particles": int(errors["particle"].nunique()) if len(errors) else 0,
         "measurements": int(len(errors)),
         "detections_per_position": float(images["n"].mean()) if len(images) else 0.0,
@@ -444,8 +445,8 @@ def comparison_table(summary: dict) -> str:
     """Markdown table of the study's figures next to the paper's."""
     lines = ["| configuration | method | repeats | worst abs(mean) mm | paper | worst std mm | "
              "paper | depth range mm | detections/position | s/image | paper s/image | "
-             "peak MB/image | paper MB |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "peak MB/image | paper MB | std / perspective std (median, min over common bins) |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for cfg, methods in summary["configurations"].items():
         for m, s in methods["methods"].items():
             p = PAPER.get(m, {})
@@ -457,7 +458,11 @@ def comparison_table(summary: dict) -> str:
                 f"{'-' if rng is None else f'{rng[0]:.1f} to {rng[1]:.1f}'} | "
                 f"{s['detections_per_position']:.1f} | {s['seconds_per_image']:.2f} | "
                 f"{p.get('seconds_per_image', float('nan')):g} | {s['peak_mb_per_image']:.0f} | "
-                f"{1000 * p['memory_gb'] if 'memory_gb' in p else float('nan'):g} |")
+                f"{1000 * p['memory_gb'] if 'memory_gb' in p else float('nan'):g} | "
+                + (f"{s['std_ratio_to_perspective']['median']:.1f}, "
+                   f"{s['std_ratio_to_perspective']['min']:.1f} "
+                   f"({s['std_ratio_to_perspective']['common_bins']} bins) |"
+                   if "std_ratio_to_perspective" in s else "- |"))
     return "\n".join(lines) + "\n"
 
 
@@ -607,6 +612,17 @@ def _analyse(config_dir: Path, config: StudyConfig) -> tuple[dict, dict]:
             "object_distance_mm": config.camera.object_distance_mm,
             "positions": len(traverse_positions(config.travel_mm, config.step_mm)),
             "config": config.to_dict()}
+    if "perspective" in curves:
+        base = curves["perspective"].set_index("depth_mm")["std_mm"]
+        for method, bins in curves.items():
+            if method == "perspective":
+                continue
+            common = bins.set_index("depth_mm")["std_mm"].to_frame("m").join(base, how="inner")
+            ratio = common["m"] / common["std_mm"]
+            out[method]["std_ratio_to_perspective"] = {
+                "common_bins": int(len(ratio)),
+                "median": float(ratio.median()) if len(ratio) else float("nan"),
+                "min": float(ratio.min()) if len(ratio) else float("nan")}
     return {"methods": out, **meta}, curves
 
 
