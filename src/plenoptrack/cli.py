@@ -494,8 +494,10 @@ def locate(
     white: Optional[Path] = typer.Option(None, "--white", "-w", help="White (flat-field) image to divide every frame by (default: the one the calibration file records)."),
     flat_field: bool = typer.Option(True, "--flat-field/--no-flat-field", help="Divide every frame by the white image (recommended: dust shadows and dead pixels are otherwise taken for particles)."),
     partial: bool = typer.Option(False, "--partial", help="On Ctrl-C, keep the frames already located (default: write nothing)."),
+    method: str = typer.Option("perspective", "--method", help="perspective (perspective-shift method), refocus (the refocusing baseline: dense focal stack, minimum intensity, maximum edge sharpness) or hybrid (perspective-shift positions, depth refined by a local focal stack near focus)."),
+    stack_planes: int = typer.Option(100, "--stack-planes", min=3, help="Focal-stack planes of --method refocus (at least 3)."),
 ) -> None:
-    """Locate particles in 3D (perspective-shift method) and write a particle table.
+    """Locate particles in 3D (perspective-shift method by default) and write a particle table.
 
     Every frame is divided by the white image (flat-fielded) first: by default the white
     image the calibration file records, if it is still there unchanged. The table's
@@ -510,6 +512,7 @@ def locate(
         raise typer.BadParameter("--white and --no-flat-field contradict each other; give one",
                                  param_hint="--white")
     locator = _locator_settings(config, window=window, contrast=contrast, planes=planes)
+    locator = _method_locator(method, locator, stack_planes)
     with _outputs({"--out": out_file, "--detections": detections_file},
                   {"RAW": raw, "--calib": calib_file, "--white": white, "--config": config}
                   ) as (out_tmp, det_tmp):
@@ -543,7 +546,7 @@ def locate(
             interrupted = True
         from .provenance import provenance
 
-        record = provenance(method="perspective", settings=locator.to_dict(), calibration=calib,
+        record = provenance(method=method, settings=locator.to_dict(), calibration=calib,
                             calibration_file=calib_file, white_file=white_file,
                             inputs=[p.resolve() for p in raw])
         particles = _write_particles(tables, detections, out_tmp, det_tmp, record)
@@ -592,17 +595,31 @@ def _flat_field_white(calib, calib_file: Path, white: Path | None):
     return white, decode(image, calib.grid)
 
 
+def _method_locator(method: str, perspective, stack_planes: int):
+    """The locator of ``--method``, built on the perspective settings."""
+    from .locate.refocusing import HybridLocator, RefocusLocator
+
+    if method == "perspective":
+        return perspective
+    if method == "refocus":
+        return RefocusLocator(n_planes=stack_planes, window=perspective.segment.window,
+                              contrast=perspective.segment.contrast)
+    if method == "hybrid":
+        return HybridLocator(perspective=perspective, contrast=perspective.segment.contrast)
+    raise typer.BadParameter(f"must be perspective, refocus or hybrid; got {method!r}",
+                             param_hint="--method")
+
+
 def _locate_one(image, calib, frame: int, locator, *, source: str, white=None):
     """Locate one frame; return the result and whether it had no particles.
 
     Warnings other than "no particles" are shown, prefixed with the file and frame.
     """
     from .errors import NoParticlesWarning
-    from .locate.perspective import locate_frame
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = locate_frame(image, calib, frame=frame, locator=locator, white=white)
+        result = locator.locate(image, calib, frame=frame, white=white)
     empty = False
     for w in caught:
         if issubclass(w.category, NoParticlesWarning):
@@ -660,6 +677,49 @@ def settings_cmd(
     else:
         atomic_write_text(out_file, text)
         console.print(f"wrote {out_file}", highlight=False)
+
+
+@app.command()
+@_reports_errors
+def study(
+    out_dir: Path = typer.Option(..., "--out", "-o", help="Output folder (created; a re-run resumes it, skipping the images already located)."),
+    preset_name: str = typer.Option("hall2019", "--preset", help="Camera preset: hall2019 (default), small, small-rect."),
+    camera_file: Optional[Path] = typer.Option(None, "--camera", help="Your own camera.toml (replaces --preset): the study for your camera, magnification and particle size."),
+    travel: float = typer.Option(50.0, "--travel", callback=_finite(positive=True), help="Traverse travel, mm."),
+    step: float = typer.Option(1.0, "--step", callback=_finite(positive=True), help="Traverse step, mm."),
+    repeats: int = typer.Option(5, "--repeats", min=1, help="Images per traverse position (fresh noise each)."),
+    refocus_repeats: Optional[int] = typer.Option(None, "--refocus-repeats", min=1, help="Repeats located with the refocus and hybrid methods (default --repeats; refocusing is slow)."),
+    methods: str = typer.Option("perspective,refocus", "--methods", help="Comma-separated methods: perspective, refocus, hybrid."),
+    workers: int = typer.Option(1, "--workers", min=0, help="Local Dask worker processes (0: this process)."),
+    grid: Optional[str] = typer.Option(None, "--grid", help="paper: the 12 configurations of the paper (4 magnifications up to 0.75 at 3 object distances)."),
+    particles: int = typer.Option(40, "--particles", min=1, help="Pin heads in the rigid field."),
+    diameter: Optional[float] = typer.Option(None, "--diameter", callback=_finite(positive=True), help="Pin-head diameter, mm (default per preset)."),
+    seed: int = typer.Option(0, "--seed", help="Master seed (field, traverse zero offset, optics, noise)."),
+    optics_mode: str = typer.Option("realistic", "--optics", help="realistic (default) or ideal."),
+) -> None:
+    """Translation-stage uncertainty study: depth accuracy and precision against depth for
+    each method (a simulated rigid field of pin heads moved along the optical axis)."""
+    from .io import check_outputs
+    from .study import StudyConfig, paper_grid, run_study
+
+    if grid not in (None, "paper"):
+        raise typer.BadParameter(f"must be 'paper'; got {grid!r}", param_hint="--grid")
+    check_outputs({"--out": out_dir}, {"--camera": camera_file}, folders=["--out"])
+    camera = _camera_from_options(preset_name, camera_file)
+    cameras = paper_grid(camera) if grid == "paper" else [camera]
+    chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
+    configs = [StudyConfig(c, travel_mm=travel, step_mm=step, repeats=repeats,
+                           refocus_repeats=refocus_repeats, methods=chosen, n_particles=particles,
+                           diameter_mm=diameter, seed=seed, realism=optics_mode)
+               for c in cameras]
+    t0 = time.perf_counter()
+    summary = run_study(configs, out_dir, workers=workers, progress=True)
+    for label, cfg in summary["configurations"].items():
+        for m, s in cfg["methods"].items():
+            console.print(f"{label} {m}: worst |mean| {s['worst_abs_mean_mm']:.3f} mm, worst std "
+                          f"{s['worst_std_mm']:.3f} mm, {s['seconds_per_image']:.1f} s/image",
+                          highlight=False)
+    console.print(f"wrote {out_dir} ({time.perf_counter() - t0:.0f} s)", highlight=False)
 
 
 @app.command()

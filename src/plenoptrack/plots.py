@@ -35,7 +35,8 @@ from .lightfield.refocus import best_focus_depth, sharpness
 from .lightfield.views import view_mosaic
 
 __all__ = ["plot_view_mosaic", "plot_view", "plot_particles_3d", "plot_errors_vs_depth",
-           "plot_focal_stack_sharpness", "plot_fragment_field", "plot_tracks", "outline_points"]
+           "plot_focal_stack_sharpness", "plot_fragment_field", "plot_tracks", "outline_points",
+           "plot_study_bins", "plot_study"]
 
 _U_LABEL = "u (sensor px from microlens-image centre)"
 _V_LABEL = "v (sensor px from microlens-image centre)"
@@ -681,3 +682,76 @@ def plot_tracks(tracks: pd.DataFrame, *, cmap: str = "viridis", speed_unit: str 
     fig.colorbar(ScalarMappable(norm=norm, cmap=cm), ax=[ax_xy, ax_zy, ax_xz],
                  label=f"speed ({speed_unit})", shrink=0.8)
     return fig
+
+
+_STUDY_PANELS = {
+    "accuracy": ("depth_mm", "mean", "_mm", "z (mm)", "mean depth error (mm)"),
+    "precision": ("depth_mm", "std", "_mm", "z (mm)", "std of depth error (mm)"),
+    "precision_normalised": ("depth_norm", "std", "_norm",
+                             "z / depth-of-field limit (near < 0, far > 0)",
+                             "std of depth error / object-space microlens pitch"),
+}
+
+
+def plot_study_bins(bins: pd.DataFrame, kind: str = "precision") -> Figure:
+    """Accuracy or precision against depth, one panel per method, shared axes (the
+    layout of figures 9-11 of the method paper).
+
+    Parameters
+    ----------
+    bins : DataFrame
+        Rows of :func:`plenoptrack.study.binned_statistics` with ``method`` and
+        ``configuration`` columns.
+    kind : {"accuracy", "precision", "precision_normalised"}
+        Mean error (mm), standard deviation (mm), or standard deviation over the
+        object-space microlens pitch against depth over the depth-of-field limits. Error
+        bars are the 99 % confidence bounds.
+    """
+    if kind not in _STUDY_PANELS:
+        raise SettingsError(f"kind must be one of {sorted(_STUDY_PANELS)}; got {kind!r}")
+    xcol, stat, unit, xlabel, ylabel = _STUDY_PANELS[kind]
+    methods = list(dict.fromkeys(bins["method"]))
+    configs = list(dict.fromkeys(bins["configuration"]))
+    fig = Figure(figsize=(4.2 * len(methods) + 0.8, 3.8), layout="constrained")
+    axes = fig.subplots(1, len(methods), sharex=True, sharey=True, squeeze=False)[0]
+    for ax, method in zip(axes, methods):
+        for k, cfg in enumerate(configs):
+            b = bins[(bins["method"] == method) & (bins["configuration"] == cfg)]
+            if b.empty:
+                continue
+            y = b[f"{stat}{unit}"].to_numpy(float)
+            lo = y - b[f"{stat}_lo{unit}"].to_numpy(float)
+            hi = b[f"{stat}_hi{unit}"].to_numpy(float) - y
+            ax.errorbar(b[xcol], y, yerr=[lo, hi], fmt="o", ms=3, capsize=2, lw=0.8,
+                        color=f"C{k % 10}", label=cfg)
+        if stat == "mean":
+            ax.axhline(0, color="0.5", lw=0.6)
+        if xcol == "depth_norm":
+            for v in (-1, 1):
+                ax.axvline(v, color="0.6", lw=0.6, ls="--")
+        ax.set_title(method)
+        ax.set_xlabel(xlabel)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel(ylabel)
+    if stat == "std":
+        axes[0].set_ylim(bottom=0)
+    if len(configs) > 1:
+        axes[-1].legend(fontsize=7, loc="best")
+    return fig
+
+
+def plot_study(bins: pd.DataFrame, out_dir, *, dof=None) -> list:
+    """Write ``accuracy.png``, ``precision.png`` and ``precision_normalised.png``
+    (:func:`plot_study_bins`) into ``out_dir`` (atomically); returns the paths."""
+    from pathlib import Path
+
+    from .io import atomic_path
+
+    paths = []
+    for kind in _STUDY_PANELS:
+        fig = plot_study_bins(bins, kind)
+        path = Path(out_dir) / f"{kind}.png"
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=120, format="png")
+        paths.append(path)
+    return paths
