@@ -698,7 +698,7 @@ def batch(
         link = batch_mod.dashboard_link(client)
         n_workers = len(client.scheduler_info().get("workers", {}))
         console.print(f"{n_workers} worker(s)" + (f"; dashboard {link}" if link else ""),
-                      highlight=False)
+                      highlight=False, soft_wrap=True)
         result = batch_mod.run_batch(files, calib_file, out_dir, method=method, settings=locator,
                                      white_file=white, client=client, progress=True,
                                      on_outcome=report)
@@ -708,7 +708,7 @@ def batch(
     if result.failed:
         _error_line(f"{summary}; the failed frames are listed in {out_dir / batch_mod.FAILURES_FILE}")
         raise typer.Exit(code=1)
-    console.print(summary, highlight=False)
+    console.print(summary, highlight=False, soft_wrap=True)
 
 
 @app.command("settings")
