@@ -13,6 +13,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pandas as pd
@@ -44,8 +45,24 @@ def ok(*args):
     return result
 
 
+def _import_locator():
+    import plenoptrack.batch  # noqa: F401
+    import plenoptrack.locate.perspective  # noqa: F401
+
+
 @pytest.fixture(scope="module")
-def data(tmp_path_factory):
+def cluster():
+    """A Dask cluster of 2 worker processes on loopback, and a client of it; the workers
+    import the locator while the data are simulated."""
+    from distributed import Client
+
+    with local_cluster(2, memory_limit="1.5GB") as c, Client(c) as client:
+        client.run(_import_locator, wait=False)
+        yield client
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory, cluster):
     """Calibration (with its white image) and N_IMAGES raw frames, and their particles
     located one by one with ``plenoptrack locate``."""
     root = tmp_path_factory.mktemp("batch")
@@ -77,15 +94,6 @@ def data(tmp_path_factory):
     return root, images, reference
 
 
-@pytest.fixture(scope="module")
-def cluster():
-    """A Dask cluster of 2 worker processes on loopback, and a client of it."""
-    from distributed import Client
-
-    with local_cluster(2, memory_limit="1.5GB") as c, Client(c) as client:
-        yield client
-
-
 def frames_of(folder, images, n_frames):
     """``n_frames`` raw files in ``folder``, cycling through ``images`` (hard copies)."""
     folder.mkdir()
@@ -114,6 +122,19 @@ def leftovers(out):
     return sorted(p.name for p in out.iterdir()
                   if not (p.name.startswith("frame-") and p.name.endswith(".parquet"))
                   and p.name not in (BATCH_FILE, FAILURES_FILE))
+
+
+def live_members(pgid):
+    """Pids of the process group ``pgid`` that are alive and not zombies (Linux /proc)."""
+    pids = []
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            fields = stat.read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if int(fields[2]) == pgid and fields[0] != "Z":
+            pids.append(int(stat.parent.name))
+    return pids
 
 
 def test_two_workers_give_exactly_the_rows_of_locate(data, cluster, tmp_path):
@@ -179,7 +200,7 @@ def test_batch_killed_part_way_resumes_with_every_frame_once(data, cluster, tmp_
     frames_of(tmp_path / "raw", images, n_frames)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "plenoptrack", "batch", str(tmp_path / "raw" / "*.tif"),
-           "--calib", str(root / "calib.json"), "--out", str(out), "--workers", "2"]
+           "--calib", str(root / "calib.json"), "--out", str(out), "--workers", "1"]
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE)
     deadline = time.monotonic() + 180
@@ -189,12 +210,12 @@ def test_batch_killed_part_way_resumes_with_every_frame_once(data, cluster, tmp_
     os.killpg(proc.pid, signal.SIGKILL)  # the command, its scheduler and its workers
     proc.wait()
     assert proc.returncode == -signal.SIGKILL, proc.stderr.read()
-    for _ in range(200):  # the whole process group is gone
-        try:
-            os.killpg(proc.pid, 0)
-        except ProcessLookupError:
+    for _ in range(200):  # the whole process group is gone (zombies aside)
+        if not live_members(proc.pid):
             break
         time.sleep(0.05)
+    else:
+        pytest.fail(f"processes of the killed batch still run: {live_members(proc.pid)}")
     before = sorted(out.glob("frame-*.parquet"))
     assert 2 <= len(before) < n_frames, "the batch finished before it was killed"
 

@@ -412,7 +412,7 @@ class BatchResult:
     n_particles : int
         Particles of the frames located in this run.
     failures : DataFrame
-        The failed frames, columns :data:`FAILURE_COLUMNS` (also in ``_failures.parquet``).
+        The failed frames, columns :data:`FAILURE_COLUMNS` (also in ``_failures.csv``).
     seconds : float
         Wall-clock time of the run, s.
     """
@@ -456,7 +456,8 @@ def _prepare_folder(config: BatchConfig) -> None:
             raise InputFileError(f"{marker}: not a readable batch record; give a new output "
                                  "folder") from None
         if previous_key != config.run_key:
-            changed = [k for k, v in config.record["batch"].items()
+            names = {"white": "white image", "package_version": "package version"}
+            changed = [names.get(k, k) for k, v in config.record["batch"].items()
                        if k != "run_key" and previous["batch"].get(k) != v]
             raise UsageError(
                 f"{out}: holds a batch made with a different {', '.join(changed) or 'run'} "
