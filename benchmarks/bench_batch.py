@@ -20,8 +20,16 @@ Measured, all in the same run:
   and warmed up (one frame located into a scratch folder: imports, compiled kernels,
   calibration and white image loaded) before its batch is timed, from submission to the
   last part written, into a new folder;
-- per frame, the time a worker spends on it (hash, read, locate, write), and each
-  worker's peak resident memory (``VmHWM``) over its whole life.
+- per frame, the time a worker spends on it (hash, read, locate, write), wall-clock and
+  CPU (the worker process's, all threads), and each worker's peak resident memory
+  (``VmHWM``) over its whole life.
+
+On a machine shared with other work the wall-clock ratios measure the share of the
+cores the batch gets as much as the batch (with Linux's autogroup scheduling a session
+gets one share however many processes it runs); the CPU time per frame of 1 worker alone
+against 2 workers side by side shows what running two frames at once costs each
+(memory bandwidth, caches), and 2 x their ratio is the throughput ratio two free cores
+would give.
 
 Printed: frames per second of each configuration per round, the throughput ratio of 2
 workers over 1 worker (one thread) per round with its spread, time per image over the
@@ -125,14 +133,16 @@ def _one_run(n_workers: int, threads: int, calib: Path, white: Path, files: list
         # one frame per worker, so that every worker has loaded everything
         run_batch(files[:n_workers], calib, warm / "out", white_file=white, client=client)
         out = Path(tempfile.mkdtemp(dir=scratch)) / "out"
-        seconds = []
+        outcomes = []
         t0 = time.perf_counter()
         result = run_batch(files, calib, out, white_file=white, client=client,
-                           on_outcome=lambda o: seconds.append(o.seconds))
+                           on_outcome=outcomes.append)
         wall = time.perf_counter() - t0
         peaks = list(client.run(_vm_hwm_mb).values())
     assert result.done == len(files) and result.failed == 0, result
-    return {"wall": wall, "fps": len(files) / wall, "per_frame": statistics.median(seconds),
+    return {"wall": wall, "fps": len(files) / wall,
+            "per_frame": statistics.median(o.seconds for o in outcomes),
+            "cpu_per_frame": statistics.median(o.cpu_seconds for o in outcomes),
             "peak_mb": max(peaks), "particles": result.n_particles}
 
 
@@ -161,8 +171,9 @@ def main() -> None:
                 row = _one_run(n, threads, calib, white, files, Path(scratch))
                 rows[name].append(row)
                 print(f"round {r + 1} {name:24s} {row['fps']:.3f} frames/s "
-                      f"({row['wall']:.1f} s for {len(files)}; {row['per_frame']:.2f} s per "
-                      f"frame on a worker; peak {row['peak_mb']:.0f} MB per worker; "
+                      f"({row['wall']:.1f} s for {len(files)}; {row['per_frame']:.2f} s, CPU "
+                      f"{row['cpu_per_frame']:.2f} s per frame on a worker; peak "
+                      f"{row['peak_mb']:.0f} MB per worker; "
                       f"load {os.getloadavg()[0]:.1f})", flush=True)
     one, all1, two = (rows[name] for name, _, _ in configs)
     ratios = [b["fps"] / a["fps"] for a, b in zip(one, two)]
@@ -173,6 +184,11 @@ def main() -> None:
           f"spread {min(ratios):.2f}-{max(ratios):.2f}")
     print(f"2 workers / 1 worker (all threads): "
           f"{', '.join(f'{x:.2f}' for x in ratios_all)}; median {statistics.median(ratios_all):.2f}")
+    cpu1 = statistics.median(row["cpu_per_frame"] for row in one)
+    cpu2 = statistics.median(row["cpu_per_frame"] for row in two)
+    print(f"CPU time per frame: {cpu1:.2f} s alone, {cpu2:.2f} s with two workers side by "
+          f"side; two workers on two free cores would give {2 * cpu1 / cpu2:.2f} x the "
+          "throughput of one (the machine's load does not enter this figure)")
     per_frame = statistics.median(row["per_frame"] for row in one)
     print(f"time per image on one worker (hash, read, locate, write): {per_frame:.2f} s = "
           f"{per_frame / read_s:.1f} x reading the raw TIFF ({read_s:.3f} s); hashing "

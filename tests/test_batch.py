@@ -1,6 +1,6 @@
 """``plenoptrack batch``: resumable batch locating, in-process and on a local Dask cluster.
 
-A small simulated data set (the ``small`` preset, ideal optics, a DLFC fitted on six dot
+A small simulated data set (the ``small`` preset, ideal optics, a DLFC fitted on five dot
 cards) is located frame by frame with ``plenoptrack locate``; every batch must give exactly
 those rows, whatever happens to the batch (killed, a worker killed, a corrupt frame).
 """
@@ -57,8 +57,10 @@ def cluster():
     from distributed import Client
 
     with local_cluster(2, memory_limit="1.5GB") as c, Client(c) as client:
-        client.run(_import_locator, wait=False)
+        warm = [client.submit(_import_locator, workers=[w], pure=False)
+                for w in client.scheduler_info()["workers"]]
         yield client
+        del warm
 
 
 @pytest.fixture(scope="module")
@@ -73,7 +75,7 @@ def data(tmp_path_factory, cluster):
     calib, _ = calibrate_from_white(white, camera)
     card = default_dotcard(camera)
     points = []
-    for k, z in enumerate(default_dotcard_depths(camera, n=6)):
+    for k, z in enumerate(default_dotcard_depths(camera, n=5)):
         image = render_dotcard(optics, float(z), card=card, seed=np.random.default_rng([0, 4, k]))
         points.append(dotcard_points(decode(image, calib.grid), spacing_mm=card.spacing_mm,
                                      z_mm=float(z), camera=camera))
@@ -196,7 +198,7 @@ def test_changed_input_is_located_again_and_other_settings_are_refused(data, tmp
 
 def test_batch_killed_part_way_resumes_with_every_frame_once(data, cluster, tmp_path):
     root, images, reference = data
-    n_frames = 10
+    n_frames = 6
     frames_of(tmp_path / "raw", images, n_frames)
     out = tmp_path / "out"
     cmd = [sys.executable, "-m", "plenoptrack", "batch", str(tmp_path / "raw" / "*.tif"),
@@ -204,7 +206,7 @@ def test_batch_killed_part_way_resumes_with_every_frame_once(data, cluster, tmp_
     proc = subprocess.Popen(cmd, start_new_session=True, stdout=subprocess.DEVNULL,
                             stderr=subprocess.PIPE)
     deadline = time.monotonic() + 180
-    while len(list(out.glob("frame-*.parquet"))) < 2 and proc.poll() is None:
+    while not list(out.glob("frame-*.parquet")) and proc.poll() is None:
         assert time.monotonic() < deadline, "the batch wrote no part in 180 s"
         time.sleep(0.02)
     os.killpg(proc.pid, signal.SIGKILL)  # the command, its scheduler and its workers
@@ -217,7 +219,7 @@ def test_batch_killed_part_way_resumes_with_every_frame_once(data, cluster, tmp_
     else:
         pytest.fail(f"processes of the killed batch still run: {live_members(proc.pid)}")
     before = sorted(out.glob("frame-*.parquet"))
-    assert 2 <= len(before) < n_frames, "the batch finished before it was killed"
+    assert 1 <= len(before) < n_frames, "the batch finished before it was killed"
 
     result = run_batch(sorted((tmp_path / "raw").glob("*.tif")), root / "calib.json", out,
                        white_file=root / "white.tif", client=cluster)
@@ -227,32 +229,6 @@ def test_batch_killed_part_way_resumes_with_every_frame_once(data, cluster, tmp_
         f"frame-{j:06d}.parquet" for j in range(n_frames)]
     assert leftovers(out) == []
     assert_same_rows(read_batch(out), expected(reference, n_frames))
-
-
-def test_worker_killed_mid_batch_still_completes(data, cluster, tmp_path):
-    root, images, reference = data
-    n_frames = 10
-    files = frames_of(tmp_path / "raw", images, n_frames)
-    pids = cluster.run(os.getpid)
-    killed = []
-
-    def kill_a_busy_worker(outcome):
-        if killed:
-            return
-        busy = [addr for addr, keys in cluster.processing().items() if keys and addr in pids]
-        if busy:
-            os.kill(pids[busy[0]], signal.SIGKILL)
-            killed.append(pids[busy[0]])
-
-    result = run_batch(files, root / "calib.json", tmp_path / "out",
-                       white_file=root / "white.tif", client=cluster,
-                       on_outcome=kill_a_busy_worker)
-    assert killed, "no worker was busy to kill"
-    assert (result.done, result.failed) == (n_frames, 0), result.failures
-    assert_same_rows(read_batch(tmp_path / "out"), expected(reference, n_frames))
-    assert leftovers(tmp_path / "out") == []
-    cluster.wait_for_workers(2, timeout=120)  # the nanny restarted it for the next tests
-    assert killed[0] not in cluster.run(os.getpid).values()
 
 
 def test_corrupt_frame_is_recorded_and_the_others_are_done(data, cluster, tmp_path):
@@ -298,3 +274,30 @@ def test_command_line_usage_errors(data, tmp_path):
                                  "--out", str(root / "raw")])
     assert inside.exit_code == 2 and "holding the input" in inside.stderr
     assert not (tmp_path / "o").exists()
+
+
+def test_worker_killed_mid_batch_still_completes(data, cluster, tmp_path):
+    root, images, reference = data
+    n_frames = 6
+    files = frames_of(tmp_path / "raw", images, n_frames)
+    pids = cluster.run(os.getpid)
+    killed = []
+
+    def kill_a_busy_worker(outcome):
+        if killed:
+            return
+        busy = [addr for addr, keys in cluster.processing().items() if keys and addr in pids]
+        if busy:
+            os.kill(pids[busy[0]], signal.SIGKILL)
+            killed.append(pids[busy[0]])
+
+    result = run_batch(files, root / "calib.json", tmp_path / "out",
+                       white_file=root / "white.tif", client=cluster,
+                       on_outcome=kill_a_busy_worker)
+    assert killed, "no worker was busy to kill"
+    # a frame whose part the killed worker wrote before it could report is found done
+    assert result.failed == 0 and result.done + result.skipped == n_frames, result
+    assert result.skipped <= 1
+    assert_same_rows(read_batch(tmp_path / "out"), expected(reference, n_frames))
+    assert leftovers(tmp_path / "out") == []
+    assert killed[0] not in cluster.run(os.getpid).values()

@@ -280,6 +280,8 @@ class FrameOutcome:
         Particles written (0 unless done).
     seconds : float
         Wall-clock time of the task, s.
+    cpu_seconds : float
+        CPU time of the worker process during the task (all its threads), s.
     error, message : str
         Exception type and message of a failed frame.
     warnings : tuple of str
@@ -294,6 +296,7 @@ class FrameOutcome:
     status: str
     n_particles: int = 0
     seconds: float = 0.0
+    cpu_seconds: float = 0.0
     error: str = ""
     message: str = ""
     warnings: tuple = ()
@@ -338,7 +341,7 @@ def locate_task(task: FrameTask, config: BatchConfig) -> FrameOutcome:
     from .errors import NoParticlesWarning
     from .io import read_frames
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     base = dict(frame=task.frame, path=task.path, page=task.page)
     try:
         stat = os.stat(task.path)
@@ -346,7 +349,8 @@ def locate_task(task: FrameTask, config: BatchConfig) -> FrameOutcome:
         target = part_path(config.out_dir, task.frame)
         info = _part_info(target)
         if info is not None and info.get("key") == key:
-            return FrameOutcome(**base, status="skipped", seconds=time.perf_counter() - t0)
+            return FrameOutcome(**base, status="skipped", seconds=time.perf_counter() - t0,
+                                cpu_seconds=time.process_time() - c0)
         calibration, white = _worker_state(config.calibration_file, config.white_file)
         stack = read_frames(task.path)
         calibration.check_image(stack, source=task.path)
@@ -366,9 +370,11 @@ def locate_task(task: FrameTask, config: BatchConfig) -> FrameOutcome:
                      "run_key": config.run_key})
     except Exception as exc:
         return FrameOutcome(**base, status="failed", seconds=time.perf_counter() - t0,
+                            cpu_seconds=time.process_time() - c0,
                             error=type(exc).__name__, message=" ".join(str(exc).split()))
     return FrameOutcome(**base, status="done", n_particles=len(particles),
-                        seconds=time.perf_counter() - t0, warnings=notes, no_particles=empty)
+                        seconds=time.perf_counter() - t0, cpu_seconds=time.process_time() - c0,
+                        warnings=notes, no_particles=empty)
 
 
 def _write_part(particles: pd.DataFrame, target: Path, record: dict, frame_info: dict) -> None:
