@@ -12,14 +12,27 @@ runs only that section). Peak memory of each mode: run
 ``python benchmarks/bench_simulate.py --memory ideal`` (or ``realistic``), which renders a
 white image and three frames and prints the peak resident set size.
 
+``--dataset [N]`` times what one calibration data set costs (``calibration_seeds.py``:
+a white image and N = 11 dot cards of ``hall2019``, ideal optics): the kernels of
+:data:`BASELINE_REV` (read with ``git show`` and imported beside the current ones) against
+the current dot-card path (cards re-trace only the pixels whose rays may land on a dot, over
+the cached background) in the same run, alternating, and requires identical images; then
+one card's exposure and TIFF write and read with and without zlib. Wall-clock and
+process CPU time (all threads) are both printed: on a shared machine the CPU time is the
+steadier of the two.
+
 Run: ``python benchmarks/bench_simulate.py``.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import resource
+import subprocess
 import sys
+import tempfile
 import time
+from pathlib import Path
 
 import numba
 import numpy as np
@@ -110,6 +123,98 @@ def bench_realism(name, n_particles, repeats=3):
               f"({backgrounds[mode] / backgrounds['ideal']:.2f} x)")
 
 
+BASELINE_REV = "035107c4e8abbd31e49957593e72d3fc95aab4f1"
+"""Revision whose ``simulate/_kernels.py`` is the baseline of ``--dataset`` (before the
+straddling-pixel shortcuts and the dot cards over the background)."""
+
+
+def _baseline_kernels(rev=BASELINE_REV):
+    """The kernels module of revision ``rev``, imported from a temporary folder."""
+    root = Path(__file__).resolve().parents[1]
+    src = subprocess.run(["git", "show", f"{rev}:src/plenoptrack/simulate/_kernels.py"],
+                         cwd=root, capture_output=True, text=True, check=True).stdout
+    folder = Path(tempfile.mkdtemp(prefix="bench_kernels_"))
+    path = folder / "_kernels_baseline.py"
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location("_kernels_baseline", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _clocked(fn, *args, **kwargs):
+    """``(result, wall s, process CPU s)``."""
+    w, c = time.perf_counter(), time.process_time()
+    out = fn(*args, **kwargs)
+    return out, time.perf_counter() - w, time.process_time() - c
+
+
+def bench_dataset(name="hall2019", seed=16, n_cards=11):
+    """White image and dot cards of one calibration data set: baseline kernels vs now."""
+    from plenoptrack.io import write_tiff
+    from plenoptrack.simulate import expose_image
+    from plenoptrack.simulate.dotcard import (_card_vector, default_dotcard,
+                                              default_dotcard_depths, dotcard_irradiance)
+
+    base = _baseline_kernels()
+    camera = preset(name)
+    small = make_optics(preset("small"), seed=0, realism="ideal")   # compile both
+    sp = _kernels.pack_params(small)
+    base.render_all(sp, sample_pattern(small, 16), np.zeros((0, 4)),
+                    _card_vector(small, 1.0, default_dotcard(small.camera)), 0, 600, 0, 910, False)
+    dotcard_irradiance(small, 1.0)
+    optics = make_optics(camera, seed=seed, realism="ideal")
+    par = _kernels.pack_params(optics)
+    samples = sample_pattern(optics, 16)
+    rows, cols = camera.sensor_shape_px
+    none = np.zeros((0, 4))
+    old, new = np.zeros(2), np.zeros(2)
+    b, *t_old = _clocked(base.render_all, par, samples, none, np.zeros(3), 0, rows, 0, cols,
+                         False)
+    background_irradiance.cache_clear()
+    a, *t_new = _clocked(background_irradiance, optics, 16)     # the cards' cache key
+    if not np.array_equal(a, b):
+        raise AssertionError("white image differs from the baseline")
+    print(f"{name} seed {seed}, ideal optics, {numba.get_num_threads()} threads; "
+          "wall s / CPU s (all threads)")
+    print(f"  white image irradiance  : baseline {t_old[0]:6.2f} / {t_old[1]:6.2f}   "
+          f"now {t_new[0]:6.2f} / {t_new[1]:6.2f}   ({t_old[1] / t_new[1]:.2f} x CPU)")
+    old += t_old
+    new += t_new
+    depths = default_dotcard_depths(camera)[:n_cards]
+    card = default_dotcard(camera)
+    for k, z in enumerate(depths):
+        vec = _card_vector(optics, float(z), card)
+        runs = [lambda: _clocked(base.render_all, par, samples, none, vec, 0, rows, 0, cols, False),
+                lambda: _clocked(dotcard_irradiance, optics, float(z))]
+        if k % 2:
+            (a, *t_new), (b, *t_old) = runs[1](), runs[0]()
+        else:
+            (b, *t_old), (a, *t_new) = runs[0](), runs[1]()
+        if not np.array_equal(a, b):
+            raise AssertionError(f"dot card at {z} mm differs from the baseline")
+        print(f"  dot card {z:+6.1f} mm      : baseline {t_old[0]:6.2f} / {t_old[1]:6.2f}   "
+              f"now {t_new[0]:6.2f} / {t_new[1]:6.2f}   ({t_old[1] / t_new[1]:.2f} x CPU)",
+              flush=True)
+        old += t_old
+        new += t_new
+    print(f"  white + {len(depths)} cards, identical : baseline {old[0]:6.1f} / {old[1]:6.1f}   "
+          f"now {new[0]:6.1f} / {new[1]:6.1f}   speed-up {old[0] / new[0]:.2f} x wall, "
+          f"{old[1] / new[1]:.2f} x CPU")
+    image, *t_exp = _clocked(expose_image, a, optics, level=0.7, sensor=SensorModel(), seed=1)
+    print(f"  exposure of one card    : {t_exp[0]:6.2f} / {t_exp[1]:6.2f}")
+    import tifffile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        for comp in ("zlib", None):
+            path = Path(tmp) / f"card_{comp}.tif"
+            _, *t_w = _clocked(write_tiff, path, image, compression=comp)
+            back, *t_r = _clocked(tifffile.imread, path)
+            assert np.array_equal(back, image)
+            print(f"  TIFF {str(comp):4s} write / read  : {t_w[0]:6.2f} / {t_w[1]:6.2f} s, "
+                  f"{t_r[0]:6.2f} / {t_r[1]:6.2f} s, {path.stat().st_size / 1e6:5.1f} MB")
+
+
 def peak_memory(mode, name="hall2019"):
     camera = preset(name)
     optics = make_optics(camera, seed=0, realism=mode)
@@ -125,6 +230,9 @@ def peak_memory(mode, name="hall2019"):
 def main():
     if len(sys.argv) == 3 and sys.argv[1] == "--memory":
         peak_memory(sys.argv[2])
+        return
+    if len(sys.argv) in (2, 3) and sys.argv[1] == "--dataset":
+        bench_dataset(n_cards=int(sys.argv[2]) if len(sys.argv) == 3 else 11)
         return
     if len(sys.argv) == 2 and sys.argv[1] == "--realism":
         bench_realism("small", 5, repeats=1)                # compiles the kernels

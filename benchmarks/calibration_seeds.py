@@ -13,12 +13,17 @@ the largest single-card deviation from it, and how many cards were re-indexed to
 dot (0, 0) and how far the worst card's lattice lies from that common dot); the summary
 gives the success count, every failure with its reason, every warning, the median and
 maximum RMS residual and the spread of ``a``, ``b`` and of the per-card deviations over the
-successful seeds. ``--csv`` also writes the per-seed rows.
+successful seeds. ``--csv`` also writes the per-seed rows, rewritten (atomically) after
+every seed, so an interrupted run keeps the seeds it finished. The images are written
+without TIFF compression (``--zlib`` compresses them as ``plenoptrack simulate`` does):
+the data sets are deleted right after calibrating, and compressing a 29-megapixel image
+costs several seconds, more than rendering it.
 """
 
 from __future__ import annotations
 
 import argparse
+import os
 import shutil
 import sys
 import tempfile
@@ -43,14 +48,15 @@ def _depth_fit(cards: pd.DataFrame) -> tuple[float, float, float]:
     return float(a), float(b), float(np.abs(zi[ok] - (a * z[ok] + b)).max())
 
 
-def run_seed(preset: str, seed: int, folder: Path) -> dict:
+def run_seed(preset: str, seed: int, folder: Path, compression: str | None = None) -> dict:
     """Simulate and calibrate one seed; a dict of what was measured."""
     from plenoptrack.calibrate import calibrate
     from plenoptrack.errors import PlenoptrackError
     from plenoptrack.simulate import simulate_dataset
 
     t0 = time.perf_counter()
-    out = simulate_dataset(preset, folder, seed=seed, n_particles=0, realism="ideal")
+    out = simulate_dataset(preset, folder, seed=seed, n_particles=0, realism="ideal",
+                           compression=compression)
     t1 = time.perf_counter()
     row = {"seed": seed, "ok": False, "reason": "", "rms_px": np.nan, "sim_s": t1 - t0,
            "cal_s": np.nan, "a": np.nan, "b": np.nan, "max_dev_mm": np.nan,
@@ -108,6 +114,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", type=int, default=20, help="number of seeds (default 20)")
     parser.add_argument("--start", type=int, default=0, help="first seed (default 0)")
     parser.add_argument("--csv", type=Path, help="also write the per-seed rows here")
+    parser.add_argument("--zlib", action="store_true",
+                        help="write zlib-compressed TIFFs (default: uncompressed)")
     args = parser.parse_args(argv)
     if args.seeds < 1:
         parser.error(f"--seeds must be at least 1; got {args.seeds}")
@@ -115,7 +123,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="calib_seeds_") as tmp:
         for seed in range(args.start, args.start + args.seeds):
             folder = Path(tmp) / f"seed_{seed}"
-            row = run_seed(args.preset, seed, folder)
+            row = run_seed(args.preset, seed, folder, "zlib" if args.zlib else None)
             shutil.rmtree(folder, ignore_errors=True)
             rows.append(row)
             status = "ok  " if row["ok"] else "FAIL"
@@ -125,7 +133,9 @@ def main(argv=None) -> int:
                   f"reindexed {row['n_reindexed']}  origin miss {row['origin_miss']:.4f}"
                   + (f"  {row['reason']}" if not row["ok"] else ""), flush=True)
             if args.csv:
-                pd.DataFrame(rows).to_csv(args.csv, index=False)
+                part = args.csv.with_name(args.csv.name + ".part")
+                pd.DataFrame(rows).to_csv(part, index=False)
+                os.replace(part, args.csv)
     table = pd.DataFrame(rows)
     print(_summary(table, args.preset))
     return 0 if table["ok"].all() else 1

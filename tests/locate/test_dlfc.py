@@ -16,7 +16,8 @@ import pandas as pd
 import pytest
 
 from plenoptrack.errors import CalibrationError
-from plenoptrack.locate.dlfc import DLFC, fit_dlfc, monomial_exponents, n_monomials
+from plenoptrack.locate.dlfc import (DLFC, dot_position_errors, fit_dlfc, monomial_exponents,
+                                    n_monomials)
 
 
 @dataclass(frozen=True)
@@ -252,3 +253,44 @@ def test_fit_errors(cards):
     bad.loc[3, "s"] = np.nan
     with pytest.raises(CalibrationError, match="1 row"):
         fit_dlfc(bad)
+
+
+# --- model error in object space ---------------------------------------------------------
+
+def test_dot_position_errors_of_an_exact_fit_are_tiny(dlfc4, cards):
+    errors = dot_position_errors(dlfc4, cards)
+    assert len(errors) == cards.groupby(["x", "y", "z"]).ngroups
+    assert (errors["n_views"] == len(views()[0])).all()
+    # what is left is the order-4 polynomial's own misfit (0.007 px RMS): a few microns
+    assert np.abs(errors[["dx", "dy", "dz"]].to_numpy()).max() < 5e-3
+    assert dlfc4.report.position_rms_mm == pytest.approx(
+        tuple(np.sqrt(np.mean(errors[["dx", "dy", "dz"]].to_numpy() ** 2, axis=0))))
+
+
+def test_dot_position_errors_follow_centroid_noise(model):
+    """With independent centroid noise, each dot's error is the least-squares error of
+    its views, RMS sqrt(noise^2 mean diag (J^T J)^-1) (J from the fitted DLFC), added in
+    quadrature to the polynomial's own misfit (the same cards without noise)."""
+    noise = 0.05
+    misfit = np.asarray(fit_dlfc(dot_cards(model, step=10.0), order=4).report.position_rms_mm)
+    table = dot_cards(model, noise_px=noise, seed=7, step=10.0)
+    fitted = fit_dlfc(table, order=4)
+    errors = dot_position_errors(fitted, table)
+    u, v = views()
+    expected = []
+    for _, dot in errors.iloc[::7].iterrows():
+        jac = fitted.jacobian_xyz(dot.x, dot.y, dot.z, u, v).reshape(-1, 3)
+        expected.append(np.diag(np.linalg.inv(jac.T @ jac)))
+    expected = np.hypot(noise * np.sqrt(np.mean(expected, axis=0)), misfit)
+    measured = np.asarray(fitted.report.position_rms_mm)
+    # in-sample: the fit absorbs a little of the noise (126 terms per output)
+    np.testing.assert_allclose(measured, expected, rtol=0.15)
+    assert measured[2] > 3 * measured[0]        # depth is the poorly determined axis
+
+
+def test_position_rms_survives_the_file_round_trip(dlfc4):
+    back = DLFC.from_dict(json.loads(json.dumps(dlfc4.to_dict())))
+    assert back.report.position_rms_mm == dlfc4.report.position_rms_mm
+    old = dlfc4.to_dict()
+    del old["fit"]["position_rms_mm"]            # a file from an older version
+    assert DLFC.from_dict(old).report.position_rms_mm == ()

@@ -38,7 +38,9 @@ papers on perspective-shifted plenoptic images (2019), section 2.3.
 
 from __future__ import annotations
 
+import dataclasses
 import math
+import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from functools import cached_property, lru_cache
@@ -54,7 +56,7 @@ from .._columns import LF_COLUMNS, POS_COLUMNS
 from ..errors import CalibrationError
 
 __all__ = [
-    "DLFC", "FitReport", "fit_dlfc", "monomial_exponents", "n_monomials",
+    "DLFC", "FitReport", "fit_dlfc", "dot_position_errors", "monomial_exponents", "n_monomials",
     "INPUT_VARIABLES", "OUTPUT_VARIABLES", "SUPPORTED_ORDERS", "DLFC_FORMAT", "DLFC_VERSION",
 ]
 
@@ -251,6 +253,11 @@ class FitReport:
         ``rms_px`` within each group.
     group_n_points : tuple of int
         Kept points in each group.
+    position_rms_mm : tuple of float
+        The DLFC's own model error in object space: RMS over the calibration dots of
+        ``solved - known`` position (x, y, z), mm, each dot solved from its kept views
+        through the fitted DLFC (:func:`dot_position_errors`). Empty when not measured
+        (dots seen in fewer than 4 views, or a file written by an older version).
     """
 
     rms_s_px: float
@@ -263,6 +270,7 @@ class FitReport:
     group_keys: tuple = ()
     group_rms_px: tuple = ()
     group_n_points: tuple = ()
+    position_rms_mm: tuple = ()
 
     def group_table(self) -> pd.DataFrame:
         """Per-group residuals as a DataFrame (columns: group key, rms_px, n_points)."""
@@ -277,6 +285,7 @@ class FitReport:
             "group_by": self.group_by, "group_keys": [_json_scalar(k) for k in self.group_keys],
             "group_rms_px": list(self.group_rms_px),
             "group_n_points": list(self.group_n_points),
+            "position_rms_mm": list(self.position_rms_mm),
         }
 
     @classmethod
@@ -290,6 +299,7 @@ class FitReport:
                 group_keys=tuple(data.get("group_keys", ())),
                 group_rms_px=tuple(float(r) for r in data.get("group_rms_px", ())),
                 group_n_points=tuple(int(n) for n in data.get("group_n_points", ())),
+                position_rms_mm=tuple(float(e) for e in data.get("position_rms_mm", ())),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(f"{source}: corrupt fit report ({exc!r}); "
@@ -644,7 +654,66 @@ def fit_dlfc(data, *, order: int = 4, group_by=None, reject_k: float | None = No
     model, _ = _eval_kernel(q, parent, var, coef, False)
     resid = st - model.T
     report = _fit_report(resid, keep, groups, group_name)
-    return DLFC(order=order, coefficients=coef, centre=centre, scale=scale, report=report)
+    dlfc = DLFC(order=order, coefficients=coef, centre=centre, scale=scale, report=report)
+    errors = dot_position_errors(dlfc, pts[keep])
+    if len(errors):
+        rms = np.sqrt(np.mean(errors[["dx", "dy", "dz"]].to_numpy() ** 2, axis=0))
+        dlfc = dataclasses.replace(dlfc, report=dataclasses.replace(
+            report, position_rms_mm=tuple(float(e) for e in rms)))
+    return dlfc
+
+
+def dot_position_errors(dlfc: DLFC, points) -> pd.DataFrame:
+    """Object-space error of each calibration dot solved through the DLFC.
+
+    Every dot (one known ``(x, y, z)``) seen in at least 4 views is located from its
+    views' ``(s, t)`` by the same least-squares solve that locates particles
+    (:func:`~plenoptrack.locate.triangulate.triangulate_clusters`, no outlier rejection),
+    starting at its known position.
+
+    Parameters
+    ----------
+    dlfc : DLFC
+    points : DataFrame or (N, 7) float ndarray
+        Calibration points, columns ``x, y, z, u, v, s, t`` (as for :func:`fit_dlfc`).
+
+    Returns
+    -------
+    DataFrame
+        One row per dot: ``x, y, z`` (known, mm), ``dx, dy, dz`` (solved minus known,
+        mm) and ``n_views``.
+
+    Notes
+    -----
+    The dots are the points the DLFC was fitted to, so these errors are in-sample: they
+    measure how well the polynomial represents the camera where it was calibrated, not
+    its error between the cards.
+    """
+    from .triangulate import triangulate_clusters
+
+    names = [*INPUT_VARIABLES, *OUTPUT_VARIABLES]
+    table = (points if isinstance(points, pd.DataFrame)
+             else pd.DataFrame(np.asarray(points, dtype=float), columns=names))
+    cols = ["x", "y", "z", "dx", "dy", "dz", "n_views"]
+    if len(table) == 0:
+        return pd.DataFrame(columns=cols)
+    known, dot = np.unique(table[["x", "y", "z"]].to_numpy(float), axis=0, return_inverse=True)
+    dot = dot.ravel()
+    counts = np.bincount(dot, minlength=len(known))
+    seen = counts[dot] >= 4
+    if not seen.any():
+        return pd.DataFrame(columns=cols)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        tri = triangulate_clusters(dlfc, table[seen].assign(dot=dot[seen]),
+                                   known[np.unique(dot[seen])], cluster_column="dot",
+                                   reject_k=np.inf, min_views=4)
+    known = known[tri.clusters]
+    err = tri.positions - known
+    ok = np.all(np.isfinite(err), axis=1)
+    return pd.DataFrame({"x": known[ok, 0], "y": known[ok, 1], "z": known[ok, 2],
+                         "dx": err[ok, 0], "dy": err[ok, 1], "dz": err[ok, 2],
+                         "n_views": tri.n_views[ok]})
 
 
 def _robust_threshold(values: np.ndarray, k: float) -> float:

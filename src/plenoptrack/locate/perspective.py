@@ -20,8 +20,10 @@
 5. :func:`check_particles` -- drop particles that fail the consistency checks (too few
    or clustered views, residuals far above the typical one, built from merged images),
    refit those whose centroids are partly pulled by overlapping images, and solve again;
-6. :func:`measure_particles` -- in-plane size and shape from the member regions,
-   converted to mm with the local magnification of the calibration.
+6. :func:`measure_particles` -- uncertainties (least-squares errors scaled for
+   view-correlated centroid errors, plus the DLFC's model error;
+   :mod:`~plenoptrack.locate.uncertainty`), in-plane size and shape from the member
+   regions, converted to mm with the local magnification of the calibration.
 
 The frame's fixed data (detections, views, geometry) is a :class:`FrameContext`; what
 the stages change is a :class:`ParticleState`: which detection belongs to which particle
@@ -59,17 +61,20 @@ from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings)
 from .triangulate import triangulate_clusters
+from .uncertainty import reduced_chi2, total_sigma
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
            "solve_particles", "grow_particles", "check_particles", "measure_particles"]
 
 PARTICLE_COLUMNS = (T_COLUMN, *POS_COLUMNS, "sigma_x", "sigma_y", "sigma_z", "n_views",
-                    "confidence", "residual_px", "diameter", "major_axis", "minor_axis",
+                    "confidence", "residual_px", "chi2", "diameter", "major_axis", "minor_axis",
                     "orientation", "flags")
 """Columns of a particles table: ``frame``; ``x, y, z`` and their standard uncertainties
 ``sigma_*`` (mm); ``n_views`` (centroids used); ``confidence`` (eq. 3 of the paper);
-``residual_px`` (RMS reprojection error, view pixels); ``diameter`` (equivalent diameter),
+``residual_px`` (RMS reprojection error, view pixels); ``chi2`` (fit quality: the reduced
+chi-square of the particle's centroids against the frame's typical centroid scatter, about
+1 for a clean fit, large when overlapping images pull some centroids); ``diameter`` (equivalent diameter),
 ``major_axis``, ``minor_axis`` (mm, in the x-y plane); ``orientation`` (rad, major axis
 from +x towards +y); ``flags`` (:class:`~plenoptrack.locate.triangulate.TriangulationFlag`)."""
 
@@ -274,8 +279,7 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         return _finish_empty(detections, frame, clock.seconds)
     with clock("checks"):
         state = check_particles(ctx, state, locator)
-        particles, detections = measure_particles(ctx, state, frame=frame,
-                                                  min_views=locator.solve.min_views)
+        particles, detections = measure_particles(ctx, state, locator.solve, frame=frame)
     if len(particles) == 0:
         return _finish_empty(detections, frame, clock.seconds)
     return LocateResult(particles=particles, detections=detections,
@@ -463,14 +467,16 @@ def check_particles(ctx: FrameContext, state: ParticleState,
     return state
 
 
-def measure_particles(ctx: FrameContext, state: ParticleState, *, frame: int,
-                      min_views: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSettings, *,
+                      frame: int) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Stage 6: the particle table (positions, uncertainties, size and shape in mm).
 
-    Particles with at least ``min_views`` centroids and a finite position are kept and
-    renumbered 0..n-1; size and shape come from their member regions
-    (:func:`~plenoptrack.locate._regions._region_shape`) divided by the DLFC's local
-    magnification at their position.
+    Particles with at least ``solve.min_views`` centroids and a finite position are kept
+    and renumbered 0..n-1; their uncertainties are the least-squares ones scaled for
+    view-correlated errors plus the DLFC's model error
+    (:func:`~plenoptrack.locate.uncertainty.total_sigma`); size and shape come from their
+    member regions (:func:`~plenoptrack.locate._regions._region_shape`) divided by the
+    DLFC's local magnification at their position.
 
     Returns
     -------
@@ -481,13 +487,19 @@ def measure_particles(ctx: FrameContext, state: ParticleState, *, frame: int,
         ``inlier``.
     """
     positions, table, owner = state.positions, state.table, state.owner
-    keep = ((table["n_views"].to_numpy() >= min_views)
+    keep = ((table["n_views"].to_numpy() >= solve.min_views)
             & np.all(np.isfinite(positions), axis=1))
     owner = np.where(keep[np.maximum(owner, 0)] & (owner >= 0), owner, -1)
     shape = _region_shape(ctx.detections, owner, len(positions))
     mag = ctx.dlfc.local_magnification(*positions[keep].T) if keep.any() else np.zeros(0)
     particles = table.loc[keep, ["x", "y", "z", "sigma_x", "sigma_y", "sigma_z", "n_views",
                                  "confidence", "residual_px", "flags"]].copy()
+    sigma = ["sigma_x", "sigma_y", "sigma_z"]
+    particles[sigma] = total_sigma(particles[sigma].to_numpy(float), ctx.dlfc,
+                                   error_scale=solve.error_scale,
+                                   include_model_error=solve.model_error)
+    particles["chi2"] = reduced_chi2(particles["residual_px"].to_numpy(float),
+                                     particles["n_views"].to_numpy(float))
     particles.insert(0, T_COLUMN, frame)
     particles["diameter"] = shape.loc[keep, "diameter_px"].to_numpy() / mag
     particles["major_axis"] = shape.loc[keep, "major_px"].to_numpy() / mag

@@ -190,17 +190,28 @@ class SolveSettings:
     solver : {"lm", "scipy"}
         Least-squares solver (see
         :func:`~plenoptrack.locate.triangulate.triangulate_clusters`).
+    error_scale : float
+        The least-squares standard errors are multiplied by this: the square root of the
+        number of views whose centroid errors move together (they share pixels and
+        image biases). Measured on the development seeds of the validation matrix; see
+        :mod:`~plenoptrack.locate.uncertainty`.
+    model_error : bool
+        Add the DLFC's model error (RMS position error of its calibration dots) to the
+        uncertainty in quadrature.
     """
 
     reject_k: float = 3.0
     min_views: int = 6
     solver: str = "lm"
+    error_scale: float = 2.3
+    model_error: bool = True
 
     def __post_init__(self) -> None:
         _require(self.reject_k > 0, "reject_k", "positive", self.reject_k)
         _require(_is_int(self.min_views) and self.min_views >= 2, "min_views",
                  "an integer of at least 2", self.min_views)
         _require(self.solver in ("lm", "scipy"), "solver", "'lm' or 'scipy'", self.solver)
+        _require(self.error_scale >= 1, "error_scale", "at least 1", self.error_scale)
 
 
 @dataclass(frozen=True)

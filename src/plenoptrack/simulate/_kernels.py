@@ -176,6 +176,35 @@ def _nearest_lens(x, y, par):
 
 
 @njit(cache=True)
+def _nearest_lens_rows(x, y, par, row_lo, row_hi):
+    """:func:`_nearest_lens` searching only lens rows ``row_lo..row_hi``.
+
+    The rows are scanned in increasing order with the arithmetic of
+    :func:`_nearest_lens`, so when they hold the nearest lens (and every lens as near)
+    the answer is the same lens, ties included; rows further than 1.5 row steps from
+    the point never win there, so a range wider than its three rows changes nothing.
+    """
+    px = x - par[OFFX]
+    py = y - par[OFFY]
+    a = (px * par[E1X] + py * par[E1Y]) * par[INV_P2]
+    fi = (px * par[E2X] + py * par[E2Y]) * par[INV_RS2]
+    best_i = row_lo
+    best_j = 0
+    best_d = 1e300
+    for i in range(row_lo, row_hi + 1):
+        sh = par[SHIFT] * (i & 1)
+        j = int(math.floor(a - sh + 0.5))
+        da = (a - j - sh) * par[PITCH]
+        di = (fi - i) * par[ROW_STEP]
+        d = da * da + di * di
+        if d < best_d:
+            best_d = d
+            best_i = i
+            best_j = j
+    return best_i, best_j
+
+
+@njit(cache=True)
 def _lens_center(i, j, par):
     a = j + par[SHIFT] * (i & 1)
     return (a * par[E1X] + i * par[E2X] + par[OFFX],
@@ -277,19 +306,26 @@ def _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
 
 @njit(cache=True)
 def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card, lens_i,
-                 lens_j):
+                 lens_j, row_lo=1, row_hi=0):
     """Lit samples of the pixel centred at sensor point (x0, y0) mm.
 
-    ``lens_i`` < -2**40 means "find the lens of every sample"; otherwise every sample
+    ``lens_i`` < -2**40 means "find the lens of every sample" (:func:`_nearest_lens`, or
+    :func:`_nearest_lens_rows` over rows ``row_lo..row_hi`` when ``row_lo <= row_hi``:
+    the caller guarantees that they hold every sample's lens); otherwise every sample
     uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]`` (ellipsoids
     where ``shapes`` flags them, module notes); the dot card ``card`` only if ``use_card``.
     Extended ``shapes`` rows (particle effects, module notes) go to :func:`_sample_loop_ext`,
-    which returns the summed sample values instead of a count.
+    which returns the summed sample values instead of a count. With nothing to test
+    (``nc == 0``, no card) a sample that passes the aperture (and the front stop) is lit
+    without computing the rest of its ray.
     """
     if shapes.shape[1] > N_SHAPE_BASE:
         return _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card,
-                                use_card, lens_i, lens_j)
+                                use_card, lens_i, lens_j, row_lo, row_hi)
     has_shapes = shapes.shape[0] > 0
+    bare = nc == 0 and not use_card
+    rows = row_lo <= row_hi
+    cur_i, cur_j = -(1 << 62), 0
     tan_s = par[S_I] / par[F_ML]
     s_o = par[S_O]
     inv_so = 1.0 / s_o
@@ -307,15 +343,24 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
         px = x0 + samples[k, 0]
         py = y0 + samples[k, 1]
         if per_sample:
-            i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
-            cx, cy = _lens_center(i, j, par)
-            if lens_on:
-                inv_d, s_l, w = _lens_consts(cx, cy, par)
+            if rows:
+                i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
+                                          row_lo, row_hi)
+            else:
+                i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
+            if i != cur_i or j != cur_j:
+                cur_i, cur_j = i, j
+                cx, cy = _lens_center(i, j, par)
+                if lens_on:
+                    inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
         if lens_on:
             ok, hx, hy, dx, dy = _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w)
             if not ok:
+                continue
+            if bare:
+                lit += 1
                 continue
             if _ray_blocked(hx, hy, dx, dy, occluders, cand, nc, shapes, has_shapes):
                 continue
@@ -327,6 +372,9 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
         hx = qx + (cx - px) * tan_s
         hy = qy + (cy - py) * tan_s
         if hx * hx + hy * hy > par[R_AP2]:
+            continue
+        if bare:
+            lit += 1
             continue
         # Distorted conjugate of Q on the focal plane; ray H -> Q_obj, per unit Z.
         rho2 = (qx * qx + qy * qy) * par[INV_RN2]
@@ -357,9 +405,11 @@ def _sort_head(cand, nc):
 
 @njit(cache=True)
 def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card,
-                     lens_i, lens_j):
+                     lens_i, lens_j, row_lo=1, row_hi=0):
     """:func:`_sample_loop` with the particle effects: the sum of the sample values."""
     _sort_head(cand, nc)
+    rows = row_lo <= row_hi
+    cur_i, cur_j = -(1 << 62), 0
     tan_s = par[S_I] / par[F_ML]
     s_o = par[S_O]
     inv_so = 1.0 / s_o
@@ -378,10 +428,16 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
         px = x0 + samples[k, 0]
         py = y0 + samples[k, 1]
         if per_sample:
-            i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
-            cx, cy = _lens_center(i, j, par)
-            if lens_on:
-                inv_d, s_l, w = _lens_consts(cx, cy, par)
+            if rows:
+                i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
+                                          row_lo, row_hi)
+            else:
+                i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
+            if i != cur_i or j != cur_j:
+                cur_i, cur_j = i, j
+                cx, cy = _lens_center(i, j, par)
+                if lens_on:
+                    inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
         if lens_on:
@@ -745,12 +801,13 @@ def _trace_pixel(row, col, par, samples, occluders, shapes, idx, p0, p1, card, c
 
     Each sample point P uses the microlens whose image centre is nearest to P. Bounds
     on the pixel's ray bundle (:func:`_bundle_candidates`) decide which occluders can be
-    met; a pixel inside one lens cell whose bundle misses the aperture is dark and one
-    whose bundle passes it entirely, meeting nothing, is fully lit. With ``keep`` True
-    and no card, a pixel no occluder can touch returns :data:`KEEP` (its unoccluded
-    value is unchanged). Candidates are ``occluders[idx[p0:p1]]``; ``cand`` is a scratch
-    buffer of at least ``p1 - p0`` entries. ``card`` is (Z, spacing, r^2) of a dot card
-    (Z > 0) or Z <= 0 for none.
+    met; a pixel whose bundle misses the aperture is dark and one inside one lens cell
+    whose bundle passes it entirely, meeting nothing, is fully lit. With ``keep`` True,
+    a pixel that no occluder can touch and whose rays provably miss every dot of the
+    card (:func:`_card_missed`) returns :data:`KEEP`: its value is the unoccluded one
+    (the background irradiance), unchanged. Candidates are ``occluders[idx[p0:p1]]``;
+    ``cand`` is a scratch buffer of at least ``p1 - p0`` entries. ``card`` is
+    (Z, spacing, r^2) of a dot card (Z > 0) or Z <= 0 for none.
     """
     n = samples.shape[0]
     no_card = card[0] <= 0.0
@@ -763,24 +820,8 @@ def _trace_pixel(row, col, par, samples, occluders, shapes, idx, p0, p1, card, c
     ey = y0 - cy * par[SCALE]
     e = math.sqrt(ex * ex + ey * ey)
     if e + par[HALF_DIAG] > par[INRADIUS_IMG] * (1.0 - 1e-9):
-        # The pixel straddles lens cells: its samples may use any lens whose image
-        # centre is within e + 2 * half-diagonal of the pixel centre.
-        if p1 == p0:
-            return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, 0, card,
-                                not no_card, _PER_SAMPLE, 0)
-        nc = 0
-        lim = (e + 2.0 * par[HALF_DIAG]) * (1.0 + 1e-9)
-        for ni in range(i - 1, i + 2):
-            for nj in range(j - 1, j + 2):
-                lx, ly = _lens_center(ni, nj, par)
-                fx = x0 - lx * par[SCALE]
-                fy = y0 - ly * par[SCALE]
-                if fx * fx + fy * fy <= lim * lim:
-                    nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1, cand, nc)
-        if nc == 0 and no_card and keep:
-            return KEEP
-        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
-                            not no_card, _PER_SAMPLE, 0)
+        return _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
+                                 p1, card, no_card, cand, keep)
     if par[LENS_ON] != 0.0:
         return _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx,
                                  p0, p1, card, no_card, cand, keep)
@@ -795,8 +836,8 @@ def _trace_pixel(row, col, par, samples, occluders, shapes, idx, p0, p1, card, c
     nc = 0
     if p1 > p0:
         nc = _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, 0)
-        if nc == 0 and no_card and keep:
-            return KEEP
+    if nc == 0 and no_card and keep:
+        return KEEP
     if nc == 0 and no_card and h_hi < par[R_AP] * (1.0 - 1e-9):
         return n
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, not no_card,
@@ -819,8 +860,8 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
     nc = 0
     if p1 > p0:
         nc = _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, 0)
-        if nc == 0 and no_card and keep:
-            return KEEP
+    if nc == 0 and no_card and keep:
+        return KEEP
     if nc == 0 and no_card and h + r_h < par[R_AP] * (1.0 - 1e-9):
         if par[VIG_ON] == 0.0:
             return n
@@ -831,6 +872,60 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
             return n
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, not no_card,
                         i, j)
+
+
+@njit(cache=True)
+def _bundle_dark(x0, y0, cx, cy, par):
+    """True if no ray of the pixel through lens C passes the main-lens aperture (the
+    bounds of :func:`_bundle`, as in :func:`_trace_pixel`)."""
+    if par[LENS_ON] != 0.0:
+        h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par)
+        return math.sqrt(h0x * h0x + h0y * h0y) - r_h > par[R_AP] * (1.0 + 1e-9)
+    ex = x0 - cx * par[SCALE]
+    ey = y0 - cy * par[SCALE]
+    tan_s = par[S_I] / par[F_ML]
+    r_h = par[HALF_DIAG] * tan_s + par[CELL_R]
+    return math.sqrt(ex * ex + ey * ey) * tan_s - r_h > par[R_AP] * (1.0 + 1e-9)
+
+
+@njit(cache=True)
+def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0, p1, card,
+                      no_card, cand, keep):
+    """The part of :func:`_trace_pixel` for a pixel that straddles lens cells.
+
+    Its samples may use any lens whose image centre lies within ``e + 2 * half-diagonal``
+    of the pixel centre (``e``: distance to the image centre of the pixel's own lens
+    (i, j)): the pixel is dark when every such lens's bundle misses the aperture, keeps
+    its unoccluded value (``keep``) when no occluder can touch any of them and none can
+    land on a dot, and otherwise traces every sample, searching its lens only in the
+    rows of those lenses (:func:`_nearest_lens_rows`).
+    """
+    lim = (e + 2.0 * par[HALF_DIAG]) * (1.0 + 1e-9)
+    nc = 0
+    dark = True
+    missed = True
+    row_lo, row_hi = i, i
+    for ni in range(i - 1, i + 2):
+        for nj in range(j - 1, j + 2):
+            lx, ly = _lens_center(ni, nj, par)
+            fx = x0 - lx * par[SCALE]
+            fy = y0 - ly * par[SCALE]
+            if fx * fx + fy * fy <= lim * lim:
+                row_lo = min(row_lo, ni)
+                row_hi = max(row_hi, ni)
+                if dark and not _bundle_dark(x0, y0, lx, ly, par):
+                    dark = False
+                if not no_card and missed and not _card_missed(x0, y0, lx, ly, par, card):
+                    missed = False
+                if p1 > p0:
+                    nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1,
+                                            cand, nc)
+    if dark:
+        return 0
+    if nc == 0 and missed and keep:
+        return KEEP
+    return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
+                        not (no_card or missed), _PER_SAMPLE, 0, row_lo, row_hi)
 
 
 NO_SHAPES = np.zeros((0, 7))
@@ -927,3 +1022,36 @@ def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, card)
                                    ptr[k + 1], card, cand, True)
                 if lit != KEEP:
                     out[r, c] = lit * inv_n
+
+
+def render_card(out, par, samples, card, r0=0, c0=0):
+    """Re-trace, in place, every pixel of ``out`` whose rays may land on a dot of ``card``.
+
+    ``out`` holds the window of sensor rows ``[r0, r0 + out.shape[0])`` and columns
+    ``[c0, c0 + out.shape[1])`` of the unoccluded irradiance (the background, traced with
+    the same ``par`` and ``samples``): a pixel whose ray bundles provably miss every dot
+    (:func:`_card_missed`) keeps it, since tracing it against the card would count the
+    same samples. The result is identical to :func:`render_all` of that window with the
+    card.
+    """
+    rows, cols = int(par[ROWS]), int(par[COLS])
+    if (out.ndim != 2 or out.dtype != np.float32 or r0 < 0 or c0 < 0
+            or r0 + out.shape[0] > rows or c0 + out.shape[1] > cols):
+        raise ValueError(f"out must be a float32 window of the ({rows}, {cols}) background "
+                         f"irradiance; got {out.dtype} {out.shape} at ({r0}, {c0})")
+    _render_card(out, par, samples, card, NO_SHAPES, r0, c0)
+
+
+@njit(parallel=True, cache=True)
+def _render_card(out, par, samples, card, shapes, r0, c0):
+    """:func:`render_card` (numba core)."""
+    occluders = np.zeros((0, 4))
+    idx = np.zeros(0, dtype=np.int64)
+    cand = np.zeros(0, dtype=np.int64)
+    inv_n = 1.0 / samples.shape[0]
+    for r in prange(out.shape[0]):
+        for c in range(out.shape[1]):
+            lit = _trace_pixel(r0 + r, c0 + c, par, samples, occluders, shapes, idx, 0, 0, card,
+                               cand, True)
+            if lit != KEEP:
+                out[r, c] = lit * inv_n

@@ -28,8 +28,8 @@ from ..camera import CameraSpec
 from . import _kernels
 from .optics import SimOptics
 from .realism import TargetEffects
-from .render import (DEFAULT_SAMPLES_PER_PIXEL, _check_optics, _check_samples, expose_image,
-                     sample_pattern)
+from .render import (DEFAULT_SAMPLES_PER_PIXEL, _check_optics, _check_samples,
+                     background_irradiance, expose_image, sample_pattern)
 from .scene import SceneError, volume_depth_mm
 from .sensor import SensorModel
 
@@ -225,17 +225,24 @@ def dotcard_irradiance(optics: SimOptics, z_mm: float, *, card: DotCard | None =
                        placement: CardPlacement | None = None) -> np.ndarray:
     """Noise-free irradiance of a dot card at depth ``z_mm``, ``(rows, cols)`` float32.
 
-    ``exact`` True traces every sample (reference for tests); the default skips pixels
-    whose rays provably miss every dot, with identical results. ``placement`` moves,
-    tilts and misprints the card (:class:`CardPlacement`; default perfect).
+    ``exact`` True traces every sample (reference for tests); the default starts from the
+    cached background irradiance (:func:`.render.background_irradiance`, traced once per
+    optics) and re-traces only the pixels whose rays may land on a dot, with identical
+    results. ``placement`` moves, tilts and misprints the card (:class:`CardPlacement`;
+    default perfect).
     """
     _check_optics(optics)
     card = default_dotcard(optics.camera) if card is None else card
     vec = _card_vector(optics, float(z_mm), card, placement)
     n = _check_samples(samples_per_pixel)
-    rows, cols = optics.camera.sensor_shape_px
-    return _kernels.render_all(_kernels.pack_params(optics), sample_pattern(optics, n),
-                               np.zeros((0, 4)), vec, 0, rows, 0, cols, exact)
+    par = _kernels.pack_params(optics)
+    samples = sample_pattern(optics, n)
+    if exact:
+        rows, cols = optics.camera.sensor_shape_px
+        return _kernels.render_all(par, samples, np.zeros((0, 4)), vec, 0, rows, 0, cols, True)
+    out = background_irradiance(optics, n).copy()
+    _kernels.render_card(out, par, samples, vec)
+    return out
 
 
 def render_dotcard(optics: SimOptics, z_mm: float, *, card: DotCard | None = None,

@@ -1,0 +1,195 @@
+"""Does the locator's sigma cover its error? Coverage of sigma_x/y/z on simulated data.
+
+    python benchmarks/uncertainty_coverage.py --seeds dev          # tuning seeds 100-102
+    python benchmarks/uncertainty_coverage.py --seeds validation   # held-back 900-902
+    python benchmarks/uncertainty_coverage.py --from-parquet FILE  # summarise saved pairs
+
+Cells (camera ``small``, the cells of ``benchmarks/accuracy_matrix.py`` that the locator is
+expected to handle): the base cell (M -0.5, 0.01 particles per microlens, 0.4 mm spheres),
+density 0.03, 1 mm spheres, mixed sizes 0.2-1 mm, M -0.75, ellipsoids; both optics modes;
+at least 60 particles per cell and seed. Every located particle is matched to the truth
+(:func:`accuracy_matrix.match`); for each axis the script prints the fraction of matched
+particles within 1 and 2 sigma and beyond 3 sigma (a calibrated Gaussian sigma gives 0.68,
+0.95 and 0.003), the robust (1.4826 MAD) and plain standard deviation of the error, and
+``k68``: the factor sigma would need for 68 % coverage (1.0 is right). With ``--seeds dev``
+it also prints the least-squares scale ``error_scale`` that gives 68 % coverage on the
+ideal optics (the default of :class:`~plenoptrack.locate.settings.SolveSettings` comes from
+this run); claims are made on the validation seeds.
+
+The per-particle pairs are written to ``benchmarks/results/uncertainty/pairs_<seeds>.parquet``
+and the summary to ``summary_<seeds>.md`` beside them.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import shutil
+import sys
+import tempfile
+import time
+import warnings
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import accuracy_matrix as am  # noqa: E402
+
+SEED_SETS = {"dev": am.DEV_SEEDS, "validation": am.VALIDATION_SEEDS}
+MIN_PARTICLES = 60
+OUT = Path(__file__).resolve().parent / "results" / "uncertainty"
+
+
+def cells() -> list:
+    return [am._cell("base"), am._cell("density", density=0.03), am._cell("size", size=1.0),
+            am._cell("size", size=am.MIXED_SIZE), am._cell("magnification", magnification=-0.75),
+            am._cell("shape", shape="ellipsoid")]
+
+
+def gather(seeds, optics_modes, tmp: Path) -> pd.DataFrame:
+    """Matched (measured, true) pairs with sigma, for every cell, optics mode and seed."""
+    from plenoptrack.io import read_raw
+    from plenoptrack.locate import locate_frame
+    from plenoptrack.locate.uncertainty import model_error_mm
+    from plenoptrack.simulate import simulate_dataset
+
+    runner = am.Runner(tmp, MIN_PARTICLES, time.perf_counter())
+    rows = []
+    for optics in optics_modes:
+        for seed in seeds:
+            calibrations = {}
+            for cell in cells():
+                if cell.magnification not in calibrations:
+                    calibrations[cell.magnification] = runner.calibrate(
+                        cell.preset, cell.magnification, optics, seed)
+                calib, white, _ = calibrations[cell.magnification]
+                if calib is None:
+                    continue
+                frames = max(1, math.ceil(MIN_PARTICLES / am.n_particles(cell)))
+                scene = am.make_cell_scene(cell, seed, frames)
+                folder = tmp / f"f_{zlib.crc32(cell.name.encode())}_{optics}_{seed}"
+                sim = simulate_dataset(cell.preset, folder, seed=seed, scene=scene,
+                                       magnification=cell.magnification,
+                                       realism=am.realism_of(optics), dotcard_depths=[])
+                for f, path in enumerate(sim.frame_paths):
+                    truth = sim.truth[sim.truth["frame"] == f]
+                    with warnings.catch_warnings():
+                        warnings.simplefilter("ignore")
+                        found = locate_frame(read_raw(path), calib, frame=f, white=white).particles
+                    pairs = am.match(found, truth, cell.magnification)
+                    model = model_error_mm(calib.dlfc)
+                    rows.append(pairs.assign(cell=cell.name, optics=optics, seed=seed,
+                                             density=cell.density, model_x=model[0],
+                                             model_y=model[1], model_z=model[2]))
+                shutil.rmtree(folder, ignore_errors=True)
+                print(f"{optics} seed {seed} {cell.name}: {sum(len(r) for r in rows)} pairs",
+                      flush=True)
+    return pd.concat(rows, ignore_index=True)
+
+
+def _robust_std(x: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(x - np.median(x)))) if len(x) else math.nan
+
+
+def coverage(pairs: pd.DataFrame) -> dict:
+    """Coverage and error spread per axis of a set of pairs."""
+    out = {"n": len(pairs)}
+    for ax in "xyz":
+        e = pairs[f"d{ax}"].to_numpy(float)
+        s = pairs[f"sigma_{ax}"].to_numpy(float)
+        ok = np.isfinite(e) & np.isfinite(s)
+        r = np.abs(e[ok]) / s[ok]
+        out[f"{ax} 1s"] = float(np.mean(r <= 1)) if len(r) else math.nan
+        out[f"{ax} 2s"] = float(np.mean(r <= 2)) if len(r) else math.nan
+        out[f"{ax} >3s"] = float(np.mean(r > 3)) if len(r) else math.nan
+        out[f"{ax} k68"] = float(np.quantile(r, 0.6827)) if len(r) else math.nan
+        out[f"{ax} rstd"] = _robust_std(e[ok])
+        out[f"{ax} std"] = float(np.std(e[ok], ddof=1)) if ok.sum() > 1 else math.nan
+    return out
+
+
+def summary(pairs: pd.DataFrame) -> pd.DataFrame:
+    """One row per optics mode and cell, and a pooled row per optics mode."""
+    rows = []
+    for optics, g in pairs.groupby("optics"):
+        for cell, h in g.groupby("cell"):
+            rows.append({"optics": optics, "cell": cell} | coverage(h))
+        for density, h in g.groupby("density"):
+            rows.append({"optics": optics, "cell": f"pooled, density {density:g}"} | coverage(h))
+        rows.append({"optics": optics, "cell": "pooled"} | coverage(g))
+    return pd.DataFrame(rows)
+
+
+def fitted_error_scale(pairs: pd.DataFrame, model_mm: np.ndarray | None = None) -> float:
+    """The scale of the least-squares sigma that gives 68 % coverage, pooled over axes.
+
+    ``sigma = sqrt((k s)^2 + m^2)`` is inverted for ``s`` with the current scale ``k``
+    (read from the settings) and the model error ``m`` recorded in the pairs.
+    """
+    from plenoptrack.locate.settings import SolveSettings
+
+    k0 = SolveSettings().error_scale
+    ratios = []
+    for ax in "xyz":
+        sigma = pairs[f"sigma_{ax}"].to_numpy(float)
+        model = pairs[f"model_{ax}"].to_numpy(float) if f"model_{ax}" in pairs else 0.0
+        stat = np.sqrt(np.maximum(sigma ** 2 - model ** 2, 0.0)) / k0
+        e = np.abs(pairs[f"d{ax}"].to_numpy(float))
+        ok = np.isfinite(e) & (stat > 0)
+
+        def covered(k, e=e[ok], stat=stat[ok], model=np.broadcast_to(model, sigma.shape)[ok]):
+            return np.mean(e <= np.sqrt((k * stat) ** 2 + model ** 2)) - 0.6827
+
+        from scipy.optimize import brentq
+        ratios.append(brentq(covered, 0.1, 100.0))
+    return float(np.mean(ratios))
+
+
+def _markdown(df: pd.DataFrame) -> str:
+    def fmt(v):
+        return f"{v:.3g}" if isinstance(v, float) else str(v)
+    lines = ["| " + " | ".join(df.columns) + " |", "|" + " --- |" * len(df.columns)]
+    lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in df.itertuples(index=False)]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", choices=list(SEED_SETS), default="validation")
+    parser.add_argument("--optics", nargs="+", choices=am.OPTICS, default=list(am.OPTICS))
+    parser.add_argument("--from-parquet", type=Path, default=None)
+    args = parser.parse_args(argv)
+    t0 = time.perf_counter()
+    if args.from_parquet is not None:
+        pairs = pd.read_parquet(args.from_parquet)
+    else:
+        tmp = Path(tempfile.mkdtemp(prefix="plenoptrack-coverage-"))
+        try:
+            pairs = gather(SEED_SETS[args.seeds], args.optics, tmp)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        OUT.mkdir(parents=True, exist_ok=True)
+        pairs.to_parquet(OUT / f"pairs_{args.seeds}.parquet")
+    table = summary(pairs)
+    pd.set_option("display.width", 250)
+    cols = ["optics", "cell", "n"] + [f"{ax} {m}" for ax in "xyz"
+                                      for m in ("1s", "2s", ">3s", "k68", "rstd", "std")]
+    text = _markdown(table[cols])
+    print(text)
+    lines = [f"# Uncertainty coverage, {args.seeds} seeds {SEED_SETS[args.seeds]}", "",
+             "`python benchmarks/uncertainty_coverage.py --seeds " + args.seeds + "`, "
+             f"{time.perf_counter() - t0:.0f} s.", "", text, ""]
+    if args.seeds == "dev" and "ideal" in set(pairs["optics"]):
+        k = fitted_error_scale(pairs[pairs["optics"] == "ideal"])
+        lines.append(f"error_scale for 68 % coverage on the ideal optics (pooled axes): {k:.2f}")
+        print(lines[-1])
+    if args.from_parquet is None:
+        (OUT / f"summary_{args.seeds}.md").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,95 @@
+"""Standard uncertainty of a located particle: view-correlated centroid errors and the
+DLFC's own model error.
+
+The least-squares solve gives ``sigma_stat = sqrt(s^2 diag (J^T J)^-1)`` from the scatter
+of a particle's centroids about their predictions (``s^2`` over ``2n - 3`` degrees of
+freedom). That figure assumes ``n`` independent centroid errors. They are not
+independent: neighbouring views share raw pixels (bilinear and hexagonal resampling), one
+overlapping image or occluder disturbs a patch of the aperture, and an image's centroid
+bias changes slowly from view to view. Errors shared by many views move the solution
+without showing in the residuals, so ``sigma_stat`` is too small by about the square root
+of the number of views that move together. The reported uncertainty is
+
+    sigma = sqrt((k * sigma_stat)^2 + sigma_model^2)
+
+per axis, with
+
+- ``k`` (``SolveSettings.error_scale``): the square root of the number of views whose
+  errors move together (``n_eff = n / k^2``), measured on the development seeds of the
+  validation matrix (``benchmarks/accuracy_matrix.py``) and checked on its validation
+  seeds (docs: fraction of particles within 1, 2 and 3 sigma);
+- ``sigma_model``: the DLFC's own error in object space, the RMS position error of the
+  calibration dots solved through the fitted DLFC
+  (:attr:`~plenoptrack.locate.dlfc.FitReport.position_rms_mm`); 0 for a DLFC without it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+__all__ = ["total_sigma", "model_error_mm", "reduced_chi2"]
+
+
+def model_error_mm(dlfc) -> np.ndarray:
+    """(3,) float: the DLFC's model error in x, y, z, mm (zeros when not measured)."""
+    report = getattr(dlfc, "report", None)
+    rms = getattr(report, "position_rms_mm", ()) if report is not None else ()
+    return np.asarray(rms, dtype=float) if len(rms) == 3 else np.zeros(3)
+
+
+def total_sigma(sigma_stat: np.ndarray, dlfc, *, error_scale: float,
+                include_model_error: bool = True) -> np.ndarray:
+    """Reported standard uncertainties from the least-squares ones.
+
+    Parameters
+    ----------
+    sigma_stat : (N, 3) float ndarray
+        ``sqrt(s^2 diag (J^T J)^-1)`` per particle, x, y, z, mm (NaN when singular).
+    dlfc : DLFC
+        The calibration the particles were solved with.
+    error_scale : float
+        ``k``: sigma_stat is scaled by it (square root of the number of views whose
+        errors move together).
+    include_model_error : bool
+        Add the DLFC's model error in quadrature.
+
+    Returns
+    -------
+    (N, 3) float ndarray
+        ``sqrt((k sigma_stat)^2 + sigma_model^2)``, mm; NaN where sigma_stat is NaN.
+    """
+    sigma_stat = np.asarray(sigma_stat, dtype=float)
+    model = model_error_mm(dlfc) if include_model_error else np.zeros(3)
+    return np.sqrt((error_scale * sigma_stat) ** 2 + model[None, :] ** 2)
+
+
+def reduced_chi2(residual_px: np.ndarray, n_views: np.ndarray) -> np.ndarray:
+    """Fit quality of each particle: reduced chi-square against the frame's typical scatter.
+
+    Parameters
+    ----------
+    residual_px : (N,) float ndarray
+        RMS reprojection error ``sqrt(SSR / n)`` of each particle, view pixels.
+    n_views : (N,) float ndarray
+        Centroids ``n`` of each particle (``2n`` equations, 3 unknowns).
+
+    Returns
+    -------
+    (N,) float ndarray
+        ``s_i^2 / median_j s_j^2`` with ``s^2 = SSR / (2n - 3)`` the per-coordinate
+        centroid variance about the fit. The frame's particles share the camera, the
+        noise and the calibration, so their median scatter is the typical centroid noise;
+        a particle far above 1 has centroids that disagree with its position more than
+        usual (overlapping images, a merged image taken for one particle). NaN where
+        ``2n - 3 <= 0``; all 1 for a frame of one particle.
+    """
+    residual_px = np.asarray(residual_px, dtype=float)
+    n_views = np.asarray(n_views, dtype=float)
+    dof = 2 * n_views - 3
+    with np.errstate(invalid="ignore", divide="ignore"):
+        s2 = np.where(dof > 0, residual_px ** 2 * n_views / dof, np.nan)
+    finite = np.isfinite(s2)
+    if not finite.any():
+        return s2
+    typical = np.median(s2[finite])
+    return s2 / typical if typical > 0 else np.full_like(s2, np.nan)
