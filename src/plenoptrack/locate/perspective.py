@@ -55,6 +55,7 @@ from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
 from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_duplicates,
                       _predict_all, _release_single_large, _trim_refit)
+from ._nearby import pairs_within
 from ._regions import _region_shape, _split_merged, _split_pairs
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
@@ -490,7 +491,8 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     keep = ((table["n_views"].to_numpy() >= solve.min_views)
             & np.all(np.isfinite(positions), axis=1))
     owner = np.where(keep[np.maximum(owner, 0)] & (owner >= 0), owner, -1)
-    shape = _region_shape(ctx.detections, owner, len(positions))
+    shape = _region_shape(ctx.detections, _size_members(ctx, state.owner, owner, positions, keep),
+                          len(positions))
     mag = ctx.dlfc.local_magnification(*positions[keep].T) if keep.any() else np.zeros(0)
     particles = table.loc[keep, ["x", "y", "z", "sigma_x", "sigma_y", "sigma_z", "n_views",
                                  "confidence", "residual_px", "flags"]].copy()
@@ -514,6 +516,31 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     particles["flags"] = particles["flags"].astype(np.uint8)
     detections = ctx.detections.assign(particle=particle_of, inlier=particle_of >= 0)
     return particles, detections
+
+
+def _size_members(ctx: FrameContext, held_owner: np.ndarray, owner: np.ndarray,
+                  positions: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Owners for measuring size: each kept particle's regions, plus the regions held back
+    as merged images (owner ``_MERGED`` in ``held_owner``) in which it is the only kept
+    particle predicted.
+
+    In a crowded frame the median region area falls (split cores and halves are small)
+    and ordinary single images exceed ``max_area_ratio`` times it; they are held back
+    and the particle is left with its cores. A held-back region that exactly one
+    located particle accounts for is that particle's whole image, so its size counts.
+    """
+    held = np.flatnonzero(held_owner == _MERGED)
+    if len(held) == 0 or not keep.any():
+        return owner
+    kept = np.flatnonzero(keep)
+    pred = _predict_all(ctx.dlfc, positions[kept], ctx.views)              # (K, V, 2)
+    n_k, n_v = pred.shape[:2]
+    q, d, _ = pairs_within(ctx.st[held], ctx.view[held], ctx.radius_px[held],
+                           pred.reshape(-1, 2), np.tile(np.arange(n_v), n_k))
+    alone = np.bincount(q, minlength=len(held))[q] == 1
+    out = owner.copy()
+    out[held[q[alone]]] = kept[d[alone] // n_v]
+    return out
 
 
 def _inconsistent(ctx: FrameContext, state: ParticleState, settings: CheckSettings, *,
