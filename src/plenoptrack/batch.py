@@ -68,7 +68,8 @@ from .errors import InputFileError, PlenoptrackError, UsageError
 
 __all__ = ["METHODS", "FrameTask", "BatchConfig", "FrameOutcome", "BatchResult",
            "plan_frames", "batch_config", "locate_task", "run_batch", "read_batch",
-           "read_failures", "local_cluster", "part_path", "BATCH_FILE", "FAILURES_FILE",
+           "read_failures", "local_cluster", "dashboard_link", "part_path", "frame_key",
+           "BATCH_FILE", "FAILURES_FILE",
            "FAILURE_COLUMNS"]
 
 BATCH_FILE = "_batch.json"
