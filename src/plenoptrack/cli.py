@@ -645,6 +645,102 @@ def _write_particles(tables, detections, out_tmp, det_tmp, record: dict):
     return particles
 
 
+@app.command()
+@_reports_errors
+def batch(
+    raw: list[str] = typer.Argument(..., help="Raw images (uint16 TIFF; multi-page = frames): files or quoted glob patterns such as \"raw/*.tif\", each pattern's files in sorted order; frames are numbered in that order."),
+    calib_file: Path = typer.Option(..., "--calib", help="Calibration file with a DLFC (`plenoptrack calibrate`)."),
+    out_dir: Path = typer.Option(Path("results"), "--out", "-o", help="Batch folder: one Parquet part per frame; re-running resumes it."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-n", min=1, help="Worker processes of a local Dask cluster (default: one per core)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Use the running dask.distributed cluster at this address (tcp://HOST:PORT) instead of a local one."),
+    memory_limit: str = typer.Option("3GB", "--memory-limit", help="Memory bound of each local worker; a worker above it is restarted and its frame retried."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Locator settings (TOML; `plenoptrack settings` writes every default)."),
+    method: str = typer.Option("perspective", "--method", help="Locating method: perspective."),
+    white: Optional[Path] = typer.Option(None, "--white", "-w", help="White (flat-field) image to divide every frame by (default: the one the calibration file records)."),
+    flat_field: bool = typer.Option(True, "--flat-field/--no-flat-field", help="Divide every frame by the white image."),
+) -> None:
+    """Locate the particles of many images on a Dask cluster, resumably, one part per frame.
+
+    Gives the rows `plenoptrack locate` gives the same files. Re-running skips the frames
+    already done (same file content, calibration and settings); a frame that fails is
+    recorded in OUT/_failures.csv and the others go on (exit code 1 if any failed).
+    Read the result with pandas.read_parquet(OUT) or plenoptrack.batch.read_batch(OUT).
+    """
+    import contextlib
+    import glob
+
+    from . import batch as batch_mod
+    from .calibration import find_white, load_calibration
+    from .errors import FlatFieldWarning
+    from .io import check_outputs, read_raw, warn_exposure
+
+    if white is not None and not flat_field:
+        raise typer.BadParameter("--white and --no-flat-field contradict each other; give one",
+                                 param_hint="--white")
+    if workers is not None and scheduler is not None:
+        raise typer.BadParameter("give --workers (a local cluster) or --scheduler, not both",
+                                 param_hint="--workers")
+    if method not in batch_mod.METHODS:
+        raise typer.BadParameter(f"must be one of {', '.join(batch_mod.METHODS)}; got {method!r}",
+                                 param_hint="--method")
+    files: list[Path] = []
+    for pattern in raw:
+        matches = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
+        if not matches:
+            raise typer.BadParameter(f"{pattern!r} matches no file", param_hint="RAW")
+        files += [Path(m) for m in matches]
+    check_outputs({"--out": out_dir}, {"RAW": files, "--calib": calib_file, "--white": white,
+                                       "--config": config}, folders=["--out"])
+    locator = _locator_settings(config)
+    calib = load_calibration(calib_file)
+    calib.dlfc  # refuse a calibration without a DLFC before any work
+    if flat_field and white is None:
+        white, why = find_white(calib, calib_file)
+        if white is None:
+            warnings.warn(f"{why}: frames are not flat-fielded, so dust shadows and dead "
+                          "pixels may be taken for particles; pass the white image with "
+                          "--white (or --no-flat-field to locate without one)", FlatFieldWarning)
+    if white is not None:
+        image = read_raw(white)
+        calib.check_image(image, source=str(white))
+        warn_exposure(image, calib.camera.full_scale, source=f"white image {white}")
+
+    def report(outcome) -> None:
+        for note in outcome.warnings:
+            _show_warning(f"{outcome.path} frame {outcome.page}: {note}", UserWarning, "", 0)
+        if outcome.status == "failed":
+            _show_warning(f"{outcome.path} frame {outcome.page} failed: {outcome.message}",
+                          UserWarning, "", 0)
+
+    with contextlib.ExitStack() as stack:
+        from distributed import Client
+
+        if scheduler is not None:
+            try:
+                client = stack.enter_context(Client(scheduler, timeout="20s"))
+            except OSError as exc:
+                raise UsageError(f"--scheduler {scheduler}: no Dask scheduler answers there "
+                                 f"({exc})") from None
+        else:
+            n = workers or os.cpu_count() or 1
+            cluster = stack.enter_context(batch_mod.local_cluster(n, memory_limit=memory_limit))
+            client = stack.enter_context(Client(cluster))
+        link = batch_mod.dashboard_link(client)
+        n_workers = len(client.scheduler_info().get("workers", {}))
+        console.print(f"{n_workers} worker(s)" + (f"; dashboard {link}" if link else ""),
+                      highlight=False, soft_wrap=True)
+        result = batch_mod.run_batch(files, calib_file, out_dir, method=method, settings=locator,
+                                     white_file=white, client=client, progress=True,
+                                     on_outcome=report)
+    summary = (f"{result.n_frames} frame(s): {result.done} located ({result.n_particles} "
+               f"particles), {result.skipped} already done, {result.failed} failed; "
+               f"{result.seconds:.1f} s; wrote {out_dir}")
+    if result.failed:
+        _error_line(f"{summary}; the failed frames are listed in {out_dir / batch_mod.FAILURES_FILE}")
+        raise typer.Exit(code=1)
+    console.print(summary, highlight=False, soft_wrap=True)
+
+
 @app.command("settings")
 @_reports_errors
 def settings_cmd(
