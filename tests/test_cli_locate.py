@@ -182,3 +182,25 @@ def test_locate_bad_config_is_one_line_usage_error(calibrated, tmp_path, text, m
     assert message in res.stderr and str(config) in res.stderr
     assert len(res.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "p.parquet").exists()
+
+
+@pytest.mark.parametrize("method", ["refocus", "hybrid"])
+def test_locate_other_methods_write_the_same_columns(calibrated, method):
+    root, sim = calibrated
+    frames = sorted((sim / "raw").glob("frame_*.tif"))[:1]
+    out = root / f"particles_{method}.csv"
+    ok("locate", *frames, "--calib", root / "calib.json", "--out", out, "--method", method,
+       "--stack-planes", 60)
+    particles = read_table(out)
+    assert list(particles.columns) == list(PARTICLE_COLUMNS)
+    truth = read_table(sim / "truth.parquet")
+    ev = evaluate_particles(particles, truth[truth["frame"] == 0], tolerance_mm=2.0)
+    assert ev.n_matched >= (3 if method == "refocus" else 0.9 * ev.n_true)
+
+
+def test_locate_refuses_unknown_method(calibrated):
+    root, sim = calibrated
+    frames = sorted((sim / "raw").glob("frame_*.tif"))[:1]
+    result = run("locate", *frames, "--calib", root / "calib.json", "--out", root / "x.csv",
+                 "--method", "magic")
+    assert result.exit_code == 2 and "perspective, refocus or hybrid" in result.stderr

@@ -229,3 +229,93 @@ def test_focal_stack_sharpness_bad_input(args, match):
 def test_focal_stack_sharpness_center_needs_half_width(stack):
     with pytest.raises(ValueError, match="give both center and half_width"):
         plot_focal_stack_sharpness(*stack, center=(20, 15))
+
+
+# --- plot_fragment_field and plot_tracks ---------------------------------------------
+
+@pytest.fixture(scope="module")
+def fragments_frame():
+    rng = np.random.default_rng(5)
+    n = 15
+    phi = rng.uniform(0, 2 * np.pi, n)
+    return pd.DataFrame({"frame": 0, "x": 10 * np.cos(phi), "y": 10 * np.sin(phi),
+                         "z": -5 * np.sin(phi), "diameter": rng.uniform(0.5, 4, n),
+                         "major_axis": 3.0, "minor_axis": 1.5,
+                         "orientation": rng.uniform(-1.5, 1.5, n)})
+
+
+def test_outline_points_are_the_measured_ellipses():
+    from plenoptrack.plots import outline_points
+
+    p = pd.DataFrame({"x": [1.0], "y": [2.0], "major_axis": [4.0], "minor_axis": [2.0],
+                      "orientation": [np.pi / 2]})
+    pts = outline_points(p, n=400)[0]
+    r = pts - [1.0, 2.0]
+    # long axis along +y: half-lengths 2 (y) and 1 (x); area pi a b
+    assert np.abs(r[:, 1]).max() == pytest.approx(2.0, abs=1e-3)
+    assert np.abs(r[:, 0]).max() == pytest.approx(1.0, abs=1e-3)
+    area = 0.5 * abs(np.dot(pts[:-1, 0], pts[1:, 1]) - np.dot(pts[1:, 0], pts[:-1, 1]))
+    assert area == pytest.approx(np.pi * 2 * 1, rel=1e-3)
+
+
+def test_fragment_field_layout(fragments_frame):
+    from matplotlib.collections import PolyCollection
+
+    from plenoptrack.plots import plot_fragment_field
+
+    fig = plot_fragment_field(fragments_frame)
+    ax_top, ax_iso, ax_view, ax_side = fig.axes[:4]
+    assert (_labels(ax_top), _labels(ax_side)) == (("x (mm)", "z (mm)"), ("z (mm)", "y (mm)"))
+    assert ax_iso.name == "3d" and "isometric" in ax_iso.get_title()
+    (outlines,) = [c for c in ax_view.collections if isinstance(c, PolyCollection)]
+    assert len(outlines.get_paths()) == len(fragments_frame)
+    # outlines coloured by depth: the farthest is the reddest
+    colours = outlines.get_edgecolor()
+    far, near = fragments_frame["z"].idxmax(), fragments_frame["z"].idxmin()
+    assert colours[far][0] > colours[far][2] and colours[near][2] > colours[near][0]
+    # marker area proportional to the measured image area, largest darkest
+    sizes = ax_top.collections[0].get_sizes()
+    big = fragments_frame["diameter"].idxmax()
+    assert sizes.argmax() == big
+    assert ax_top.collections[0].get_facecolors()[big][0] < 0.05
+    assert fig.axes[-1].get_ylabel() == "z (mm)"
+
+
+def test_fragment_field_on_the_central_view(fragments_frame):
+    from matplotlib.collections import PolyCollection
+
+    from plenoptrack.plots import plot_fragment_field
+
+    class Linear:                               # a stand-in calibration: 10 px per mm
+        def predict(self, x, y, z, u, v):
+            return 100 + 10 * np.asarray(x), 60 + 10 * np.asarray(y)
+
+    view = np.ones((120, 200))
+    fig = plot_fragment_field(fragments_frame, view=view, dlfc=Linear())
+    ax_view = fig.axes[2]
+    assert _labels(ax_view) == ("s (view px)", "t (view px)")
+    (outlines,) = [c for c in ax_view.collections if isinstance(c, PolyCollection)]
+    v = outlines.get_paths()[0].vertices
+    row = fragments_frame.iloc[0]
+    assert v[:, 0].mean() == pytest.approx(100 + 10 * row["x"], abs=0.5)
+    with pytest.raises(ValueError, match="dlfc"):
+        plot_fragment_field(fragments_frame, view=view)
+
+
+def test_tracks_figure():
+    from matplotlib.collections import LineCollection
+
+    from plenoptrack.plots import plot_tracks
+
+    f = np.tile(np.arange(5), 3)
+    t = pd.DataFrame({"frame": f, "particle": np.repeat([0, 1, 2], 5), "x": f * 1.0,
+                      "y": np.repeat([0.0, 1.0, 2.0], 5), "z": 0.0,
+                      "speed": np.repeat([1.0, 2.0, 3.0], 5)})
+    fig = plot_tracks(t)
+    ax_xy, ax_zy, ax_xz, ax_sp = fig.axes[:4]
+    (lines,) = [c for c in ax_xy.collections if isinstance(c, LineCollection)]
+    assert len(lines.get_segments()) == 3 * 4          # no segment joins two tracks
+    assert "3 tracks" in ax_sp.get_title()
+    assert fig.axes[-1].get_ylabel() == "speed (mm/frame)"
+    with pytest.raises(ValueError, match="speed_unit"):
+        plot_tracks(t, speed_unit="km/h")

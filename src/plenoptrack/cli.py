@@ -253,8 +253,8 @@ def simulate(
     shape: str = typer.Option("sphere", "--shape", help="Particle shape of the random scene: sphere, ellipsoid (prolate, random orientation, aspect ratio up to --max-aspect) or fragment (irregular faceted body, random orientation, aspect ratio of its equivalent ellipsoid up to --max-aspect)."),
     max_aspect: float = typer.Option(3.0, "--max-aspect", callback=_finite(at_least=1.0), help="Largest aspect ratio (long over short axis) of ellipsoids and fragments."),
     magnification: Optional[float] = typer.Option(None, "--magnification", callback=_finite(), help="Override the preset magnification (negative, e.g. -0.5); the f-number is re-set to keep the microlens images filled."),
-    frames: int = typer.Option(1, "--frames", min=1, help="Number of frames."),
-    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification, seed and particles replace --preset, --magnification, --seed and the random-scene options."),
+    frames: Optional[int] = typer.Option(None, "--frames", min=1, help="Number of frames (default 1, or the scene's)."),
+    scene: Optional[Path] = typer.Option(None, "--scene", help="Scene TOML file: its camera, magnification, seed and particles replace --preset, --magnification, --seed and the random-scene options. Or a built-in scene, 'fragments' (an expanding ring of metal fragments) or 'vortex-ring' (tracers in Hill's vortex), or a TOML file with scene = 'NAME' whose keys override that scene's parameters (a data set's scene.toml is one)."),
     samples: int = typer.Option(16, "--samples", min=1, max=4096, help="Ray samples per pixel."),
     optics_mode: Optional[str] = typer.Option(None, "--optics", help="realistic (default: spec-sheet errors, imperfect dot cards, diffraction, aberrations, dust, sensor defects and the other effects of plenoptrack.simulate.realism) or ideal (the exact geometric model); the optics table of a scene file applies when not given."),
 ) -> None:
@@ -262,6 +262,7 @@ def simulate(
     from .camera import preset
     from .io import check_outputs
     from .simulate import load_scene, simulate_dataset
+    from .simulate.scenes import builtin_scene, read_scene_spec
 
     if magnification == 0:
         raise typer.BadParameter("must be non-zero (negative for a real, inverted image)",
@@ -273,8 +274,20 @@ def simulate(
         raise typer.BadParameter(f"must be 'ideal' or 'realistic'; got {optics_mode!r}",
                                  param_hint="--optics")
     check_outputs({"--out": out_dir}, {"--scene": scene}, folders=["--out"])
-    scene_obj = None
-    if scene is not None:
+    scene_obj = scene_params = None
+    builtin = read_scene_spec(scene) if scene is not None else None
+    if builtin is not None:
+        name, overrides = builtin
+        overrides = {**overrides, **({"seed": seed} if seed is not None else {}),
+                     **({"frames": frames} if frames is not None else {}),
+                     **({"optics": optics_mode} if optics_mode is not None else {}),
+                     **({"camera": preset_name} if preset_name is not None else {})}
+        if magnification is not None:
+            raise typer.BadParameter("built-in scenes use their camera's magnification",
+                                     param_hint="--magnification")
+        scene_obj, scene_params = builtin_scene(name, overrides)
+        camera, seed, optics_mode = scene_obj.camera, scene_obj.seed, None
+    elif scene is not None:
         scene_obj = load_scene(scene)
         camera = scene_obj.camera
         if preset_name is not None and preset_name != camera.name:
@@ -291,10 +304,10 @@ def simulate(
         camera = preset(preset_name or "small")
     t0 = time.perf_counter()
     result = simulate_dataset(camera, out_dir, seed=seed, n_particles=particles,
-                              diameter_mm=diameter, magnification=magnification, frames=frames,
-                              scene=scene_obj, samples_per_pixel=samples, realism=optics_mode,
-                              shape=shape, max_aspect=max_aspect,
-                              progress=True)
+                              diameter_mm=diameter, magnification=magnification,
+                              frames=frames or 1, scene=scene_obj, samples_per_pixel=samples,
+                              realism=optics_mode, shape=shape, max_aspect=max_aspect,
+                              progress=True, scene_params=scene_params)
     if magnification is not None:
         console.print(f"magnification {result.camera.magnification:g}: main lens set to "
                       f"f/{result.camera.f_number:g} (working f-number "
@@ -481,8 +494,10 @@ def locate(
     white: Optional[Path] = typer.Option(None, "--white", "-w", help="White (flat-field) image to divide every frame by (default: the one the calibration file records)."),
     flat_field: bool = typer.Option(True, "--flat-field/--no-flat-field", help="Divide every frame by the white image (recommended: dust shadows and dead pixels are otherwise taken for particles)."),
     partial: bool = typer.Option(False, "--partial", help="On Ctrl-C, keep the frames already located (default: write nothing)."),
+    method: str = typer.Option("perspective", "--method", help="perspective (perspective-shift method), refocus (the refocusing baseline: dense focal stack, minimum intensity, maximum edge sharpness) or hybrid (perspective-shift positions, depth refined by a local focal stack near focus)."),
+    stack_planes: int = typer.Option(100, "--stack-planes", min=3, help="Focal-stack planes of --method refocus (at least 3)."),
 ) -> None:
-    """Locate particles in 3D (perspective-shift method) and write a particle table.
+    """Locate particles in 3D (perspective-shift method by default) and write a particle table.
 
     Every frame is divided by the white image (flat-fielded) first: by default the white
     image the calibration file records, if it is still there unchanged. The table's
@@ -497,6 +512,7 @@ def locate(
         raise typer.BadParameter("--white and --no-flat-field contradict each other; give one",
                                  param_hint="--white")
     locator = _locator_settings(config, window=window, contrast=contrast, planes=planes)
+    locator = _method_locator(method, locator, stack_planes)
     with _outputs({"--out": out_file, "--detections": detections_file},
                   {"RAW": raw, "--calib": calib_file, "--white": white, "--config": config}
                   ) as (out_tmp, det_tmp):
@@ -530,7 +546,7 @@ def locate(
             interrupted = True
         from .provenance import provenance
 
-        record = provenance(method="perspective", settings=locator.to_dict(), calibration=calib,
+        record = provenance(method=method, settings=locator.to_dict(), calibration=calib,
                             calibration_file=calib_file, white_file=white_file,
                             inputs=[p.resolve() for p in raw])
         particles = _write_particles(tables, detections, out_tmp, det_tmp, record)
@@ -579,17 +595,31 @@ def _flat_field_white(calib, calib_file: Path, white: Path | None):
     return white, decode(image, calib.grid)
 
 
+def _method_locator(method: str, perspective, stack_planes: int):
+    """The locator of ``--method``, built on the perspective settings."""
+    from .locate.refocusing import HybridLocator, RefocusLocator
+
+    if method == "perspective":
+        return perspective
+    if method == "refocus":
+        return RefocusLocator(n_planes=stack_planes, window=perspective.segment.window,
+                              contrast=perspective.segment.contrast)
+    if method == "hybrid":
+        return HybridLocator(perspective=perspective, contrast=perspective.segment.contrast)
+    raise typer.BadParameter(f"must be perspective, refocus or hybrid; got {method!r}",
+                             param_hint="--method")
+
+
 def _locate_one(image, calib, frame: int, locator, *, source: str, white=None):
     """Locate one frame; return the result and whether it had no particles.
 
     Warnings other than "no particles" are shown, prefixed with the file and frame.
     """
     from .errors import NoParticlesWarning
-    from .locate.perspective import locate_frame
 
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        result = locate_frame(image, calib, frame=frame, locator=locator, white=white)
+        result = locator.locate(image, calib, frame=frame, white=white)
     empty = False
     for w in caught:
         if issubclass(w.category, NoParticlesWarning):
@@ -613,6 +643,102 @@ def _write_particles(tables, detections, out_tmp, det_tmp, record: dict):
         det.attrs[METADATA_KEY] = record
         write_table(det, det_tmp)
     return particles
+
+
+@app.command()
+@_reports_errors
+def batch(
+    raw: list[str] = typer.Argument(..., help="Raw images (uint16 TIFF; multi-page = frames): files or quoted glob patterns such as \"raw/*.tif\", each pattern's files in sorted order; frames are numbered in that order."),
+    calib_file: Path = typer.Option(..., "--calib", help="Calibration file with a DLFC (`plenoptrack calibrate`)."),
+    out_dir: Path = typer.Option(Path("results"), "--out", "-o", help="Batch folder: one Parquet part per frame; re-running resumes it."),
+    workers: Optional[int] = typer.Option(None, "--workers", "-n", min=1, help="Worker processes of a local Dask cluster (default: one per core)."),
+    scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Use the running dask.distributed cluster at this address (tcp://HOST:PORT) instead of a local one."),
+    memory_limit: str = typer.Option("3GB", "--memory-limit", help="Memory bound of each local worker; a worker above it is restarted and its frame retried."),
+    config: Optional[Path] = typer.Option(None, "--config", "-c", help="Locator settings (TOML; `plenoptrack settings` writes every default)."),
+    method: str = typer.Option("perspective", "--method", help="Locating method: perspective."),
+    white: Optional[Path] = typer.Option(None, "--white", "-w", help="White (flat-field) image to divide every frame by (default: the one the calibration file records)."),
+    flat_field: bool = typer.Option(True, "--flat-field/--no-flat-field", help="Divide every frame by the white image."),
+) -> None:
+    """Locate the particles of many images on a Dask cluster, resumably, one part per frame.
+
+    Gives the rows `plenoptrack locate` gives the same files. Re-running skips the frames
+    already done (same file content, calibration and settings); a frame that fails is
+    recorded in OUT/_failures.csv and the others go on (exit code 1 if any failed).
+    Read the result with pandas.read_parquet(OUT) or plenoptrack.batch.read_batch(OUT).
+    """
+    import contextlib
+    import glob
+
+    from . import batch as batch_mod
+    from .calibration import find_white, load_calibration
+    from .errors import FlatFieldWarning
+    from .io import check_outputs, read_raw, warn_exposure
+
+    if white is not None and not flat_field:
+        raise typer.BadParameter("--white and --no-flat-field contradict each other; give one",
+                                 param_hint="--white")
+    if workers is not None and scheduler is not None:
+        raise typer.BadParameter("give --workers (a local cluster) or --scheduler, not both",
+                                 param_hint="--workers")
+    if method not in batch_mod.METHODS:
+        raise typer.BadParameter(f"must be one of {', '.join(batch_mod.METHODS)}; got {method!r}",
+                                 param_hint="--method")
+    files: list[Path] = []
+    for pattern in raw:
+        matches = sorted(glob.glob(pattern)) if glob.has_magic(pattern) else [pattern]
+        if not matches:
+            raise typer.BadParameter(f"{pattern!r} matches no file", param_hint="RAW")
+        files += [Path(m) for m in matches]
+    check_outputs({"--out": out_dir}, {"RAW": files, "--calib": calib_file, "--white": white,
+                                       "--config": config}, folders=["--out"])
+    locator = _locator_settings(config)
+    calib = load_calibration(calib_file)
+    calib.dlfc  # refuse a calibration without a DLFC before any work
+    if flat_field and white is None:
+        white, why = find_white(calib, calib_file)
+        if white is None:
+            warnings.warn(f"{why}: frames are not flat-fielded, so dust shadows and dead "
+                          "pixels may be taken for particles; pass the white image with "
+                          "--white (or --no-flat-field to locate without one)", FlatFieldWarning)
+    if white is not None:
+        image = read_raw(white)
+        calib.check_image(image, source=str(white))
+        warn_exposure(image, calib.camera.full_scale, source=f"white image {white}")
+
+    def report(outcome) -> None:
+        for note in outcome.warnings:
+            _show_warning(f"{outcome.path} frame {outcome.page}: {note}", UserWarning, "", 0)
+        if outcome.status == "failed":
+            _show_warning(f"{outcome.path} frame {outcome.page} failed: {outcome.message}",
+                          UserWarning, "", 0)
+
+    with contextlib.ExitStack() as stack:
+        from distributed import Client
+
+        if scheduler is not None:
+            try:
+                client = stack.enter_context(Client(scheduler, timeout="20s"))
+            except OSError as exc:
+                raise UsageError(f"--scheduler {scheduler}: no Dask scheduler answers there "
+                                 f"({exc})") from None
+        else:
+            n = workers or os.cpu_count() or 1
+            cluster = stack.enter_context(batch_mod.local_cluster(n, memory_limit=memory_limit))
+            client = stack.enter_context(Client(cluster))
+        link = batch_mod.dashboard_link(client)
+        n_workers = len(client.scheduler_info().get("workers", {}))
+        console.print(f"{n_workers} worker(s)" + (f"; dashboard {link}" if link else ""),
+                      highlight=False, soft_wrap=True)
+        result = batch_mod.run_batch(files, calib_file, out_dir, method=method, settings=locator,
+                                     white_file=white, client=client, progress=True,
+                                     on_outcome=report)
+    summary = (f"{result.n_frames} frame(s): {result.done} located ({result.n_particles} "
+               f"particles), {result.skipped} already done, {result.failed} failed; "
+               f"{result.seconds:.1f} s; wrote {out_dir}")
+    if result.failed:
+        _error_line(f"{summary}; the failed frames are listed in {out_dir / batch_mod.FAILURES_FILE}")
+        raise typer.Exit(code=1)
+    console.print(summary, highlight=False, soft_wrap=True)
 
 
 @app.command("settings")
@@ -651,21 +777,76 @@ def settings_cmd(
 
 @app.command()
 @_reports_errors
+def study(
+    out_dir: Path = typer.Option(..., "--out", "-o", help="Output folder (created; a re-run resumes it, skipping the images already located)."),
+    preset_name: str = typer.Option("hall2019", "--preset", help="Camera preset: hall2019 (default), small, small-rect."),
+    camera_file: Optional[Path] = typer.Option(None, "--camera", help="Your own camera.toml (replaces --preset): the study for your camera, magnification and particle size."),
+    travel: float = typer.Option(50.0, "--travel", callback=_finite(positive=True), help="Traverse travel, mm."),
+    step: float = typer.Option(1.0, "--step", callback=_finite(positive=True), help="Traverse step, mm."),
+    repeats: int = typer.Option(5, "--repeats", min=1, help="Images per traverse position (fresh noise each)."),
+    refocus_repeats: Optional[int] = typer.Option(None, "--refocus-repeats", min=1, help="Repeats located with the refocus and hybrid methods (default --repeats; refocusing is slow)."),
+    methods: str = typer.Option("perspective,refocus", "--methods", help="Comma-separated methods: perspective, refocus, hybrid."),
+    workers: int = typer.Option(1, "--workers", min=0, help="Local Dask worker processes (0: this process)."),
+    grid: Optional[str] = typer.Option(None, "--grid", help="paper: the 12 configurations of the paper (4 magnifications up to 0.75 at 3 object distances)."),
+    particles: int = typer.Option(40, "--particles", min=1, help="Pin heads in the rigid field."),
+    diameter: Optional[float] = typer.Option(None, "--diameter", callback=_finite(positive=True), help="Pin-head diameter, mm (default per preset)."),
+    seed: int = typer.Option(0, "--seed", help="Master seed (field, traverse zero offset, optics, noise)."),
+    optics_mode: str = typer.Option("realistic", "--optics", help="realistic (default) or ideal."),
+) -> None:
+    """Translation-stage uncertainty study: depth accuracy and precision against depth for
+    each method (a simulated rigid field of pin heads moved along the optical axis)."""
+    from .io import check_outputs
+    from .study import StudyConfig, paper_grid, run_study
+
+    if grid not in (None, "paper"):
+        raise typer.BadParameter(f"must be 'paper'; got {grid!r}", param_hint="--grid")
+    check_outputs({"--out": out_dir}, {"--camera": camera_file}, folders=["--out"])
+    camera = _camera_from_options(preset_name, camera_file)
+    cameras = paper_grid(camera) if grid == "paper" else [camera]
+    chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
+    configs = [StudyConfig(c, travel_mm=travel, step_mm=step, repeats=repeats,
+                           refocus_repeats=refocus_repeats, methods=chosen, n_particles=particles,
+                           diameter_mm=diameter, seed=seed, realism=optics_mode)
+               for c in cameras]
+    t0 = time.perf_counter()
+    summary = run_study(configs, out_dir, workers=workers, progress=True)
+    for label, cfg in summary["configurations"].items():
+        for m, s in cfg["methods"].items():
+            console.print(f"{label} {m}: worst |mean| {s['worst_abs_mean_mm']:.3f} mm, worst std "
+                          f"{s['worst_std_mm']:.3f} mm, {s['seconds_per_image']:.1f} s/image",
+                          highlight=False)
+    console.print(f"wrote {out_dir} ({time.perf_counter() - t0:.0f} s)", highlight=False)
+
+
+@app.command()
+@_reports_errors
 def evaluate(
     particles_file: Path = typer.Argument(..., help="Measured particle table (.parquet or .csv)."),
     truth_file: Path = typer.Argument(..., help="True particle table, e.g. a simulator's truth.parquet."),
     tolerance: float = typer.Option(1.0, "--tolerance", callback=_finite(positive=True), help="Largest 3D distance of a match, mm."),
     as_json: bool = typer.Option(False, "--json", help="Print one JSON object instead of a table."),
 ) -> None:
-    """Match measured particles to the truth (Hungarian, within a tolerance) and report errors."""
+    """Match measured particles to the truth (Hungarian, within a tolerance) and report errors.
+
+    A tracks table (`plenoptrack track`) against a truth with particle ids and velocities
+    also gets link recovery, velocity errors and the depth error before and after track
+    smoothing.
+    """
     import json
 
     from .evaluate import evaluate_particles
     from .io import read_table
 
-    ev = evaluate_particles(read_table(particles_file), read_table(truth_file), tolerance_mm=tolerance)
+    measured, truth = read_table(particles_file), read_table(truth_file)
+    ev = evaluate_particles(measured, truth, tolerance_mm=tolerance)
+    tracks_ev = None
+    if {"particle", "z_smooth", "velocity_x"} <= set(measured.columns) and {
+            "particle", "velocity_x"} <= set(truth.columns):
+        from .evaluate import evaluate_tracks
+
+        tracks_ev = evaluate_tracks(measured, truth, tolerance_mm=tolerance)
     if as_json:
-        print(json.dumps(ev.to_dict()))
+        print(json.dumps(ev.to_dict() | ({"tracks": tracks_ev.to_dict()} if tracks_ev else {})))
         return
     table = _quantity_table(f"{particles_file} against {truth_file} (tolerance {tolerance:g} mm)")
     table.add_row("true / measured / matched", f"{ev.n_true} / {ev.n_measured} / {ev.n_matched}")
@@ -675,7 +856,151 @@ def evaluate(
         mean, std = getattr(ev, f"mean_error_{axis}"), getattr(ev, f"std_error_{axis}")
         table.add_row(f"{axis} error mean / sd, mm", f"{mean:+.4f} / {std:.4f}")
     table.add_row("lateral RMS error, mm", f"{ev.rms_error_lateral:.4f}")
+    if tracks_ev is not None:
+        table.add_row("true links recovered", f"{tracks_ev.n_recovered_links} / "
+                      f"{tracks_ev.n_true_links} ({tracks_ev.link_recovery:.2%})")
+        table.add_row("false links", f"{tracks_ev.n_false_links}")
+        table.add_row("velocity RMS error / mean speed", f"{tracks_ev.velocity_rms_error:.4f} / "
+                      f"{tracks_ev.mean_speed:.4f} mm/frame")
+        table.add_row("z error sd, per frame / smoothed, mm",
+                      f"{tracks_ev.z_std_frame:.4f} / {tracks_ev.z_std_smooth:.4f}")
+        table.add_row("z error robust sd, per frame / smoothed, mm",
+                      f"{tracks_ev.z_rstd_frame:.4f} / {tracks_ev.z_rstd_smooth:.4f}")
     out.print(table)
+
+
+@app.command()
+@_reports_errors
+def track(
+    particles_file: Path = typer.Argument(..., help="Particle table of several frames (`plenoptrack locate` output, .parquet or .csv)."),
+    out_file: Path = typer.Option(Path("tracks.parquet"), "--out", "-o", help="Tracks table: one row per particle and frame with its track id (particle), smoothed position, velocity and acceleration."),
+    stats_file: Optional[Path] = typer.Option(None, "--stats", help="Also write one row per track (length, mean position, speed, size, shape)."),
+    search_range: float = typer.Option(1.0, "--search-range", callback=_finite(positive=True), help="Lateral (x, y) search range around each track's predicted position, mm."),
+    search_depth: float = typer.Option(3.0, "--search-depth", callback=_finite(positive=True), help="Depth (z) search range, mm (depth errors exceed lateral ones)."),
+    memory: int = typer.Option(2, "--memory", min=0, help="Frames a track may miss and still be continued."),
+    min_length: int = typer.Option(3, "--min-length", min=1, help="Drop tracks with fewer points."),
+    window: int = typer.Option(7, "--window", min=2, help="Points of each local fit along a track."),
+    order: int = typer.Option(2, "--order", min=0, max=3, help="Degree of the local fit: 1 constant velocity (ballistic), 2 constant acceleration."),
+    frame_interval: Optional[float] = typer.Option(None, "--frame-interval", callback=_finite(positive=True), help="Time between frames, s (adds speeds in m/s); a simulated data set's scene.toml gives it."),
+    no_predict: bool = typer.Option(False, "--no-predict", help="Link without the velocity predictor."),
+) -> None:
+    """Link particles over frames into 3D tracks; velocities, accelerations, track-refined depth."""
+    from .io import read_table, write_table
+    from .track import TrackSettings, track_particles
+
+    minimum = TrackSettings(order=order, window=64).min_window
+    if window < minimum:
+        raise typer.BadParameter(f"a fit of --order {order} needs at least {minimum} points; "
+                                 f"got {window}", param_hint="--window")
+    settings = TrackSettings(search_range_mm=(search_range, search_depth), memory=memory,
+                             min_length=min_length, window=window, order=order,
+                             frame_interval_s=frame_interval, predict=not no_predict,
+                             passes=1 if no_predict else 2)
+    with _outputs({"--out": out_file, "--stats": stats_file},
+                  {"PARTICLES": particles_file}) as (out_tmp, stats_tmp):
+        t0 = time.perf_counter()
+        result = track_particles(read_table(particles_file), settings)
+        write_table(result.tracks, out_tmp)
+        if stats_tmp is not None:
+            write_table(result.statistics, stats_tmp)
+    table = _quantity_table(f"tracks of {particles_file}")
+    for name, value in result.summary().items():
+        table.add_row(name, f"{value:.3g}" if isinstance(value, float) else f"{value}")
+    out.print(table)
+    console.print(f"{len(result.statistics)} tracks in {time.perf_counter() - t0:.2f} s; "
+                  f"wrote {out_file}" + (f" and {stats_file}" if stats_file else ""),
+                  highlight=False)
+
+
+def _figure_outputs(png: Path) -> tuple[Path, Path]:
+    """A PNG path and the PDF beside it (same name, suffix .pdf)."""
+    if png.suffix.lower() != ".png":
+        raise typer.BadParameter(f"must end in .png (a .pdf is written beside it); got {png}",
+                                 param_hint="--out/--tracks-out")
+    return png, png.with_suffix(".pdf")
+
+
+@app.command()
+@_reports_errors
+def plot(
+    table_file: Path = typer.Argument(..., help="Particle table (`locate`) or tracks table (`track`)."),
+    out_file: Optional[Path] = typer.Option(Path("fragments.png"), "--out", "-o", help="Figure of one frame in the layout of the seed paper's Fig. 12 (PNG; a PDF is written beside it)."),
+    tracks_out: Optional[Path] = typer.Option(None, "--tracks-out", help="Also a figure of the tracks coloured by speed (tracks table only; PNG and PDF)."),
+    frame: Optional[int] = typer.Option(None, "--frame", help="Frame of the Fig. 12 figure (default: the frame with the most particles)."),
+    raw: Optional[Path] = typer.Option(None, "--raw", help="Raw image of that frame: its central view is drawn under the outlines (needs --calib)."),
+    calib_file: Optional[Path] = typer.Option(None, "--calib", help="Calibration file with a DLFC, to decode --raw and place the outlines."),
+    raw_frame: int = typer.Option(0, "--raw-frame", help="Frame of a multi-page --raw TIFF."),
+) -> None:
+    """Draw the fragment-field figure (central view, top, side and isometric views) and tracks."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from .io import read_table
+    from .plots import plot_fragment_field, plot_tracks
+
+    if (raw is None) != (calib_file is None):
+        raise typer.BadParameter("--raw and --calib go together", param_hint="--raw/--calib")
+    outputs = {}
+    if out_file is not None:
+        outputs["--out"], outputs["--out (pdf)"] = _figure_outputs(out_file)
+    if tracks_out is not None:
+        outputs["--tracks-out"], outputs["--tracks-out (pdf)"] = _figure_outputs(tracks_out)
+    if not outputs:
+        raise typer.BadParameter("nothing to draw: give --out or --tracks-out")
+    with _outputs(outputs, {"TABLE": table_file, "--raw": raw, "--calib": calib_file}) as tmps:
+        targets = dict(zip(outputs, tmps))
+        table = read_table(table_file)
+        if tracks_out is not None and "particle" not in table.columns:
+            raise typer.BadParameter(f"{table_file} has no tracks; run `plenoptrack track` first",
+                                     param_hint="--tracks-out")
+        if out_file is not None:
+            if "frame" in table.columns and len(table):
+                if frame is None:
+                    frame = int(table["frame"].value_counts().idxmax())
+                one = table[table["frame"] == frame]
+                if len(one) == 0:
+                    raise typer.BadParameter(f"no particles in frame {frame}", param_hint="--frame")
+            else:
+                one = table
+            view = dlfc = None
+            if raw is not None:
+                from .calibration import load_calibration
+                from .lightfield import decode
+
+                calib = load_calibration(calib_file)
+                dlfc = calib.dlfc
+                view = decode(_load_frame(raw, raw_frame, calib), calib.grid).view(0, 0)
+            fig = plot_fragment_field(one, view=view, dlfc=dlfc)
+            fig.savefig(targets["--out"], dpi=150, format="png")
+            fig.savefig(targets["--out (pdf)"], format="pdf")
+        if tracks_out is not None:
+            unit = "m/s" if "speed_m_per_s" in table.columns else "mm/frame"
+            fig = plot_tracks(table, speed_unit=unit)
+            fig.savefig(targets["--tracks-out"], dpi=150, format="png")
+            fig.savefig(targets["--tracks-out (pdf)"], format="pdf")
+    console.print("wrote " + ", ".join(str(p) for p in outputs.values()), highlight=False)
+
+
+@app.command()
+@_reports_errors
+def report(
+    table_file: Path = typer.Argument(..., help="Particle table (`locate`) or tracks table (`track`)."),
+    out_file: Path = typer.Option(Path("report.html"), "--out", "-o", help="Self-contained HTML file (plotly.js embedded; opens without network)."),
+    color_by: str = typer.Option("depth", "--color-by", help="Colour of the 3D view: depth or speed (tracks only)."),
+    title: str = typer.Option("plenoptrack report", "--title", help="Page title."),
+) -> None:
+    """Write an interactive HTML report: rotatable 3D particles and tracks, summary table."""
+    from .io import read_table
+    from .report import report_html
+
+    if color_by not in ("depth", "speed"):
+        raise typer.BadParameter(f"must be 'depth' or 'speed'; got {color_by!r}",
+                                 param_hint="--color-by")
+    with _outputs({"--out": out_file}, {"TABLE": table_file}) as (tmp,):
+        table = read_table(table_file)
+        tmp.write_text(report_html(table, color_by=color_by, title=title,
+                                   extra_rows=[("table", str(table_file))]), encoding="utf-8")
+    console.print(f"wrote {out_file}", highlight=False)
 
 
 @app.command()

@@ -18,7 +18,8 @@ from scipy.spatial import cKDTree
 from ._columns import POS_COLUMNS, T_COLUMN
 from .errors import InputFileError, SettingsError
 
-__all__ = ["match_particles", "evaluate_particles", "Evaluation"]
+__all__ = ["match_particles", "evaluate_particles", "Evaluation", "match_track_points",
+           "evaluate_tracks", "TrackEvaluation"]
 
 
 @dataclass(frozen=True)
@@ -128,3 +129,132 @@ def evaluate_particles(measured: pd.DataFrame, truth: pd.DataFrame, *,
         std_error_z=stat(pairs.dz, std),
         rms_error_lateral=stat(np.hypot(pairs.dx, pairs.dy), lambda a: np.sqrt(np.mean(a ** 2))),
     )
+
+
+@dataclass(frozen=True)
+class TrackEvaluation:
+    """Tracks measured against ground truth with particle identities.
+
+    Attributes
+    ----------
+    n_true_links : int
+        Pairs of consecutive detections of one true particle (both matched, at most
+        ``max_gap`` frames apart).
+    n_recovered_links : int
+        Of those, pairs that one track joins.
+    link_recovery : float
+        ``n_recovered_links / n_true_links``.
+    n_false_links : int
+        Consecutive points of a track that are matched to different true particles.
+    velocity_rms_error : float
+        RMS of the 3D velocity error over matched track points, mm per frame.
+    mean_speed : float
+        Mean true speed over those points, mm per frame.
+    z_std_frame, z_std_smooth : float
+        Standard deviation of the depth error (measured minus true, mm) per frame and
+        after track smoothing, over the same points.
+    z_rstd_frame, z_rstd_smooth : float
+        The same as 1.4826 times the median absolute deviation, mm.
+    n_points : int
+        Matched track points.
+    """
+
+    n_true_links: int
+    n_recovered_links: int
+    link_recovery: float
+    n_false_links: int
+    velocity_rms_error: float
+    mean_speed: float
+    z_std_frame: float
+    z_std_smooth: float
+    z_rstd_frame: float
+    z_rstd_smooth: float
+    n_points: int
+
+    def to_dict(self) -> dict:
+        return {k: (None if isinstance(v, float) and not np.isfinite(v) else v)
+                for k, v in asdict(self).items()}
+
+
+def match_track_points(tracks: pd.DataFrame, truth: pd.DataFrame, *,
+                       tolerance_mm: float = 1.0, depth_ratio: float = 3.0) -> pd.Series:
+    """True particle id of every row of ``tracks`` (-1 where none lies within the tolerance).
+
+    Rows are matched per frame, one to one (:func:`match_particles`), on the measured
+    ``x, y`` and ``z / depth_ratio``: within an ellipsoid of half-axes ``tolerance_mm``
+    laterally and ``depth_ratio * tolerance_mm`` in depth, depth differences counting
+    ``1 / depth_ratio`` as much as lateral ones (a plenoptic camera's depth errors are
+    several times its lateral ones; matching on plain 3D distance pairs a point with a
+    large depth error with the particle in front of or behind its own). ``truth`` needs
+    ``frame, particle, x, y, z``.
+    """
+    from ._columns import ID_COLUMN
+
+    if not depth_ratio > 0:
+        raise SettingsError(f"depth_ratio must be positive; got {depth_ratio!r}")
+    pairs = match_particles(tracks.assign(z=tracks["z"] / depth_ratio),
+                            truth.assign(z=truth["z"] / depth_ratio), tolerance_mm=tolerance_mm)
+    ids = pd.Series(-1, index=tracks.index, dtype=np.int64)
+    ids.loc[pairs["measured_index"].to_numpy()] = truth.loc[
+        pairs["truth_index"].to_numpy(), ID_COLUMN].to_numpy(np.int64)
+    return ids
+
+
+def _rstd(a: np.ndarray) -> float:
+    return float(1.4826 * np.median(np.abs(a - np.median(a)))) if len(a) else float("nan")
+
+
+def evaluate_tracks(tracks: pd.DataFrame, truth: pd.DataFrame, *, tolerance_mm: float = 1.0,
+                    depth_ratio: float = 3.0, max_gap: int = 3) -> TrackEvaluation:
+    """Link recovery, velocity and depth errors of ``tracks`` against ``truth``.
+
+    Parameters
+    ----------
+    tracks : DataFrame
+        ``plenoptrack track`` output: ``frame, particle`` (track id), ``x, y, z``,
+        ``z_smooth`` (mm) and ``velocity_x, velocity_y, velocity_z`` (mm per frame).
+    truth : DataFrame
+        ``frame, particle`` (true id), ``x, y, z`` (mm) and
+        ``velocity_x, velocity_y, velocity_z`` (mm per frame), e.g. a simulator truth.
+    tolerance_mm, depth_ratio : float
+        Matching ellipsoid: half-axes ``tolerance_mm`` laterally and ``depth_ratio``
+        times that in depth (:func:`match_track_points`).
+    max_gap : int
+        Largest frame difference of a true link (the tracker's memory plus one).
+    """
+    from ._columns import ID_COLUMN, VELOCITY_COLUMNS
+
+    true_id = match_track_points(tracks, truth, tolerance_mm=tolerance_mm,
+                                 depth_ratio=depth_ratio).to_numpy()
+    t = tracks.assign(_true=true_id)
+    m = t[t["_true"] >= 0].sort_values(["_true", T_COLUMN], kind="stable")
+    tid = m["_true"].to_numpy()
+    fr = m[T_COLUMN].to_numpy()
+    track = m[ID_COLUMN].to_numpy()
+    same = (tid[1:] == tid[:-1]) & (fr[1:] - fr[:-1] <= max_gap)
+    n_true = int(same.sum())
+    n_rec = int((same & (track[1:] == track[:-1])).sum())
+    s = t.sort_values([ID_COLUMN, T_COLUMN], kind="stable")
+    st, sid = s[ID_COLUMN].to_numpy(), s["_true"].to_numpy()
+    consecutive = st[1:] == st[:-1]
+    n_false = int((consecutive & (sid[1:] >= 0) & (sid[:-1] >= 0) & (sid[1:] != sid[:-1])).sum())
+    tv = truth.set_index([T_COLUMN, ID_COLUMN])
+    key = pd.MultiIndex.from_arrays([m[T_COLUMN].to_numpy(), tid])
+    v_true = tv.loc[key, list(VELOCITY_COLUMNS)].to_numpy(float)
+    v_meas = m[list(VELOCITY_COLUMNS)].to_numpy(float)
+    ok = np.isfinite(v_meas).all(axis=1)
+    err = np.sqrt(((v_meas - v_true)[ok] ** 2).sum(axis=1))
+    z_true = tv.loc[key, "z"].to_numpy(float)
+    dz = m["z"].to_numpy(float) - z_true
+    dzs = m["z_smooth"].to_numpy(float) - z_true
+    both = np.isfinite(dz) & np.isfinite(dzs)
+    dz, dzs = dz[both], dzs[both]
+    n = len(dz)
+    std = (lambda a: float(np.std(a, ddof=1))) if n > 1 else (lambda a: float("nan"))
+    return TrackEvaluation(
+        n_true_links=n_true, n_recovered_links=n_rec,
+        link_recovery=n_rec / n_true if n_true else float("nan"), n_false_links=n_false,
+        velocity_rms_error=float(np.sqrt(np.mean(err ** 2))) if len(err) else float("nan"),
+        mean_speed=float(np.sqrt((v_true[ok] ** 2).sum(axis=1)).mean()) if ok.any() else float("nan"),
+        z_std_frame=std(dz), z_std_smooth=std(dzs), z_rstd_frame=_rstd(dz),
+        z_rstd_smooth=_rstd(dzs), n_points=n)

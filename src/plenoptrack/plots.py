@@ -35,7 +35,8 @@ from .lightfield.refocus import best_focus_depth, sharpness
 from .lightfield.views import view_mosaic
 
 __all__ = ["plot_view_mosaic", "plot_view", "plot_particles_3d", "plot_errors_vs_depth",
-           "plot_focal_stack_sharpness"]
+           "plot_focal_stack_sharpness", "plot_fragment_field", "plot_tracks", "outline_points",
+           "plot_study_bins", "plot_study"]
 
 _U_LABEL = "u (sensor px from microlens-image centre)"
 _V_LABEL = "v (sensor px from microlens-image centre)"
@@ -449,3 +450,308 @@ def plot_errors_vs_depth(particles: pd.DataFrame, truth: pd.DataFrame, *,
     ax_std.set_ylim(bottom=0)
     ax_std.grid(alpha=0.3)
     return fig
+
+
+# --------------------------------------------------------------------------------------
+# fragment fields and tracks
+
+
+def outline_points(particles: pd.DataFrame, *, n: int = 48) -> np.ndarray:
+    """Ellipse outlines of particles in the x-y plane, mm.
+
+    Parameters
+    ----------
+    particles : DataFrame
+        Columns ``x, y`` (mm) and ``major_axis, minor_axis`` (full axes, mm) and
+        ``orientation`` (rad, major axis from +x towards +y); without the axes,
+        ``diameter`` (mm) gives circles.
+    n : int
+        Points per outline.
+
+    Returns
+    -------
+    (len(particles), n, 2) float ndarray
+        ``(x, y)`` of each outline point, mm.
+    """
+    x = particles["x"].to_numpy(float)
+    y = particles["y"].to_numpy(float)
+    if {"major_axis", "minor_axis"} <= set(particles.columns):
+        a = particles["major_axis"].to_numpy(float) / 2
+        b = particles["minor_axis"].to_numpy(float) / 2
+    else:
+        a = b = particles["diameter"].to_numpy(float) / 2
+    th = (particles["orientation"].to_numpy(float) if "orientation" in particles.columns
+          else np.zeros(len(x)))
+    th = np.nan_to_num(th)
+    phi = np.linspace(0, 2 * np.pi, n)
+    ca, sa = np.cos(phi)[None, :] * a[:, None], np.sin(phi)[None, :] * b[:, None]
+    ox = x[:, None] + ca * np.cos(th)[:, None] - sa * np.sin(th)[:, None]
+    oy = y[:, None] + ca * np.sin(th)[:, None] + sa * np.cos(th)[:, None]
+    return np.stack([ox, oy], axis=-1)
+
+
+def _area_mm2(particles: pd.DataFrame) -> np.ndarray:
+    """Measured image area of each particle, mm^2 (from ``diameter``, or 1 when absent)."""
+    if "diameter" in particles.columns:
+        d = particles["diameter"].to_numpy(float)
+        return np.where(np.isfinite(d), np.pi * d ** 2 / 4, 0.0)
+    return np.ones(len(particles))
+
+
+def plot_fragment_field(particles: pd.DataFrame, *, view: np.ndarray | None = None,
+                        dlfc=None, cmap: str = "coolwarm",
+                        figsize: tuple[float, float] = (11.0, 8.5)) -> Figure:
+    """The seed paper's Fig. 12: measured fragments in a view and three projections.
+
+    Parameters
+    ----------
+    particles : DataFrame
+        One frame of located particles: ``x, y, z`` (mm) and, for the outlines and
+        marker sizes, ``diameter``, ``major_axis``, ``minor_axis`` (mm) and
+        ``orientation`` (rad), as ``plenoptrack locate`` writes.
+    view : (n_t, n_s) ndarray, optional
+        Central perspective view (``lf.view(0, 0)``) to draw the outlines on; needs
+        ``dlfc``. Without it the outlines are drawn in the x-y plane, mm.
+    dlfc : DLFC, optional
+        Calibration that maps each outline point at the particle's depth into the
+        central view (``dlfc.predict(x, y, z, 0, 0)``).
+    cmap : str
+        Colour map of depth for the outlines (blue near the camera, red far).
+    figsize : (float, float)
+        Figure size, inches.
+
+    Returns
+    -------
+    Figure
+        Axes in this order: top-down view ``x-z`` (top left), isometric 3D view (top
+        right), central view with outlines coloured by depth ``z`` (bottom left, ``s, t``
+        in view px, or ``x, y`` in mm), side view ``z-y`` (bottom right), colour bar of
+        ``z``. In the three projections grey level and marker area are proportional to
+        the measured image area.
+    """
+    particles = _check_table(particles, "particles", POS_COLUMNS)
+    if view is not None and dlfc is None:
+        raise SettingsError("view needs dlfc to place the outlines in it")
+    z = particles["z"].to_numpy(float)
+    finite = z[np.isfinite(z)]
+    zlim = (float(finite.min()), float(finite.max())) if finite.size else (-1.0, 1.0)
+    if zlim[1] <= zlim[0]:
+        zlim = (zlim[0] - 1.0, zlim[1] + 1.0)
+    area = _area_mm2(particles)
+    amax = float(area.max()) if area.size and area.max() > 0 else 1.0
+    sizes = 8 + 220 * area / amax
+    grey = [str(0.75 * (1 - a / amax)) for a in area]     # dark = large
+
+    from matplotlib import colormaps
+    from matplotlib.colors import Normalize
+    from matplotlib.cm import ScalarMappable
+
+    norm = Normalize(*zlim)
+    colours = colormaps[cmap](norm(z))
+    fig = Figure(figsize=figsize, layout="constrained")
+    grid = fig.add_gridspec(2, 2, width_ratios=[1.5, 1], height_ratios=[1, 1.35])
+    ax_top = fig.add_subplot(grid[0, 0])
+    ax_iso = fig.add_subplot(grid[0, 1], projection="3d")
+    ax_view = fig.add_subplot(grid[1, 0])
+    ax_side = fig.add_subplot(grid[1, 1])
+
+    outlines = outline_points(particles)
+    if view is not None:
+        vmin, vmax = _display_limits(np.asarray(view, float))
+        ax_view.imshow(view, cmap="gray", vmin=vmin, vmax=vmax, interpolation="nearest")
+        s_pts, t_pts = dlfc.predict(outlines[..., 0], outlines[..., 1], z[:, None], 0.0, 0.0)
+        pts = np.stack([s_pts, t_pts], axis=-1)
+        ax_view.set_xlabel("s (view px)")
+        ax_view.set_ylabel("t (view px)")
+        ax_view.set_xlim(-0.5, view.shape[1] - 0.5)
+        ax_view.set_ylim(view.shape[0] - 0.5, -0.5)
+        ax_view.set_title("central view, measured outlines coloured by depth")
+    else:
+        pts = outlines
+        ax_view.set_aspect("equal")
+        ax_view.invert_yaxis()
+        ax_view.set_xlabel("x (mm)")
+        ax_view.set_ylabel("y (mm)")
+        ax_view.set_title("front view, measured outlines coloured by depth")
+        ax_view.grid(alpha=0.3)
+    from matplotlib.collections import PolyCollection
+
+    ax_view.add_collection(PolyCollection(list(pts), facecolors="none", edgecolors=colours,
+                                          linewidths=1.4))
+    if view is None:
+        ax_view.autoscale_view()
+        ax_view.invert_yaxis()
+
+    for ax, h, w, title in ((ax_top, "x", "z", "top-down view"), (ax_side, "z", "y", "side view")):
+        ax.scatter(particles[h], particles[w], s=sizes, c=grey, edgecolors="k", linewidths=0.4)
+        ax.set_xlabel(f"{h} (mm)")
+        ax.set_ylabel(f"{w} (mm)")
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+    ax_side.invert_yaxis()                      # y grows downwards, as in the view
+    ax_iso.scatter(particles["x"], particles["z"], particles["y"], s=sizes, c=grey,
+                   edgecolors="k", linewidths=0.3, depthshade=False)
+    ax_iso.set_xlabel("x (mm)")
+    ax_iso.set_ylabel("z (mm)")
+    ax_iso.set_zlabel("y (mm)")
+    ax_iso.invert_zaxis()
+    ax_iso.view_init(elev=25, azim=-55)
+    ax_iso.set_title("isometric view")
+    fig.colorbar(ScalarMappable(norm=norm, cmap=cmap), ax=ax_view, label="z (mm)", shrink=0.85)
+    n = len(particles)
+    fig.suptitle(f"{n} particle{'s' if n != 1 else ''}; grey level and marker size "
+                 "proportional to measured image area")
+    return fig
+
+
+def plot_tracks(tracks: pd.DataFrame, *, cmap: str = "viridis", speed_unit: str = "mm/frame",
+                figsize: tuple[float, float] = (11.0, 8.0)) -> Figure:
+    """3D tracks in three projections coloured by speed, and speed against frame.
+
+    Parameters
+    ----------
+    tracks : DataFrame
+        ``plenoptrack track`` output: ``frame, particle`` and ``x_smooth, y_smooth,
+        z_smooth`` (mm; else ``x, y, z``) and ``speed`` (mm per frame; ``speed_m_per_s``
+        is used when ``speed_unit`` is ``"m/s"``).
+    cmap : str
+        Colour map of the speed.
+    speed_unit : {"mm/frame", "m/s"}
+        Unit of the colours and of the speed panel.
+    figsize : (float, float)
+        Figure size, inches.
+
+    Returns
+    -------
+    Figure
+        Axes: front ``x-y`` (top left), side ``z-y`` (top right), top ``x-z`` (bottom
+        left), speed against frame (bottom right), colour bar of speed. Each track is a
+        line coloured by its speed along the track.
+    """
+    from matplotlib import colormaps
+    from matplotlib.collections import LineCollection
+    from matplotlib.colors import Normalize
+    from matplotlib.cm import ScalarMappable
+
+    cols = ["frame", "particle"]
+    tracks = _check_table(tracks, "tracks", cols)
+    pos = ["x_smooth", "y_smooth", "z_smooth"] if "z_smooth" in tracks.columns else list(POS_COLUMNS)
+    speed_col = {"mm/frame": "speed", "m/s": "speed_m_per_s"}.get(speed_unit)
+    if speed_col is None:
+        raise SettingsError(f"speed_unit must be 'mm/frame' or 'm/s'; got {speed_unit!r}")
+    _check_table(tracks, "tracks", [*pos, speed_col])
+    df = tracks.sort_values(["particle", "frame"], kind="stable")
+    speed = df[speed_col].to_numpy(float)
+    ok = np.isfinite(speed)
+    lo, hi = (np.percentile(speed[ok], [1, 99]) if ok.any() else (0.0, 1.0))
+    norm = Normalize(float(lo), float(hi) if hi > lo else float(lo) + 1.0)
+    cm = colormaps[cmap]
+    fig = Figure(figsize=figsize, layout="constrained")
+    grid = fig.add_gridspec(2, 2, width_ratios=[1.5, 1])
+    ax_xy = fig.add_subplot(grid[0, 0])
+    ax_zy = fig.add_subplot(grid[0, 1], sharey=ax_xy)
+    ax_xz = fig.add_subplot(grid[1, 0], sharex=ax_xy)
+    ax_sp = fig.add_subplot(grid[1, 1])
+    xyz = df[pos].to_numpy(float)
+    pid = df["particle"].to_numpy()
+    same = pid[1:] == pid[:-1]
+    seg_speed = 0.5 * (speed[1:] + speed[:-1])[same]
+    for ax, (i, j), title in ((ax_xy, (0, 1), "front view x-y"), (ax_zy, (2, 1), "side view z-y"),
+                              (ax_xz, (0, 2), "top view x-z")):
+        segs = np.stack([xyz[:-1][same][:, [i, j]], xyz[1:][same][:, [i, j]]], axis=1)
+        lc = LineCollection(segs, colors=cm(norm(seg_speed)), linewidths=1.2)
+        ax.add_collection(lc)
+        ax.scatter(xyz[:, i], xyz[:, j], s=3, c=cm(norm(speed)), edgecolors="none")
+        ax.autoscale_view()
+        ax.set_xlabel(f"{'xyz'[i]} (mm)")
+        ax.set_ylabel(f"{'xyz'[j]} (mm)")
+        ax.set_title(title)
+        ax.grid(alpha=0.3)
+    ax_xy.invert_yaxis()
+    frames = df["frame"].to_numpy(float)
+    segs = np.stack([np.column_stack([frames[:-1], speed[:-1]])[same],
+                     np.column_stack([frames[1:], speed[1:]])[same]], axis=1)
+    ax_sp.add_collection(LineCollection(segs, colors=cm(norm(seg_speed)), linewidths=0.8,
+                                        alpha=0.7))
+    ax_sp.autoscale_view()
+    ax_sp.set_xlabel("frame")
+    ax_sp.set_ylabel(f"speed ({speed_unit})")
+    n_tracks = len(np.unique(pid))
+    ax_sp.set_title(f"speed along {n_tracks} tracks")
+    ax_sp.grid(alpha=0.3)
+    fig.colorbar(ScalarMappable(norm=norm, cmap=cm), ax=[ax_xy, ax_zy, ax_xz],
+                 label=f"speed ({speed_unit})", shrink=0.8)
+    return fig
+
+
+_STUDY_PANELS = {
+    "accuracy": ("depth_mm", "mean", "_mm", "z (mm)", "mean depth error (mm)"),
+    "precision": ("depth_mm", "std", "_mm", "z (mm)", "std of depth error (mm)"),
+    "precision_normalised": ("depth_norm", "std", "_norm",
+                             "z / depth-of-field limit (near < 0, far > 0)",
+                             "std of depth error / object-space microlens pitch"),
+}
+
+
+def plot_study_bins(bins: pd.DataFrame, kind: str = "precision") -> Figure:
+    """Accuracy or precision against depth, one panel per method, shared axes (the
+    layout of figures 9-11 of the method paper).
+
+    Parameters
+    ----------
+    bins : DataFrame
+        Rows of :func:`plenoptrack.study.binned_statistics` with ``method`` and
+        ``configuration`` columns.
+    kind : {"accuracy", "precision", "precision_normalised"}
+        Mean error (mm), standard deviation (mm), or standard deviation over the
+        object-space microlens pitch against depth over the depth-of-field limits. Error
+        bars are the 99 % confidence bounds.
+    """
+    if kind not in _STUDY_PANELS:
+        raise SettingsError(f"kind must be one of {sorted(_STUDY_PANELS)}; got {kind!r}")
+    xcol, stat, unit, xlabel, ylabel = _STUDY_PANELS[kind]
+    methods = list(dict.fromkeys(bins["method"]))
+    configs = list(dict.fromkeys(bins["configuration"]))
+    fig = Figure(figsize=(4.2 * len(methods) + 0.8, 3.8), layout="constrained")
+    axes = fig.subplots(1, len(methods), sharex=True, sharey=True, squeeze=False)[0]
+    for ax, method in zip(axes, methods):
+        for k, cfg in enumerate(configs):
+            b = bins[(bins["method"] == method) & (bins["configuration"] == cfg)]
+            if b.empty:
+                continue
+            y = b[f"{stat}{unit}"].to_numpy(float)
+            lo = y - b[f"{stat}_lo{unit}"].to_numpy(float)
+            hi = b[f"{stat}_hi{unit}"].to_numpy(float) - y
+            ax.errorbar(b[xcol], y, yerr=[lo, hi], fmt="o", ms=3, capsize=2, lw=0.8,
+                        color=f"C{k % 10}", label=cfg)
+        if stat == "mean":
+            ax.axhline(0, color="0.5", lw=0.6)
+        if xcol == "depth_norm":
+            for v in (-1, 1):
+                ax.axvline(v, color="0.6", lw=0.6, ls="--")
+        ax.set_title(method)
+        ax.set_xlabel(xlabel)
+        ax.grid(alpha=0.3)
+    axes[0].set_ylabel(ylabel)
+    if stat == "std":
+        axes[0].set_ylim(bottom=0)
+    if len(configs) > 1:
+        axes[-1].legend(fontsize=7, loc="best")
+    return fig
+
+
+def plot_study(bins: pd.DataFrame, out_dir, *, dof=None) -> list:
+    """Write ``accuracy.png``, ``precision.png`` and ``precision_normalised.png``
+    (:func:`plot_study_bins`) into ``out_dir`` (atomically); returns the paths."""
+    from pathlib import Path
+
+    from .io import atomic_path
+
+    paths = []
+    for kind in _STUDY_PANELS:
+        fig = plot_study_bins(bins, kind)
+        path = Path(out_dir) / f"{kind}.png"
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=120, format="png")
+        paths.append(path)
+    return paths

@@ -15,6 +15,8 @@ Folder layout (the simulator part of the file contract in ``DESIGN.md``)::
                                  add transmission and velocity_x, velocity_y,
                                  velocity_z (mm per frame)
       truth_optics.json          true lenslet grid, MLA perturbation and distortion
+      scene.toml                 built-in scenes only: the scene's parameters (name, frame
+                                 interval, ...); ``--scene scene.toml`` repeats the run
 
 ``truth.parquet`` and ``truth_optics.json`` are ground truth for tests and evaluation;
 nothing on the locating path reads them.
@@ -96,7 +98,8 @@ def _progress(enabled: bool):
 
 
 DATASET_LAYOUT = {
-    ".": ("raw", "white.tif", "dotcards", "camera.toml", "truth.parquet", "truth_optics.json"),
+    ".": ("raw", "white.tif", "dotcards", "camera.toml", "truth.parquet", "truth_optics.json",
+          "scene.toml"),
     "raw": ("frame_*.tif",),
     "dotcards": ("card_*.tif", "dotcards.toml"),
 }
@@ -169,7 +172,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
                      realism: Realism | str | None = None,
                      progress: bool = False, shape: str = "sphere",
                      max_aspect: float = 3.0,
-                     compression: str | None = "zlib") -> SimulationResult:
+                     compression: str | None = "zlib",
+                     scene_params: dict | None = None) -> SimulationResult:
     """Simulate raw frames, a white image and dot cards, with ground truth, into a folder.
 
     Parameters
@@ -234,6 +238,9 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         a noisy ``hall2019`` image about 38 MB instead of 58 MB but takes several
         seconds per image to write and about 2 s to read back; None writes and reads
         it in a fraction of a second (for data sets that are used once and deleted).
+    scene_params : dict, optional
+        Parameters of a built-in scene (:func:`~.scenes.builtin_scene`), written to
+        ``scene.toml``.
 
     Returns
     -------
@@ -313,6 +320,10 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
                          for z, p in zip(depths, placements)]}
         atomic_write_text(tmp / "truth_optics.json", json.dumps(optics_doc, indent=2))
         write_table(target_truth, tmp / "truth.parquet")
+        if scene_params is not None:
+            import tomli_w
+
+            atomic_write_text(tmp / "scene.toml", tomli_w.dumps(scene_params))
         write_tiff(tmp / "white.tif", render_white(
             optics, seed=np.random.default_rng([seed, 2]), samples_per_pixel=samples_per_pixel,
             sensor=sensor), compression=compression)

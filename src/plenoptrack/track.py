@@ -1,0 +1,733 @@
+"""Link 3D particle positions over frames into tracks; velocities, accelerations, statistics.
+
+The pipeline, each step a function that can be called alone:
+
+1. :func:`link_particles` links a particles table (``frame, x, y, z`` mm, with
+   ``sigma_x, sigma_y, sigma_z``) with trackpy: 3D positions, an anisotropic search range
+   (depth errors of a plenoptic camera are several times the lateral ones), memory for
+   frames in which a particle was missed, and :class:`TrackVelocityPredict`, which moves
+   every track along its own latest velocity (ballistic motion). Linking runs twice by
+   default: the second pass starts every new track with the velocity that the first
+   pass measured nearby, so even the first frame pair is linked with a prediction.
+2. :func:`smooth_tracks` fits, at every point of a track, a weighted local polynomial in
+   time (the ``window`` points nearest in time, degree ``order``) to each coordinate,
+   each position weighted by ``1 / sigma^2``; points whose residual is far outside the
+   track's scatter are rejected iteratively. The fit gives the smoothed position (the
+   track-refined depth), velocity and acceleration with their standard uncertainties.
+3. :func:`track_statistics` reduces each track to one row: length, mean position, speed,
+   velocity, size and shape.
+
+Units: positions mm; velocities mm per frame and accelerations mm per frame^2 (with a
+frame interval, speeds also in m/s). Column names follow trackpy (``particle`` is the
+track id). Nothing here reads ground truth.
+
+References
+----------
+D. B. Allan et al., trackpy (Crocker-Grier linking with prediction, memory and anisotropic
+search ranges), https://soft-matter.github.io/trackpy.
+A. Savitzky and M. J. E. Golay, "Smoothing and differentiation of data by simplified least
+squares procedures", Anal. Chem. 36 (1964) 1627-1639 (local polynomial fits).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from dataclasses import asdict, dataclass
+
+import numpy as np
+import pandas as pd
+from scipy.spatial import cKDTree
+
+from ._columns import ID_COLUMN, POS_COLUMNS, T_COLUMN
+from .errors import InputFileError, NoParticlesWarning, SettingsError
+from .io import METADATA_KEY
+
+__all__ = ["TrackSettings", "TrackVelocityPredict", "link_particles", "smooth_tracks",
+           "track_statistics", "track_particles", "TrackResult", "SIGMA_COLUMNS",
+           "SMOOTH_COLUMNS", "VELOCITY_COLUMNS", "ACCELERATION_COLUMNS", "depth_scatter_ratio",
+           "estimate_drift", "tracking_record"]
+
+SIGMA_COLUMNS = ("sigma_x", "sigma_y", "sigma_z")
+"""Standard uncertainties of ``x, y, z`` in a particles table, mm."""
+SMOOTH_COLUMNS = ("x_smooth", "y_smooth", "z_smooth")
+"""Track-smoothed position, mm."""
+SMOOTH_SIGMA_COLUMNS = ("sigma_x_smooth", "sigma_y_smooth", "sigma_z_smooth")
+"""Standard uncertainty of the smoothed position, mm (scaled by the tracks' real scatter)."""
+VELOCITY_COLUMNS = ("velocity_x", "velocity_y", "velocity_z")
+"""Velocity, mm per frame (the names of the simulator's truth columns)."""
+ACCELERATION_COLUMNS = ("acceleration_x", "acceleration_y", "acceleration_z")
+"""Acceleration, mm per frame^2."""
+
+
+@dataclass(frozen=True)
+class TrackSettings:
+    """Settings of linking and smoothing.
+
+    Attributes
+    ----------
+    search_range_mm : (float, float)
+        Largest distance, mm, between a particle and a track's predicted position,
+        laterally (x and y) and in depth (z): an ellipsoidal search region.
+    memory : int
+        Frames a track may miss and still be continued.
+    predict : bool
+        Move each track along its latest velocity before linking (:class:`TrackVelocityPredict`).
+    passes : int
+        Linking passes (1 or 2). With 2 the first pass links with twice the search range
+        only to measure the velocity field; the second starts new tracks with the
+        velocity measured near them in the first.
+    min_length : int
+        Tracks with fewer points are dropped from the output.
+    window : int
+        Points of each local fit (odd numbers centre the window): at least 3 for
+        ``order`` 1, ``2 order + 2`` above; the degree is lowered where fewer points are
+        available.
+    order : int
+        Degree of the local polynomial (1: constant velocity, 2: constant acceleration).
+    clip : float
+        Points whose normalised residual exceeds ``clip`` times its robust scale (1.4826
+        MAD over all tracks) are rejected from the fits; 0 keeps every point.
+    frame_interval_s : float or None
+        Time between frames, s; with it, speeds are also given in m/s.
+    """
+
+    search_range_mm: tuple[float, float] = (1.0, 3.0)
+    memory: int = 2
+    predict: bool = True
+    passes: int = 2
+    min_length: int = 3
+    window: int = 7
+    order: int = 2
+    clip: float = 3.5
+    frame_interval_s: float | None = None
+
+    def __post_init__(self) -> None:
+        sr = tuple(float(v) for v in np.atleast_1d(self.search_range_mm))
+        if len(sr) == 1:
+            sr = (sr[0], sr[0])
+        if len(sr) != 2 or not all(math.isfinite(v) and v > 0 for v in sr):
+            raise SettingsError(f"search_range_mm must be one or two positive lengths (lateral, "
+                                f"depth), mm; got {self.search_range_mm!r}")
+        object.__setattr__(self, "search_range_mm", sr)
+        for name, low in (("memory", 0), ("passes", 1), ("min_length", 1), ("order", 0)):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, np.integer)) and value >= low):
+                raise SettingsError(f"{name} must be an integer >= {low}; got {value!r}")
+        if self.passes > 2:
+            raise SettingsError(f"passes must be 1 or 2; got {self.passes}")
+        if not (isinstance(self.window, (int, np.integer)) and self.window >= self.min_window):
+            raise SettingsError(f"window must be an integer of at least {self.min_window} points "
+                                f"for a fit of order {self.order}; got {self.window!r}")
+        if not (math.isfinite(self.clip) and self.clip >= 0):
+            raise SettingsError(f"clip must be >= 0 (0: no rejection); got {self.clip!r}")
+        if self.frame_interval_s is not None and not (
+                math.isfinite(self.frame_interval_s) and self.frame_interval_s > 0):
+            raise SettingsError(f"frame_interval_s must be positive; got {self.frame_interval_s!r}")
+
+    @property
+    def min_window(self) -> int:
+        """Fewest points a fit of ``order`` uses: 1, 3, then ``2 order + 2``."""
+        return _min_points(self.order)
+
+    def to_dict(self) -> dict:
+        return {k: (list(v) if isinstance(v, tuple) else v) for k, v in asdict(self).items()}
+
+
+def _min_points(degree: int) -> int:
+    """Points with weight a local fit of ``degree`` needs (a constant 1, a line 3, a
+    quadratic 6, a cubic 8): fewer leave too few degrees of freedom to average noise."""
+    return 1 if degree == 0 else 3 if degree == 1 else 2 * degree + 2
+
+
+# --------------------------------------------------------------------------------------
+# prediction
+
+
+class TrackVelocityPredict:
+    """trackpy predictor: each track continues along its own latest velocity.
+
+    A track with two or more points moves by its velocity between its last two points
+    (mm per frame) times the frames since its last point. A track with one point takes
+    the velocity of the nearest entry of a guess field (e.g. the tracks of an earlier
+    linking pass, per frame), else the median velocity of the tracks that have one, else
+    ``drift`` (:func:`estimate_drift`).
+
+    Parameters
+    ----------
+    guess : dict of int to ((n, 3) ndarray, (n, 3) ndarray), optional
+        Per frame, positions (mm) and velocities (mm per frame) of a guess field.
+    drift : (3,) array_like, optional
+        Velocity of tracks with nothing better, mm per frame (default 0).
+    pos_columns : sequence of str
+        Position columns, in the linker's order.
+
+    Notes
+    -----
+    trackpy calls :meth:`predict` with the points of the previous frames (each knows its
+    track) and the frame to predict for, and :meth:`observe` with every linked frame.
+    """
+
+    def __init__(self, guess: dict | None = None, *, drift=None, pos_columns=POS_COLUMNS):
+        self.pos_columns = list(pos_columns)
+        self.guess = {} if guess is None else dict(guess)
+        self.drift = np.zeros(len(self.pos_columns)) if drift is None else np.asarray(drift, float)
+        self._trees = {}
+        self._last: dict[int, tuple[int, np.ndarray]] = {}
+        self._velocity: dict[int, np.ndarray] = {}
+
+    def __repr__(self) -> str:
+        return f"TrackVelocityPredict(guess frames={len(self.guess)}, tracks={len(self._last)})"
+
+    # trackpy's predictor protocol (see trackpy.predict.NullPredict)
+    def link_df(self, features: pd.DataFrame, search_range, **kw) -> pd.DataFrame:
+        """Link ``features`` (one DataFrame, every frame) with this predictor."""
+        from trackpy import linking
+
+        kw["predictor"] = self.predict
+        kw["pos_columns"] = self.pos_columns
+        frames = (frame for _, frame in features.groupby(T_COLUMN, sort=True))
+        out = []
+        for linked in linking.link_df_iter(frames, search_range, **kw):
+            self.observe(linked)
+            out.append(linked)
+        return pd.concat(out) if out else features.assign(**{ID_COLUMN: np.int64(0)})[:0]
+
+    def observe(self, frame: pd.DataFrame) -> None:
+        """Record the positions of a newly linked frame and update track velocities."""
+        t = int(frame[T_COLUMN].iloc[0]) if len(frame) else None
+        pos = frame[self.pos_columns].to_numpy(float)
+        for pid, p in zip(frame[ID_COLUMN].to_numpy(np.int64), pos):
+            prev = self._last.get(int(pid))
+            if prev is not None and t > prev[0]:
+                self._velocity[int(pid)] = (p - prev[1]) / (t - prev[0])
+            self._last[int(pid)] = (t, p)
+
+    def _fallback(self, positions: np.ndarray, t_from: np.ndarray) -> np.ndarray:
+        out = np.zeros_like(positions)
+        if self.guess:
+            for t in np.unique(t_from):
+                g = self.guess.get(int(t))
+                if g is None or len(g[0]) == 0:
+                    continue
+                tree = self._trees.get(int(t))
+                if tree is None:
+                    tree = self._trees[int(t)] = cKDTree(g[0])
+                sel = t_from == t
+                _, k = tree.query(positions[sel])
+                out[sel] = g[1][k]
+            return out
+        if self._velocity:
+            out[:] = np.median(np.array(list(self._velocity.values())), axis=0)
+        else:
+            out[:] = self.drift
+        return out
+
+    def predict(self, t1, particles):
+        """Predicted positions, mm, of trackpy points ``particles`` in frame ``t1``."""
+        particles = list(particles)
+        if not particles:
+            return np.zeros((0, len(self.pos_columns)))
+        pos = np.array([p.pos for p in particles], dtype=float)
+        t0 = np.array([p.t for p in particles], dtype=np.int64)
+        vel = np.full_like(pos, np.nan)
+        for i, p in enumerate(particles):
+            v = self._velocity.get(p.track.id) if p.track is not None else None
+            if v is not None:
+                vel[i] = v
+        missing = np.isnan(vel[:, 0])
+        if missing.any():
+            vel[missing] = self._fallback(pos[missing], t0[missing])
+        return pos + vel * (t1 - t0)[:, None]
+
+
+# --------------------------------------------------------------------------------------
+# linking
+
+
+def _check_particles(particles) -> pd.DataFrame:
+    if not isinstance(particles, pd.DataFrame):
+        raise SettingsError(f"particles must be a pandas DataFrame; got {type(particles).__name__}")
+    missing = [c for c in (T_COLUMN, *POS_COLUMNS) if c not in particles.columns]
+    if missing:
+        raise InputFileError(f"particles table has no column(s) {missing}; expected "
+                             f"{[T_COLUMN, *POS_COLUMNS]} (frame, mm), as `plenoptrack locate` writes")
+    pos = particles[list(POS_COLUMNS)].to_numpy(float)
+    if not np.isfinite(pos).all():
+        raise InputFileError("particles table has non-finite positions; drop those rows first")
+    return particles
+
+
+def estimate_drift(particles: pd.DataFrame, *, max_displacement_mm: float,
+                   bin_mm: float) -> np.ndarray:
+    """Most common displacement between the first two frames, mm per frame.
+
+    Every pair of a particle in the first frame and one in the next frame (``frame``
+    values, divided by their difference) closer than ``max_displacement_mm`` votes for
+    its displacement in a 3D histogram of ``bin_mm`` bins; the mean displacement of the
+    pairs in the fullest bin and its 26 neighbours is returned (the displacement
+    correlation peak of particle tracking velocimetry). Zero when there are fewer than
+    two frames or no pair.
+    """
+    frames = np.unique(particles[T_COLUMN].to_numpy())
+    if len(frames) < 2:
+        return np.zeros(3)
+    f0, f1 = frames[0], frames[1]
+    a = particles.loc[particles[T_COLUMN] == f0, list(POS_COLUMNS)].to_numpy(float)
+    b = particles.loc[particles[T_COLUMN] == f1, list(POS_COLUMNS)].to_numpy(float)
+    pairs = cKDTree(a).query_ball_tree(cKDTree(b), max_displacement_mm)
+    d = np.array([b[j] - a[i] for i, js in enumerate(pairs) for j in js]).reshape(-1, 3)
+    if len(d) == 0:
+        return np.zeros(3)
+    cells = np.floor(d / bin_mm).astype(np.int64)
+    keys, counts = np.unique(cells, axis=0, return_counts=True)
+    best = keys[np.argmax(counts)]
+    near = (np.abs(cells - best) <= 1).all(axis=1)
+    return d[near].mean(axis=0) / float(f1 - f0)
+
+
+def _link_once(particles: pd.DataFrame, settings: TrackSettings, guess) -> np.ndarray:
+    """Track id of every row of ``particles`` (trackpy numbering), one linking pass.
+
+    Without a ``guess`` field the predictor starts from the drift between the first two
+    frames (:func:`estimate_drift`, displacements up to ``5 lateral + depth`` search
+    ranges, bins of half the lateral range).
+    """
+    import trackpy
+
+    lateral, depth = settings.search_range_mm
+    search = (lateral, lateral, depth)
+    feats = particles[[T_COLUMN, *POS_COLUMNS]].copy()
+    feats[T_COLUMN] = feats[T_COLUMN].astype(np.int64)
+    feats["_row"] = np.arange(len(feats))
+    feats = feats.sort_values(T_COLUMN, kind="stable")
+    trackpy.quiet()
+    if settings.predict:
+        drift = None
+        if guess is None:
+            drift = estimate_drift(particles, max_displacement_mm=5 * lateral + depth,
+                                   bin_mm=0.5 * lateral)
+        predictor = TrackVelocityPredict(guess, drift=drift)
+        linked = predictor.link_df(feats, search, memory=settings.memory,
+                                   adaptive_stop=0.1 * lateral, adaptive_step=0.9)
+    else:
+        linked = trackpy.link(feats, search, pos_columns=list(POS_COLUMNS), t_column=T_COLUMN,
+                              memory=settings.memory, adaptive_stop=0.1 * lateral,
+                              adaptive_step=0.9)
+    ids = np.empty(len(feats), dtype=np.int64)
+    ids[linked["_row"].to_numpy()] = linked[ID_COLUMN].to_numpy(np.int64)
+    return ids
+
+
+def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSettings()) -> pd.DataFrame:
+    """Link particles over frames.
+
+    Parameters
+    ----------
+    particles : DataFrame
+        Columns ``frame`` and ``x, y, z`` (mm), e.g. from ``plenoptrack locate``; any
+        other columns are kept. Not changed.
+    settings : TrackSettings
+        Search range, memory, prediction and passes.
+
+    Returns
+    -------
+    DataFrame
+        ``particles`` with a ``particle`` column (track id, from 0, in order of first
+        appearance), sorted by ``particle`` then ``frame``; the index is reset.
+    """
+    particles = _check_particles(particles).reset_index(drop=True)
+    if ID_COLUMN in particles.columns:
+        particles = particles.drop(columns=[ID_COLUMN])
+    if len(particles) == 0:
+        warnings.warn("no particles to link", NoParticlesWarning, stacklevel=2)
+        return particles.assign(**{ID_COLUMN: pd.Series(dtype=np.int64)})
+    first_pass = settings
+    if settings.predict and settings.passes == 2:
+        lateral, depth = settings.search_range_mm
+        first_pass = dataclasses.replace(settings, search_range_mm=(2 * lateral, 2 * depth))
+    ids = _link_once(particles, first_pass, None)
+    if settings.predict and settings.passes == 2:
+        first = smooth_tracks(particles.assign(**{ID_COLUMN: ids}),
+                              TrackSettings(window=5, order=1, clip=0.0, min_length=2))
+        guess = {}
+        for t, grp in first.groupby(T_COLUMN):
+            ok = np.isfinite(grp[VELOCITY_COLUMNS[0]].to_numpy(float))
+            guess[int(t)] = (grp.loc[ok, list(POS_COLUMNS)].to_numpy(float),
+                             grp.loc[ok, list(VELOCITY_COLUMNS)].to_numpy(float))
+        ids = _link_once(particles, settings, guess)
+    # renumber in order of first appearance
+    order = pd.DataFrame({"id": ids, "f": particles[T_COLUMN].to_numpy()}).groupby("id")["f"].min()
+    first_seen = order.sort_values(kind="stable").index.to_numpy()
+    remap = np.empty(ids.max() + 1, dtype=np.int64)
+    remap[first_seen] = np.arange(len(first_seen))
+    out = particles.assign(**{ID_COLUMN: remap[ids]})
+    return out.sort_values([ID_COLUMN, T_COLUMN], kind="stable").reset_index(drop=True)
+
+
+# --------------------------------------------------------------------------------------
+# smoothing
+
+
+def _windows(frames: np.ndarray, starts: np.ndarray, lengths: np.ndarray, k: int) -> np.ndarray:
+    """For each row, the rows of its track that its local fit uses.
+
+    ``frames`` are sorted within each track. A row with ``k // 2`` points on either side
+    uses the ``k`` points centred on it. A row nearer an end of its track, with only
+    ``s < k // 2`` points on that side, uses those ``s`` and ``k - 1 - s + 2 (k // 2 - s)``
+    points on the other side (a derivative at the end of a one-sided window is far less
+    certain than at its centre; the longer window makes up for it). A track of fewer
+    points uses all of them. Unused slots hold -1; the array has ``2 k - 1`` columns.
+    """
+    n = len(frames)
+    half = k // 2
+    width = 2 * k - 1
+    out = np.full((n, width), -1, dtype=np.int64)
+    for s0, m in zip(starts, lengths):
+        for i in range(m):
+            left, right = i, m - 1 - i
+            if min(left, right) >= half:
+                a, b = i - half, i - half + k
+            else:
+                s = min(left, right)
+                long = k - 1 - s + 2 * (half - s)
+                a, b = (i - s, i + long + 1) if left <= right else (i - long, i + s + 1)
+            a, b = max(a, 0), min(b, m)
+            out[s0 + i, :b - a] = s0 + np.arange(a, b)
+    return out
+
+
+def _local_fit(t: np.ndarray, y: np.ndarray, w: np.ndarray, idx: np.ndarray, order: int):
+    """Weighted local polynomial fits at every row.
+
+    Parameters
+    ----------
+    t : (n,) float
+        Frame of every row.
+    y : (n,) float
+        Coordinate, mm.
+    w : (n,) float
+        Weights (``1 / sigma^2``, 0 rejects a point).
+    idx : (n, k) int
+        Window rows of each row (-1: none).
+    order : int
+        Polynomial degree, lowered per row where too few points have weight (a
+        quadratic needs 6, a cubic 8, a line 3): fits with few degrees of freedom follow
+        the noise.
+
+    Returns
+    -------
+    coef : (n, order + 1) float
+        Polynomial coefficients about each row's own time: value, slope, half curvature.
+    smoother : (n, k) float
+        Weights ``L`` with ``value = sum(L * y[idx])`` (for the uncertainty).
+    slope_row : (n, k) float
+        Weights with ``slope = sum(slope_row * y[idx])``.
+    """
+    n, k = idx.shape
+    valid = idx >= 0
+    safe = np.where(valid, idx, 0)
+    dt = np.where(valid, t[safe] - t[:, None], 0.0)
+    ww = np.where(valid, w[safe], 0.0)
+    yy = np.where(valid, y[safe], 0.0)
+    npts = (ww > 0).sum(axis=1)
+    coef = np.full((n, order + 1), np.nan)
+    smoother = np.zeros((n, k))
+    slope_row = np.zeros((n, k))
+    for deg in range(order, -1, -1):
+        rows = npts >= _min_points(deg)
+        rows &= np.isnan(coef[:, 0])
+        if not rows.any():
+            continue
+        A = dt[rows][:, :, None] ** np.arange(deg + 1)           # (m, k, deg+1)
+        W = ww[rows]
+        AtW = A.transpose(0, 2, 1) * W[:, None, :]                 # (m, deg+1, k)
+        G = AtW @ A
+        # scale-free conditioning: a singular normal matrix (repeated times) falls back
+        ok = np.abs(np.linalg.det(G)) > 1e-12 * np.prod(np.diagonal(G, axis1=1, axis2=2), axis=1)
+        Ginv = np.zeros_like(G)
+        Ginv[ok] = np.linalg.inv(G[ok])
+        H = Ginv @ AtW                                             # (m, deg+1, k)
+        c = np.einsum("mjk,mk->mj", H, yy[rows])
+        sel = np.flatnonzero(rows)[ok]
+        coef[sel, :deg + 1] = c[ok]
+        coef[sel, deg + 1:] = 0.0
+        smoother[sel] = H[ok, 0]
+        if deg >= 1:
+            slope_row[sel] = H[ok, 1]
+    return coef, smoother, slope_row
+
+
+def _worst_third(bad: np.ndarray, score: np.ndarray, pid: np.ndarray,
+                 lengths: np.ndarray) -> np.ndarray:
+    """``bad`` limited to the ``floor(n / 3)`` highest-``score`` rows of each track of
+    ``n`` rows (rows sorted by track): a track keeps at least two thirds of its points,
+    enough for every window to fit its degree."""
+    if not bad.any():
+        return bad
+    n = len(bad)
+    order = np.lexsort((-score, pid))            # by track, worst first
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    rank = np.empty(n, dtype=np.int64)
+    rank[order] = np.arange(n) - np.repeat(starts, lengths)
+    return bad & (rank < np.repeat(lengths // 3, lengths))
+
+
+def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings()) -> pd.DataFrame:
+    """Smoothed positions, velocities and accelerations along every track.
+
+    Parameters
+    ----------
+    linked : DataFrame
+        Columns ``frame, particle, x, y, z`` (mm) and optionally ``sigma_x, sigma_y,
+        sigma_z`` (mm; missing or non-positive sigmas count as equal weights). Not changed.
+    settings : TrackSettings
+        ``window``, ``order``, ``clip`` and ``min_length``.
+
+    Returns
+    -------
+    DataFrame
+        ``linked`` (tracks shorter than ``min_length`` dropped), sorted by particle and
+        frame, with columns ``x_smooth, y_smooth, z_smooth`` (mm), ``sigma_x_smooth``,
+        ``sigma_y_smooth``, ``sigma_z_smooth`` (mm), ``velocity_x, velocity_y,
+        velocity_z`` (mm per frame), ``acceleration_x, acceleration_y, acceleration_z``
+        (mm per frame^2; 0 where the fit is linear), ``speed`` (mm per frame), with a
+        frame interval also ``speed_m_per_s``, ``track_length`` (points) and ``outlier``
+        (True for points rejected from the fits in any coordinate). Its
+        ``attrs["plenoptrack"]`` (the provenance :func:`plenoptrack.io.write_table` stores)
+        is that of ``linked`` with a ``tracking`` record added (:func:`tracking_record`).
+
+    Notes
+    -----
+    For each row the ``window`` points of its track nearest in time (fewer in a shorter
+    track) are fitted by weighted least squares with a polynomial of degree ``order``
+    in ``frame - frame_row``, weights ``1 / sigma^2``; the constant term is the smoothed
+    position, the linear term the velocity, twice the quadratic term the acceleration.
+    With ``clip > 0`` the residuals of each coordinate, normalised by
+    ``sigma sqrt(1 - h)`` (``h`` the point's weight in its own fit), are compared with
+    ``clip`` times their robust scale ``s`` (1.4826 MAD over all rows); points beyond are
+    given weight 0 and the fits repeated (three rounds); at most a third of a track's
+    points are rejected (the worst), and tracks shorter than ``order + 4`` points keep
+    every point. The smoothed sigma is
+    ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's weights): ``s`` rescales the
+    locator's sigmas to the scatter the tracks show.
+    """
+    cols = [T_COLUMN, ID_COLUMN, *POS_COLUMNS]
+    missing = [c for c in cols if c not in linked.columns]
+    if missing:
+        raise InputFileError(f"tracks table has no column(s) {missing}; link particles first "
+                             "(`plenoptrack track`)")
+    df = linked.sort_values([ID_COLUMN, T_COLUMN], kind="stable").reset_index(drop=True)
+    sizes = df.groupby(ID_COLUMN, sort=False)[T_COLUMN].transform("size").to_numpy()
+    df = df[sizes >= settings.min_length].reset_index(drop=True)
+    pid = df[ID_COLUMN].to_numpy(np.int64)
+    t = df[T_COLUMN].to_numpy(float)
+    n = len(df)
+    change = np.flatnonzero(np.diff(pid)) + 1 if n else np.zeros(0, np.int64)
+    starts = np.concatenate([[0], change]).astype(np.int64) if n else np.zeros(0, np.int64)
+    lengths = np.diff(np.concatenate([starts, [n]])).astype(np.int64)
+    idx = _windows(t, starts, lengths, settings.window)
+    out = {}
+    outlier = np.zeros(n, dtype=bool)
+    # too short to tell an outlier from the track: no rejection
+    long_track = lengths.repeat(lengths) >= settings.order + 4 if n else np.zeros(0, bool)
+    for axis, c in enumerate(POS_COLUMNS):
+        y = df[c].to_numpy(float)
+        sig_name = SIGMA_COLUMNS[axis]
+        sigma = df[sig_name].to_numpy(float) if sig_name in df.columns else np.ones(n)
+        good = np.isfinite(sigma) & (sigma > 0)
+        fill = np.median(sigma[good]) if good.any() else 1.0
+        sigma = np.where(good, sigma, fill)
+        w0 = 1.0 / sigma ** 2
+        w = w0.copy()
+        scale = 1.0
+        for _round in range(3 if settings.clip > 0 else 1):
+            coef, L, _ = _local_fit(t, y, w, idx, settings.order)
+            h = np.where(idx == np.arange(n)[:, None], L, 0.0).sum(axis=1)
+            resid = (y - coef[:, 0]) / (sigma * np.sqrt(np.clip(1.0 - h, 1e-3, None)))
+            fit_ok = np.isfinite(resid) & (w > 0) & (h < 0.999)
+            if fit_ok.sum() >= 3:
+                scale = float(1.4826 * np.median(np.abs(resid[fit_ok])))
+                scale = scale if scale > 0 else 1.0
+            if settings.clip <= 0:
+                break
+            bad = np.isfinite(resid) & (np.abs(resid) > settings.clip * scale) & long_track
+            bad = _worst_third(bad, np.abs(np.nan_to_num(resid)), pid, lengths)
+            new_w = np.where(bad, 0.0, w0)
+            if np.array_equal(new_w, w):
+                break
+            w = new_w
+        lost = np.isnan(coef[:, 0])
+        if lost.any():     # every point of the window rejected: fit them all, unweighted by it
+            coef_all, L_all, _ = _local_fit(t, y, w0, idx, settings.order)
+            coef[lost], L[lost] = coef_all[lost], L_all[lost]
+        outlier |= w == 0
+        valid = idx >= 0
+        sig_win = np.where(valid, sigma[np.where(valid, idx, 0)], 0.0)
+        out[SMOOTH_COLUMNS[axis]] = coef[:, 0]
+        out[SMOOTH_SIGMA_COLUMNS[axis]] = scale * np.sqrt((L ** 2 * sig_win ** 2).sum(axis=1))
+        out[VELOCITY_COLUMNS[axis]] = coef[:, 1] if coef.shape[1] > 1 else np.zeros(n)
+        out[ACCELERATION_COLUMNS[axis]] = 2 * coef[:, 2] if coef.shape[1] > 2 else np.zeros(n)
+        out[f"_scale_{c}"] = np.full(n, scale)
+    res = df.assign(**{k: v for k, v in out.items() if not k.startswith("_")})
+    v = res[list(VELOCITY_COLUMNS)].to_numpy(float)
+    res["speed"] = np.sqrt((v ** 2).sum(axis=1))
+    if settings.frame_interval_s is not None:
+        res["speed_m_per_s"] = res["speed"] / settings.frame_interval_s * 1e-3
+    res["track_length"] = lengths.repeat(lengths) if n else np.zeros(0, np.int64)
+    res["outlier"] = outlier
+    scale = {c: float(out[f"_scale_{c}"][0]) if n else float("nan") for c in POS_COLUMNS}
+    res.attrs = {METADATA_KEY: {**(linked.attrs.get(METADATA_KEY) or {}),
+                                "tracking": {"settings": settings.to_dict(),
+                                             "scatter_scale": scale}}}
+    return res
+
+
+def tracking_record(tracks: pd.DataFrame) -> dict:
+    """The tracking part of a tracks table's provenance: ``settings`` and
+    ``scatter_scale`` (per axis, the tracks' scatter over the locator's sigmas); {} when
+    absent."""
+    return (tracks.attrs.get(METADATA_KEY) or {}).get("tracking") or {}
+
+
+def depth_scatter_ratio(tracks: pd.DataFrame) -> float:
+    """Estimated per-frame depth scatter over track-smoothed depth scatter (median over rows).
+
+    The per-frame scatter of a row is its ``sigma_z`` times the tracks' scatter scale
+    (:func:`tracking_record`, 1 when absent); the smoothed one is
+    ``sigma_z_smooth``. Without ``sigma_z`` every row counts as equally uncertain.
+    """
+    if len(tracks) == 0:
+        return float("nan")
+    scale = tracking_record(tracks).get("scatter_scale", {}).get("z", 1.0)
+    sig = tracks["sigma_z"].to_numpy(float) if "sigma_z" in tracks.columns else None
+    smooth = tracks["sigma_z_smooth"].to_numpy(float)
+    if sig is None:
+        # equal weights: per-frame scatter is the scale itself (sigma = 1 after filling)
+        sig = np.ones(len(tracks))
+    ok = np.isfinite(sig) & np.isfinite(smooth) & (smooth > 0)
+    return float(np.median(scale * sig[ok] / smooth[ok])) if ok.any() else float("nan")
+
+
+# --------------------------------------------------------------------------------------
+# statistics
+
+
+def track_statistics(tracks: pd.DataFrame, *, frame_interval_s: float | None = None) -> pd.DataFrame:
+    """One row per track: extent in time, mean position, speed, size and shape.
+
+    Parameters
+    ----------
+    tracks : DataFrame
+        Output of :func:`smooth_tracks`.
+    frame_interval_s : float, optional
+        Time between frames, s; adds ``speed_m_per_s`` (the mean speed).
+
+    Returns
+    -------
+    DataFrame
+        Columns ``particle``, ``n_frames``, ``first_frame``, ``last_frame``, ``x, y, z``
+        (mean smoothed position, mm), ``velocity_x, velocity_y, velocity_z`` (mean, mm
+        per frame), ``speed`` (mean, mm per frame), ``speed_sd`` (mm per frame),
+        ``acceleration`` (mean magnitude, mm per frame^2), ``n_outliers``; with the
+        locator's size columns also ``diameter`` (median equivalent diameter, mm),
+        ``major_axis``, ``minor_axis`` (median, mm), ``aspect`` (median major over minor)
+        and ``orientation`` (axial mean, rad).
+    """
+    need = [ID_COLUMN, T_COLUMN, *SMOOTH_COLUMNS, *VELOCITY_COLUMNS, "speed"]
+    missing = [c for c in need if c not in tracks.columns]
+    if missing:
+        raise InputFileError(f"tracks table has no column(s) {missing}; make it with "
+                             "`plenoptrack track` (or smooth_tracks)")
+    df = tracks.copy()
+    acc = df[list(ACCELERATION_COLUMNS)].to_numpy(float) if set(ACCELERATION_COLUMNS) <= set(
+        df.columns) else np.zeros((len(df), 3))
+    df["_acc"] = np.sqrt((acc ** 2).sum(axis=1))
+    df["_out"] = df["outlier"].astype(int) if "outlier" in df.columns else 0
+    g = df.groupby(ID_COLUMN, sort=True)
+    stats = pd.DataFrame({
+        "n_frames": g[T_COLUMN].size(), "first_frame": g[T_COLUMN].min(),
+        "last_frame": g[T_COLUMN].max(),
+        **{c: g[s].mean() for c, s in zip(POS_COLUMNS, SMOOTH_COLUMNS)},
+        **{c: g[c].mean() for c in VELOCITY_COLUMNS},
+        "speed": g["speed"].mean(), "speed_sd": g["speed"].std(ddof=1).fillna(0.0),
+        "acceleration": g["_acc"].mean(), "n_outliers": g["_out"].sum()})
+    if frame_interval_s is not None:
+        stats["speed_m_per_s"] = stats["speed"] / frame_interval_s * 1e-3
+    if "diameter" in df.columns:
+        stats["diameter"] = g["diameter"].median()
+    if "major_axis" in df.columns and "minor_axis" in df.columns:
+        stats["major_axis"] = g["major_axis"].median()
+        stats["minor_axis"] = g["minor_axis"].median()
+        with np.errstate(divide="ignore", invalid="ignore"):
+            df["_aspect"] = df["major_axis"] / df["minor_axis"]
+        stats["aspect"] = df.groupby(ID_COLUMN, sort=True)["_aspect"].median()
+    if "orientation" in df.columns:
+        th = df["orientation"].to_numpy(float)
+        df["_c2"], df["_s2"] = np.cos(2 * th), np.sin(2 * th)
+        g2 = df.groupby(ID_COLUMN, sort=True)
+        stats["orientation"] = 0.5 * np.arctan2(g2["_s2"].mean(), g2["_c2"].mean())
+    return stats.reset_index()
+
+
+# --------------------------------------------------------------------------------------
+# the whole step
+
+
+@dataclass(frozen=True)
+class TrackResult:
+    """Tracks of a particles table.
+
+    Attributes
+    ----------
+    tracks : DataFrame
+        One row per particle and frame (:func:`smooth_tracks`).
+    statistics : DataFrame
+        One row per track (:func:`track_statistics`).
+    n_input : int
+        Rows of the particles table.
+    depth_scatter_ratio : float
+        Estimated per-frame over smoothed depth scatter (:func:`depth_scatter_ratio`).
+    settings : TrackSettings
+    """
+
+    tracks: pd.DataFrame
+    statistics: pd.DataFrame
+    n_input: int
+    depth_scatter_ratio: float
+    settings: TrackSettings
+
+    def summary(self) -> dict:
+        """Numbers for a report: counts, lengths, speeds and the depth refinement."""
+        st = self.statistics
+        out = {"particles in": self.n_input, "tracks": len(st),
+               "points in tracks": len(self.tracks),
+               "mean track length (frames)": float(st["n_frames"].mean()) if len(st) else 0.0,
+               "outliers rejected": int(self.tracks["outlier"].sum()) if len(self.tracks) else 0,
+               "median speed (mm/frame)": float(st["speed"].median()) if len(st) else float("nan"),
+               "depth scatter, per frame / track-smoothed (estimated)": self.depth_scatter_ratio}
+        if self.settings.frame_interval_s is not None and len(st):
+            out["median speed (m/s)"] = float(st["speed_m_per_s"].median())
+        return out
+
+
+def track_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSettings()) -> TrackResult:
+    """Link, smooth and summarise: :func:`link_particles`, :func:`smooth_tracks`,
+    :func:`track_statistics`.
+
+    Examples
+    --------
+    >>> import numpy as np, pandas as pd
+    >>> f = np.repeat(np.arange(6), 2)
+    >>> p = pd.DataFrame({"frame": f, "x": np.tile([0.0, 5.0], 6) + 0.5 * f,
+    ...                   "y": 0.0, "z": np.tile([0.0, 2.0], 6)})
+    >>> result = track_particles(p)
+    >>> len(result.statistics), round(float(result.statistics["speed"].iloc[0]), 3)
+    (2, 0.5)
+    """
+    linked = link_particles(particles, settings)
+    tracks = smooth_tracks(linked, settings)
+    stats = track_statistics(tracks, frame_interval_s=settings.frame_interval_s)
+    return TrackResult(tracks=tracks, statistics=stats, n_input=len(particles),
+                       depth_scatter_ratio=depth_scatter_ratio(tracks), settings=settings)

@@ -1,0 +1,177 @@
+"""Tracking: linking against the truth's particle ids, the predictor, the anisotropic search
+range, memory, the local-polynomial smoother and per-track statistics.
+
+Tables are truth plus noise of the locator's size (lateral 0.04 mm, depth 0.12 mm with 5 %
+outliers of 1 mm, 10 % of the detections missed), no rendering.
+"""
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from plenoptrack.errors import InputFileError, SettingsError
+from plenoptrack.evaluate import evaluate_tracks
+from plenoptrack.simulate.scenes import FragmentField, VortexRing, fragment_field_scene, vortex_ring_scene
+from plenoptrack.track import (TrackSettings, estimate_drift, link_particles, smooth_tracks,
+                               track_particles, track_statistics)
+
+VEL = ["velocity_x", "velocity_y", "velocity_z"]
+
+
+def noisy(truth, *, seed=0, lateral=0.04, depth=0.12, outliers=0.05, missed=0.10):
+    """Truth rows with located-like noise and sigmas (ids and velocities removed)."""
+    rng = np.random.default_rng(seed)
+    m = truth.copy()
+    n = len(m)
+    m["sigma_x"] = m["sigma_y"] = lateral * rng.uniform(0.5, 1.5, n) / 3   # sigmas too small,
+    m["sigma_z"] = depth * rng.uniform(0.5, 1.5, n) / 3                    # as the locator's are
+    m["x"] += rng.standard_normal(n) * lateral
+    m["y"] += rng.standard_normal(n) * lateral
+    dz = rng.standard_normal(n) * depth
+    bad = rng.random(n) < outliers
+    dz[bad] = rng.standard_normal(bad.sum())
+    m["z"] += dz
+    m = m[rng.random(n) >= missed]
+    return m.drop(columns=["particle", *[c for c in VEL if c in m.columns]]).reset_index(drop=True)
+
+
+@pytest.fixture(scope="module")
+def vortex():
+    return vortex_ring_scene(VortexRing(n_particles=200, frames=12)).truth
+
+
+@pytest.fixture(scope="module")
+def vortex_tracks(vortex):
+    return track_particles(noisy(vortex), TrackSettings(frame_interval_s=1e-3))
+
+
+def test_vortex_links_velocities_and_depth_against_truth(vortex, vortex_tracks):
+    ev = evaluate_tracks(vortex_tracks.tracks, vortex, tolerance_mm=2.0)
+    assert ev.n_true_links > 1500
+    assert ev.link_recovery >= 0.98
+    assert ev.n_false_links <= 0.01 * ev.n_true_links
+    assert ev.velocity_rms_error <= 0.04 * ev.mean_speed
+    assert ev.z_std_frame / ev.z_std_smooth >= 1.5
+    assert ev.z_rstd_frame / ev.z_rstd_smooth >= 1.3
+    # the estimate of the scatter reduction (no truth) is of the measured size
+    assert 1.2 <= vortex_tracks.depth_scatter_ratio <= 2.5
+    # speeds in m/s: mm per frame over 1 ms
+    t = vortex_tracks.tracks
+    np.testing.assert_allclose(t["speed_m_per_s"], t["speed"] / 1e-3 * 1e-3)
+
+
+@pytest.mark.parametrize("density", [100, 400])
+def test_vortex_linking_at_other_densities(density):
+    truth = vortex_ring_scene(VortexRing(n_particles=density, frames=8, seed=1)).truth
+    res = track_particles(noisy(truth, seed=1))
+    ev = evaluate_tracks(res.tracks, truth, tolerance_mm=2.0)
+    assert ev.link_recovery >= (0.98 if density == 100 else 0.95)
+
+
+def test_prediction_is_what_links_fast_crowded_particles(vortex):
+    truth = vortex[vortex["frame"] < 8]
+    meas = noisy(truth, seed=2)
+    with_pred = evaluate_tracks(track_particles(meas).tracks, truth, tolerance_mm=2.0)
+    without = evaluate_tracks(track_particles(meas, TrackSettings(
+        predict=False, passes=1, search_range_mm=(3.5, 4.0))).tracks, truth, tolerance_mm=2.0)
+    assert with_pred.link_recovery > without.link_recovery + 0.05
+
+
+def test_fragments_are_tracked_ballistically():
+    truth = fragment_field_scene(FragmentField(n_fragments=16, frames=6, seed=3)).truth
+    meas = noisy(truth, seed=3, missed=0.0, outliers=0.0)
+    meas["diameter"] = np.sqrt(4 * truth["projected_area"].to_numpy() / np.pi)
+    res = track_particles(meas, TrackSettings(order=1, window=6, search_range_mm=(1.5, 3.0),
+                                              frame_interval_s=2.5e-6))
+    ev = evaluate_tracks(res.tracks, truth, tolerance_mm=2.0)
+    assert ev.link_recovery == 1.0 and ev.n_false_links == 0
+    st = res.statistics
+    assert len(st) == 16 and (st["n_frames"] == 6).all()
+    true_speed = np.linalg.norm(truth.groupby("particle")[VEL].first().to_numpy(), axis=1)
+    # match tracks to fragments by their mean position
+    true_mean = truth.groupby("particle")[["x", "y", "z"]].mean().to_numpy()
+    k = np.argmin(np.linalg.norm(st[["x", "y", "z"]].to_numpy()[:, None] - true_mean[None], axis=-1), axis=1)
+    assert len(set(k)) == 16
+    np.testing.assert_allclose(st["speed"], true_speed[k], rtol=0.02)
+    assert st["speed_m_per_s"].between(500 * 0.97, 1000 * 1.03).all()
+
+
+def test_anisotropic_search_range_and_memory():
+    # one particle jumps 2 mm in depth (linked: depth range 3 mm), another 2 mm sideways
+    # (not linked: lateral range 1 mm); a third misses frame 2 (bridged by memory 1)
+    rows = []
+    for f in range(5):
+        rows.append((f, 0.0, 0.0, 2.0 * (f == 3)))
+        rows.append((f, 20.0 + 2.0 * (f >= 3), 0.0, 0.0))
+        if f != 2:
+            rows.append((f, 40.0, 5.0, 0.0))
+    p = pd.DataFrame(rows, columns=["frame", "x", "y", "z"])
+    linked = link_particles(p, TrackSettings(predict=False, passes=1, memory=1,
+                                             search_range_mm=(1.0, 3.0)))
+    ids = linked.groupby("particle")["x"].agg(["min", "max", "size"])
+    by_x = {round(r["min"]): r for _, r in ids.iterrows()}
+    assert by_x[0]["size"] == 5                       # depth jump linked
+    assert by_x[20]["size"] == 3 and by_x[22]["size"] == 2   # lateral jump split
+    assert by_x[40]["size"] == 4                      # gap bridged
+    no_memory = link_particles(p, TrackSettings(predict=False, passes=1, memory=0))
+    assert no_memory.loc[no_memory["x"] == 40.0, "particle"].nunique() == 2
+
+
+def test_smoother_is_exact_on_polynomials_and_weights_by_sigma():
+    f = np.arange(10)
+    x = 1.0 + 0.5 * f - 0.03 * f ** 2
+    t = pd.DataFrame({"frame": f, "particle": 0, "x": x, "y": 2.0 * f, "z": -f + 0.0,
+                      "sigma_x": 0.1, "sigma_y": 0.1, "sigma_z": 0.3})
+    s = smooth_tracks(t, TrackSettings(window=6, order=2, clip=0))
+    np.testing.assert_allclose(s["x_smooth"], x, atol=1e-9)
+    np.testing.assert_allclose(s["velocity_x"], 0.5 - 0.06 * f, atol=1e-9)
+    np.testing.assert_allclose(s["acceleration_x"], -0.06, atol=1e-9)
+    np.testing.assert_allclose(s["velocity_y"], 2.0, atol=1e-9)
+    # a point with a huge sigma hardly moves the fit; with equal sigmas it would
+    bumped = t.assign(z=t["z"] + np.where(f == 5, 3.0, 0.0))
+    heavy = bumped.assign(sigma_z=np.where(f == 5, 100.0, 0.3))
+    equal = smooth_tracks(bumped, TrackSettings(window=5, order=1, clip=0))
+    weighted = smooth_tracks(heavy, TrackSettings(window=5, order=1, clip=0))
+    assert abs(weighted.loc[5, "z_smooth"] - (-5.0)) < 0.01
+    assert abs(equal.loc[5, "z_smooth"] - (-5.0)) > 0.3
+
+
+def test_smoother_rejects_outliers_and_keeps_a_smoothed_value():
+    rng = np.random.default_rng(4)
+    f = np.arange(30)
+    z = 0.1 * f + rng.normal(0, 0.05, 30)
+    z[12] += 2.0
+    t = pd.DataFrame({"frame": f, "particle": 0, "x": 0.0, "y": 0.0, "z": z})
+    s = smooth_tracks(t, TrackSettings(window=7, order=1))
+    assert s["outlier"].to_numpy().nonzero()[0].tolist() == [12]
+    assert abs(s.loc[12, "z_smooth"] - 1.2) < 0.1
+    assert s["track_length"].eq(30).all()
+
+
+def test_drift_estimate_and_statistics():
+    rng = np.random.default_rng(5)
+    a = rng.uniform(-10, 10, (80, 3))
+    p = pd.DataFrame(np.vstack([a, a + [1.5, -0.5, 0.8] + rng.normal(0, 0.02, (80, 3))]),
+                     columns=["x", "y", "z"]).assign(frame=np.repeat([0, 1], 80))
+    np.testing.assert_allclose(estimate_drift(p, max_displacement_mm=4, bin_mm=0.3),
+                               [1.5, -0.5, 0.8], atol=0.03)
+    t = pd.DataFrame({"frame": np.tile(np.arange(4), 2), "particle": np.repeat([0, 1], 4),
+                      "x": np.r_[np.arange(4.0), np.zeros(4)], "y": 0.0, "z": 0.0,
+                      "diameter": [1.0, 1.2, 1.1, 9.0, 2, 2, 2, 2],
+                      "major_axis": 2.0, "minor_axis": 1.0,
+                      "orientation": [0.1, -0.1, np.pi / 2 - 0.05, -np.pi / 2 + 0.05, 0, 0, 0, 0]})
+    st = track_statistics(smooth_tracks(t, TrackSettings(window=3, order=1, clip=0)))
+    assert st["speed"].tolist() == pytest.approx([1.0, 0.0])
+    assert st["diameter"].tolist() == pytest.approx([1.15, 2.0])    # median: robust to 9.0
+    assert st["aspect"].tolist() == pytest.approx([2.0, 2.0])
+
+
+def test_bad_input():
+    with pytest.raises(InputFileError, match="no column"):
+        link_particles(pd.DataFrame({"frame": [0], "x": [0.0]}))
+    with pytest.raises(SettingsError, match="search_range_mm"):
+        TrackSettings(search_range_mm=(1.0, -2.0))
+    with pytest.raises(SettingsError, match="window"):
+        TrackSettings(window=5, order=2)
+    with pytest.raises(InputFileError, match="non-finite"):
+        link_particles(pd.DataFrame({"frame": [0, 1], "x": [0.0, np.nan], "y": 0.0, "z": 0.0}))
