@@ -202,7 +202,7 @@ def paper_grid(camera: CameraSpec, *, magnifications=(0.25, 0.4, 0.5, 0.75),
 # --- the rigid field ------------------------------------------------------------------
 
 def coarse_to_fine(n: int) -> np.ndarray:
-    """Indices ``0 .. n-1`` ordered coarse to fine (the ends, the middle, the quarters,
+    """Indices ``0`` to ``n - 1`` ordered coarse to fine (the ends, the middle, the quarters,
     ...), so that any leading part of the order spans the whole range evenly."""
     order, seen = [], set()
     step = 1 << max(n - 1, 1).bit_length()
