@@ -23,7 +23,7 @@ from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
 PAGES = ["install.md", "guide/experiment.md", "guide/calibration.md", "guide/locating.md",
-         "guide/uncertainty.md", "guide/tracking.md", "batch.md"]
+         "guide/uncertainty.md", "guide/tracking.md"]
 _BLOCK = re.compile(r"^( *)```bash\n(.*?)^ *```", re.S | re.M)
 
 
