@@ -301,3 +301,20 @@ def test_worker_killed_mid_batch_still_completes(data, cluster, tmp_path):
     assert_same_rows(read_batch(tmp_path / "out"), expected(reference, n_frames))
     assert leftovers(tmp_path / "out") == []
     assert killed[0] not in cluster.run(os.getpid).values()
+
+
+def test_other_methods_and_tracking_at_the_end(data, cluster, tmp_path):
+    """--method hybrid gives the rows of `locate --method hybrid`; --track writes the
+    linked tracks beside the folder."""
+    root, images, _ = data
+    ok("locate", *images, "--calib", root / "calib.json", "--method", "hybrid",
+       "--out", tmp_path / "hybrid.parquet")
+    wanted = read_table(tmp_path / "hybrid.parquet")
+    out = tmp_path / "out"
+    res = ok("batch", root / "raw" / "img_*.tif", "--calib", root / "calib.json", "--out", out,
+             "--method", "hybrid", "--track", "--scheduler", cluster.scheduler_info()["address"])
+    assert_same_rows(read_batch(out), wanted)
+    assert read_batch(out).attrs["plenoptrack"]["method"] == "hybrid"
+    tracks = read_table(tmp_path / "out-tracks.parquet")
+    assert "particle" in tracks.columns and set(tracks["frame"]) <= set(wanted["frame"])
+    assert "out-tracks.parquet" in res.stderr

@@ -97,11 +97,31 @@ def _locate_perspective(image: np.ndarray, calibration, *, frame: int, settings,
     return locate_frame(image, calibration, frame=frame, locator=settings, white=white).particles
 
 
-METHODS: dict[str, Callable[..., pd.DataFrame]] = {"perspective": _locate_perspective}
+def _locate_refocus(image: np.ndarray, calibration, *, frame: int, settings,
+                    white) -> pd.DataFrame:
+    """Particles of one frame by the refocusing baseline (:func:`locate_frame_refocus`)."""
+    from .locate.refocusing import locate_frame_refocus
+
+    return locate_frame_refocus(image, calibration, frame=frame, locator=settings,
+                                white=white).particles
+
+
+def _locate_hybrid(image: np.ndarray, calibration, *, frame: int, settings,
+                   white) -> pd.DataFrame:
+    """Particles of one frame by the hybrid method (:func:`locate_frame_hybrid`)."""
+    from .locate.refocusing import locate_frame_hybrid
+
+    return locate_frame_hybrid(image, calibration, frame=frame, locator=settings,
+                               white=white).particles
+
+
+METHODS: dict[str, Callable[..., pd.DataFrame]] = {"perspective": _locate_perspective,
+                                                   "refocus": _locate_refocus,
+                                                   "hybrid": _locate_hybrid}
 """Locating methods by name. Each is a function ``(image, calibration, *, frame, settings,
 white) -> particles DataFrame`` of one raw ``(rows, cols)`` frame, where ``settings`` is the
-method's settings object (with ``to_dict()`` and ``digest()``) and ``white`` the decoded
-white image or None."""
+method's settings object (with ``to_dict()``) and ``white`` the decoded white image or
+None."""
 
 
 def _default_settings(method: str):
@@ -109,6 +129,10 @@ def _default_settings(method: str):
         from .locate import PerspectiveLocator
 
         return PerspectiveLocator()
+    if method in ("refocus", "hybrid"):
+        from .locate.refocusing import HybridLocator, RefocusLocator
+
+        return RefocusLocator() if method == "refocus" else HybridLocator()
     raise UsageError(f"method must be one of {sorted(METHODS)}; got {method!r}")
 
 
@@ -241,7 +265,9 @@ def batch_config(out_dir: str | Path, calibration_file: str | Path, *,
     white_file = None if white_file is None else Path(white_file).resolve()
     record = provenance(method=method, settings=settings.to_dict(), calibration=calibration,
                         calibration_file=calibration_file, white_file=white_file)
-    identity = {"method": method, "settings": settings.digest(),
+    digest = hashlib.sha256(json.dumps(settings.to_dict(), sort_keys=True,
+                                       default=str).encode()).hexdigest()[:16]
+    identity = {"method": method, "settings": digest,
                 "calibration": record["calibration"]["sha256"],
                 "white": None if white_file is None else record["flat_field"]["sha256"],
                 "package_version": __version__}

@@ -655,9 +655,11 @@ def batch(
     scheduler: Optional[str] = typer.Option(None, "--scheduler", help="Use the running dask.distributed cluster at this address (tcp://HOST:PORT) instead of a local one."),
     memory_limit: str = typer.Option("3GB", "--memory-limit", help="Memory bound of each local worker; a worker above it is restarted and its frame retried."),
     config: Optional[Path] = typer.Option(None, "--config", "-c", help="Locator settings (TOML; `plenoptrack settings` writes every default)."),
-    method: str = typer.Option("perspective", "--method", help="Locating method: perspective."),
+    method: str = typer.Option("perspective", "--method", help="Locating method: perspective, refocus or hybrid (as for `locate`)."),
+    stack_planes: int = typer.Option(100, "--stack-planes", min=3, help="Focal-stack planes of --method refocus (at least 3)."),
     white: Optional[Path] = typer.Option(None, "--white", "-w", help="White (flat-field) image to divide every frame by (default: the one the calibration file records)."),
     flat_field: bool = typer.Option(True, "--flat-field/--no-flat-field", help="Divide every frame by the white image."),
+    track_result: bool = typer.Option(False, "--track", help="When every frame is done, link the whole result into 3D tracks (`plenoptrack track` defaults) and write OUT-tracks.parquet beside the folder."),
 ) -> None:
     """Locate the particles of many images on a Dask cluster, resumably, one part per frame.
 
@@ -689,9 +691,11 @@ def batch(
         if not matches:
             raise typer.BadParameter(f"{pattern!r} matches no file", param_hint="RAW")
         files += [Path(m) for m in matches]
-    check_outputs({"--out": out_dir}, {"RAW": files, "--calib": calib_file, "--white": white,
-                                       "--config": config}, folders=["--out"])
-    locator = _locator_settings(config)
+    tracks_file = out_dir.with_name(out_dir.name + "-tracks.parquet") if track_result else None
+    check_outputs({"--out": out_dir, "--track": tracks_file},
+                  {"RAW": files, "--calib": calib_file, "--white": white, "--config": config},
+                  folders=["--out"])
+    locator = _method_locator(method, _locator_settings(config), stack_planes)
     calib = load_calibration(calib_file)
     calib.dlfc  # refuse a calibration without a DLFC before any work
     if flat_field and white is None:
@@ -736,9 +740,19 @@ def batch(
                f"particles), {result.skipped} already done, {result.failed} failed; "
                f"{result.seconds:.1f} s; wrote {out_dir}")
     if result.failed:
-        _error_line(f"{summary}; the failed frames are listed in {out_dir / batch_mod.FAILURES_FILE}")
+        _error_line(f"{summary}; the failed frames are listed in {out_dir / batch_mod.FAILURES_FILE}"
+                    + ("; not tracked" if track_result else ""))
         raise typer.Exit(code=1)
     console.print(summary, highlight=False, soft_wrap=True)
+    if tracks_file is not None:
+        from .io import write_table
+        from .track import track_particles
+
+        tracks = track_particles(batch_mod.read_batch(out_dir)).tracks
+        write_table(tracks, tracks_file)
+        n_tracks = tracks["particle"].nunique() if len(tracks) else 0
+        console.print(f"{n_tracks} track(s); wrote {tracks_file}", highlight=False,
+                      soft_wrap=True)
 
 
 @app.command("settings")
