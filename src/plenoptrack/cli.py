@@ -573,13 +573,13 @@ def _locator_settings(config: Path | None, **flags):
     return locator.updated(changes, source="command line")
 
 
-def _flat_field_white(calib, calib_file: Path, white: Path | None):
-    """The white image file and its decoded light field to flat-field the frames with, or
-    (None, None) (warned)."""
+def _white_image(calib, calib_file: Path, white: Path | None):
+    """The white image to flat-field with, read and checked against the calibration: the
+    given file or the one the calibration records; (None, None) with a warning when the
+    recorded one is missing or changed."""
     from .calibration import find_white
     from .errors import FlatFieldWarning
     from .io import read_raw, warn_exposure
-    from .lightfield import decode
 
     if white is None:
         white, why = find_white(calib, calib_file)
@@ -587,12 +587,21 @@ def _flat_field_white(calib, calib_file: Path, white: Path | None):
             warnings.warn(f"{why}: frames are not flat-fielded, so dust shadows and dead "
                           "pixels may be taken for particles; pass the white image with "
                           "--white (or --no-flat-field to locate without one)",
-                          FlatFieldWarning, stacklevel=2)
+                          FlatFieldWarning, stacklevel=3)
             return None, None
     image = read_raw(white)
     calib.check_image(image, source=str(white))
     warn_exposure(image, calib.camera.full_scale, source=f"white image {white}")
-    return white, decode(image, calib.grid)
+    return white, image
+
+
+def _flat_field_white(calib, calib_file: Path, white: Path | None):
+    """The white image file and its decoded light field to flat-field the frames with, or
+    (None, None) (warned)."""
+    from .lightfield import decode
+
+    white, image = _white_image(calib, calib_file, white)
+    return (None, None) if white is None else (white, decode(image, calib.grid))
 
 
 def _method_locator(method: str, perspective, stack_planes: int):
@@ -672,9 +681,8 @@ def batch(
     import glob
 
     from . import batch as batch_mod
-    from .calibration import find_white, load_calibration
-    from .errors import FlatFieldWarning
-    from .io import check_outputs, read_raw, warn_exposure
+    from .calibration import load_calibration
+    from .io import check_outputs
 
     if white is not None and not flat_field:
         raise typer.BadParameter("--white and --no-flat-field contradict each other; give one",
@@ -698,16 +706,8 @@ def batch(
     locator = _method_locator(method, _locator_settings(config), stack_planes)
     calib = load_calibration(calib_file)
     calib.dlfc  # refuse a calibration without a DLFC before any work
-    if flat_field and white is None:
-        white, why = find_white(calib, calib_file)
-        if white is None:
-            warnings.warn(f"{why}: frames are not flat-fielded, so dust shadows and dead "
-                          "pixels may be taken for particles; pass the white image with "
-                          "--white (or --no-flat-field to locate without one)", FlatFieldWarning)
-    if white is not None:
-        image = read_raw(white)
-        calib.check_image(image, source=str(white))
-        warn_exposure(image, calib.camera.full_scale, source=f"white image {white}")
+    if flat_field:
+        white, _ = _white_image(calib, calib_file, white)   # workers decode it themselves
 
     def report(outcome) -> None:
         for note in outcome.warnings:
