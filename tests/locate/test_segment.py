@@ -7,6 +7,7 @@ from scipy.spatial import cKDTree
 from skimage.measure import label, regionprops
 
 from plenoptrack.errors import NoParticlesWarning
+from plenoptrack.locate import segment as segment_module
 from plenoptrack.locate.segment import DETECTION_COLUMNS, segment_array, segment_view
 
 
@@ -141,12 +142,30 @@ def test_segment_array_views_and_columns():
         assert dist.max() < 0.05 and len(np.unique(idx)) == 8
 
 
-def test_many_regions_beyond_initial_capacity():
+def test_many_regions_beyond_initial_capacity(monkeypatch):
+    monkeypatch.setattr(segment_module, "_INITIAL_CAPACITY", 512)
     shape = (200, 400)
     pos = [(r, c) for r in np.arange(4, 197, 6.0) for c in np.arange(4, 397, 6.0)]
     img = _blobs(shape, pos, sigma=0.8)
     det = segment_view(img, window=15)
     assert len(det) == len(pos) > 512
+
+
+def test_only_views_beyond_capacity_are_segmented_again(monkeypatch):
+    # views with more regions than the first pass has room for are segmented a second
+    # time on their own; the table must be the one a pass with room for all gives
+    rng = np.random.default_rng(5)
+    n_v, n_u, shape = 2, 3, (60, 90)
+    data = np.empty((n_v, n_u, *shape), np.float32)
+    for k in range(n_v * n_u):
+        data.flat[k * shape[0] * shape[1]:(k + 1) * shape[0] * shape[1]] = _blobs(
+            shape, _random_positions(rng, 2 + 3 * k, shape)).ravel()
+    u, v = np.arange(n_u) - 1.0, np.arange(n_v) - 0.5
+    roomy = segment_array(data, u, v)
+    per_view = roomy.groupby(["v", "u"]).size().to_numpy()
+    monkeypatch.setattr(segment_module, "_INITIAL_CAPACITY", 7)
+    assert (per_view > 7).any() and (per_view <= 7).any()
+    pd.testing.assert_frame_equal(segment_array(data, u, v), roomy)
 
 
 def test_deterministic_and_input_unchanged():

@@ -38,7 +38,10 @@ DETECTION_COLUMNS = (T_COLUMN, "u", "v", "s", "t", "area", "diameter_px", "major
 # Per-region accumulator layout written by the kernel.
 _N, _SW, _SWS, _SWT, _SS, _ST, _SSS, _STT, _SST, _DARK, _EDGE, _S0, _T0, _SD = range(14)
 _N_STATS = 14
-_INITIAL_CAPACITY = 512
+# Regions per view the kernel has room for on its first pass. The buffer is allocated
+# with np.empty and only the rows written become resident memory, so a generous capacity
+# costs address space, not memory; views with more regions are segmented again.
+_INITIAL_CAPACITY = 4096
 
 
 # --------------------------------------------------------------------------------------
@@ -284,6 +287,35 @@ def _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, conn8, out,
 
 # --------------------------------------------------------------------------------------
 # array level
+def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8):
+    """Per-region sums of every view: ``(stats (M, _N_STATS), view index (M,))``.
+
+    Regions are in view order, and in raster order of their first pixel within a view.
+    The kernel writes at most ``_INITIAL_CAPACITY`` regions per view; only the views
+    that found more are segmented again, with room for all of theirs.
+    """
+    n_views = stack.shape[0]
+    counts = np.zeros(n_views, dtype=np.int64)
+    out = np.empty((n_views, _INITIAL_CAPACITY, _N_STATS), dtype=np.float64)
+    _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, conn8, out, counts)
+    view_idx = np.repeat(np.arange(n_views), counts)
+    rank = np.arange(len(view_idx)) - np.repeat(np.cumsum(counts) - counts, counts)
+    full = counts > _INITIAL_CAPACITY
+    if not full.any():
+        return out[view_idx, rank], view_idx
+    stats = np.empty((len(view_idx), _N_STATS), dtype=np.float64)
+    fits = ~full[view_idx]
+    stats[fits] = out[view_idx[fits], rank[fits]]
+    again = np.flatnonzero(full)
+    more = np.empty((len(again), int(counts[again].max()), _N_STATS), dtype=np.float64)
+    _segment_stack(np.ascontiguousarray(stack[again]), np.ones(len(again), dtype=bool), mask,
+                   zero_invalid, b, rb, contrast, conn8, more, counts[again].copy())
+    slot = np.zeros(n_views, dtype=np.int64)
+    slot[again] = np.arange(len(again))
+    stats[~fits] = more[slot[view_idx[~fits]], rank[~fits]]
+    return stats, view_idx
+
+
 def _background_blocks(window) -> tuple[int, int]:
     """Block size ``b`` (px) and half-width ``rb`` (blocks) approximating a box window."""
     if not (isinstance(window, (int, np.integer)) and window >= 3):
@@ -436,19 +468,9 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
         raise SettingsError(f"connectivity must be 1 or 2; got {connectivity!r}")
 
     stack = np.ascontiguousarray(data).reshape(n_v * n_u, n_t, n_s)
-    flat_use = np.ascontiguousarray(use.ravel())
-    cap = _INITIAL_CAPACITY
-    counts = np.zeros(n_v * n_u, dtype=np.int64)
-    while True:
-        out = np.empty((n_v * n_u, cap, _N_STATS), dtype=np.float64)
-        _segment_stack(stack, flat_use, smask, bool(zero_invalid), b, rb, float(contrast),
-                       connectivity == 2, out, counts)
-        if counts.max(initial=0) <= cap:
-            break
-        cap = int(counts.max())
-    view_idx = np.repeat(np.arange(n_v * n_u), counts)
-    rank = np.arange(len(view_idx)) - np.repeat(np.cumsum(counts) - counts, counts)
-    stats = out[view_idx, rank]
+    stats, view_idx = _region_stats(stack, np.ascontiguousarray(use.ravel()), smask,
+                                    bool(zero_invalid), b, rb, float(contrast),
+                                    connectivity == 2)
     props = _region_properties(stats)
     keep = (props["area"] >= a_lo) & (props["area"] <= a_hi)
     keep &= props["eccentricity"] <= max_eccentricity
