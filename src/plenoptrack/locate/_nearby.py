@@ -13,6 +13,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ._order import stable_argsort
+
 __all__ = ["pairs_within"]
 
 _SLACK = 1e-9            # relative widening of the search box; the exact test follows
@@ -35,8 +37,10 @@ def _bucket(cell, s, n_cells):  # pragma: no cover - compiled
         fill[cell[i]] += 1
     for c in range(n_cells):
         if start[c + 1] - start[c] > 1:
-            seg = order[start[c]:start[c + 1]]
-            order[start[c]:start[c + 1]] = seg[np.argsort(s[seg], kind="mergesort")]
+            seg = order[start[c]:start[c + 1]].copy()
+            by_s = stable_argsort(s[seg])
+            for a in range(len(seg)):
+                order[start[c] + a] = seg[by_s[a]]
     return order, start
 
 
@@ -80,8 +84,9 @@ def _scan(q_s, q_t, q_view, reach, start, s_sorted, t_sorted, t_min, height,
                         cap *= 2
                         grown_q = np.empty(cap, dtype=np.int64)
                         grown_d = np.empty(cap, dtype=np.int64)
-                        grown_q[:n] = out_q
-                        grown_d[:n] = out_d
+                        for a in range(n):
+                            grown_q[a] = out_q[a]
+                            grown_d[a] = out_d[a]
                         out_q, out_d = grown_q, grown_d
                     out_q[n] = i
                     out_d[n] = j

@@ -26,6 +26,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import NoParticlesWarning, SettingsError
+from ._order import median, stable_argsort
 
 __all__ = ["ProjectionGeometry", "Clustering", "plane_alphas", "size_thresholds",
            "project", "cluster_detections"]
@@ -426,7 +427,9 @@ def _kmeanspp_topup(points, centres, n_extra, uniforms):  # pragma: no cover - c
     n = points.shape[0]
     k0 = centres.shape[0]
     out = np.empty((k0 + n_extra, 2))
-    out[:k0] = centres
+    for c in range(k0):
+        out[c, 0] = centres[c, 0]
+        out[c, 1] = centres[c, 1]
     d2 = np.full(n, np.inf)
     if k0 > 0:
         grid = _centre_grid(centres)
@@ -470,7 +473,7 @@ def _evaluate(points, aperture, labels, centres, view, area, n_views, thresh, ar
     k = centres.shape[0]
     accepted = np.full(n, -1, dtype=np.int64)
     size = np.full(k, np.nan)
-    order = np.argsort(labels, kind="mergesort")
+    order = stable_argsort(labels)
     start = np.zeros(k + 1, dtype=np.int64)
     for i in range(n):
         start[labels[i] + 1] += 1
@@ -487,7 +490,7 @@ def _evaluate(points, aperture, labels, centres, view, area, n_views, thresh, ar
             dx = points[idx[a], 0] - centres[c, 0]
             dy = points[idx[a], 1] - centres[c, 1]
             d[a] = dx * dx + dy * dy
-        by_d = idx[np.argsort(d, kind="mergesort")]
+        by_d = idx[stable_argsort(d)]
         # at most one member per view: the one nearest the centre
         kept = np.empty(m, dtype=np.int64)
         nk = 0
@@ -501,7 +504,7 @@ def _evaluate(points, aperture, labels, centres, view, area, n_views, thresh, ar
             continue
         # area within a factor of the cluster median
         if area_factor > 0:
-            med = np.median(area[kept[:nk]])
+            med = median(area[kept[:nk]])
             nk2 = 0
             for a in range(nk):
                 ar = area[kept[a]]
@@ -512,8 +515,8 @@ def _evaluate(points, aperture, labels, centres, view, area, n_views, thresh, ar
             if nk < min_members:
                 continue
         # outliers beyond T/2 of the median centre, if they are few
-        mx = np.median(points[kept[:nk], 0])
-        my = np.median(points[kept[:nk], 1])
+        mx = median(points[kept[:nk], 0])
+        my = median(points[kept[:nk], 1])
         r2 = (0.5 * thresh) ** 2
         n_out = 0
         for a in range(nk):

@@ -38,6 +38,7 @@ from scipy.optimize import least_squares
 
 from .._columns import LF_COLUMNS, POS_COLUMNS
 from ..errors import NoParticlesWarning, SettingsError
+from ._order import median
 from .dlfc import DLFC
 
 __all__ = [
@@ -411,10 +412,10 @@ def _robust_thresholds(err, order, bounds, keep, clusters, k_sigma, floor):  # p
                 m += 1
         if m == 0:
             continue
-        med = np.median(buf[:m])
+        med = median(buf[:m])
         if np.isnan(med):
             continue
-        mad = np.median(np.abs(buf[:m] - med))
+        mad = median(np.abs(buf[:m] - med))
         out[k] = max(med + k_sigma * mad, floor)
     return out
 
@@ -609,9 +610,11 @@ def _lm_kernel(p, idx, mom, wo, oo, ref, xyz_e, tensor, centre, scale, max_iter,
             if t_cost <= cost:
                 gain = cost - t_cost
                 cost = t_cost
-                p[k, :] = trial
-                jtj[:, :] = t_jtj
-                jtr[:] = t_jtr
+                for i in range(3):
+                    p[k, i] = trial[i]
+                    jtr[i] = t_jtr[i]
+                    for j in range(3):
+                        jtj[i, j] = t_jtj[i, j]
                 lam /= 10.0
                 big = max(abs(step[0]), abs(step[1]), abs(step[2]))
                 if big <= xtol or gain <= ftol * max(cost, 1e-300):
