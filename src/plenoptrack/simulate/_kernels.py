@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -688,13 +689,20 @@ def _bundle(x0, y0, cx, cy, par):
     ``h0 + (qo0 - h0) t``; ``sec`` bounds 1 / cos of the ray angle to the axis. Returns
     (h0x, h0y, qo0x, qo0y, r_h, r_q, sec).
     """
+    return _bundle_h(x0, y0, cx, cy, par, par[HALF_DIAG])
+
+
+@njit(cache=True)
+def _bundle_h(x0, y0, cx, cy, par, half):
+    """:func:`_bundle` of the rays through lens C of every sensor point within ``half``
+    (mm) of (x0, y0): the pixel's bounds with its half-diagonal replaced by ``half``."""
     if par[LENS_ON] != 0.0:
-        return _bundle_lens(x0, y0, cx, cy, par)
+        return _bundle_lens(x0, y0, cx, cy, par, half)
     ex = x0 - cx * par[SCALE]
     ey = y0 - cy * par[SCALE]
     tan_s = par[S_I] / par[F_ML]
     conj = par[S_O] / par[S_I]
-    r_h = par[HALF_DIAG] * tan_s + par[CELL_R]
+    r_h = half * tan_s + par[CELL_R]
     h0x = -ex * tan_s
     h0y = -ey * tan_s
     rc2 = (cx * cx + cy * cy) * par[INV_RN2]
@@ -712,8 +720,8 @@ def _bundle(x0, y0, cx, cy, par):
 
 
 @njit(cache=True)
-def _bundle_lens(x0, y0, cx, cy, par):
-    """:func:`_bundle` with the lens effects (module notes)."""
+def _bundle_lens(x0, y0, cx, cy, par, half):
+    """:func:`_bundle_h` with the lens effects (module notes)."""
     delta, d, s_l = _lens_geom(cx, cy, par)
     # Pixel centre minus the exact image centre a + (C - a) (s_l + d) / s_l.
     sc = (s_l + d) / s_l
@@ -723,7 +731,7 @@ def _bundle_lens(x0, y0, cx, cy, par):
     h0x = -ex * tan_d
     h0y = -ey * tan_d
     # H = h0 + q (1 + s_l/d - s_l/f) - dP s_l/d for q in the cell, dP in the pixel.
-    r_h = (par[HALF_DIAG] * tan_d + par[CELL_R] * abs(1.0 + tan_d - s_l / par[F_ML])) * (1.0 + 1e-12)
+    r_h = (half * tan_d + par[CELL_R] * abs(1.0 + tan_d - s_l / par[F_ML])) * (1.0 + 1e-12)
     # Nominal-plane point U = (Q - a)(1 + w) - H w.
     w = delta / s_l
     ux = (cx - par[AXX]) * (1.0 + w) - h0x * w
@@ -752,6 +760,13 @@ def _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, nc):
     ``sec``, is never hit. Returns the new count.
     """
     h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(x0, y0, cx, cy, par)
+    return _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders, idx, p0, p1,
+                         cand, nc)
+
+
+@njit(cache=True)
+def _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders, idx, p0, p1, cand, nc):
+    """:func:`_bundle_candidates` of an already computed bundle."""
     s_o = par[S_O]
     for m in range(p0, p1):
         q = idx[m]
@@ -851,7 +866,7 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
     shortcuts on the bounds of :func:`_bundle_lens`; a pixel is fully lit only if its
     whole bundle also passes the front stop."""
     n = samples.shape[0]
-    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par)
+    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par, par[HALF_DIAG])
     h = math.sqrt(h0x * h0x + h0y * h0y)
     if h - r_h > par[R_AP] * (1.0 + 1e-9):
         return 0
@@ -859,7 +874,8 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
         no_card = True
     nc = 0
     if p1 > p0:
-        nc = _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, 0)
+        nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders, idx, p0, p1,
+                           cand, 0)
     if nc == 0 and no_card and keep:
         return KEEP
     if nc == 0 and no_card and h + r_h < par[R_AP] * (1.0 - 1e-9):
@@ -879,7 +895,8 @@ def _bundle_dark(x0, y0, cx, cy, par):
     """True if no ray of the pixel through lens C passes the main-lens aperture (the
     bounds of :func:`_bundle`, as in :func:`_trace_pixel`)."""
     if par[LENS_ON] != 0.0:
-        h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par)
+        h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par,
+                                                           par[HALF_DIAG])
         return math.sqrt(h0x * h0x + h0y * h0y) - r_h > par[R_AP] * (1.0 + 1e-9)
     ex = x0 - cx * par[SCALE]
     ey = y0 - cy * par[SCALE]
@@ -913,10 +930,20 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
             if fx * fx + fy * fy <= lim * lim:
                 row_lo = min(row_lo, ni)
                 row_hi = max(row_hi, ni)
-                if dark and not _bundle_dark(x0, y0, lx, ly, par):
-                    dark = False
                 if not no_card and missed and not _card_missed(x0, y0, lx, ly, par, card):
                     missed = False
+                if p1 > p0 and par[LENS_ON] != 0.0:
+                    # One bundle for both tests (the arithmetic of _bundle_dark).
+                    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, lx, ly, par,
+                                                                       par[HALF_DIAG])
+                    if dark and not (math.sqrt(h0x * h0x + h0y * h0y) - r_h
+                                     > par[R_AP] * (1.0 + 1e-9)):
+                        dark = False
+                    nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders,
+                                       idx, p0, p1, cand, nc)
+                    continue
+                if dark and not _bundle_dark(x0, y0, lx, ly, par):
+                    dark = False
                 if p1 > p0:
                     nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1,
                                             cand, nc)
@@ -927,6 +954,10 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
                         not (no_card or missed), _PER_SAMPLE, 0, row_lo, row_hi)
 
+
+_LENS_CHUNK = 16
+"""Lenses handed to a thread at a time by :func:`render_lenses` (dynamic scheduling: the
+lenses near a particle cost far more than the others)."""
 
 NO_SHAPES = np.zeros((0, 7))
 """``shapes`` argument for occluders that are all spheres (module notes). Kept writeable
@@ -967,8 +998,9 @@ def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card, shapes=N
     the pixels of lens ``k`` are tested against ``occluders[idx[ptr[k]:ptr[k + 1]]]``.
     ``shapes`` (module notes) marks ellipsoids; None: all spheres.
     """
-    _render_lenses(out, lenses, ptr, idx, par, samples, occluders,
-                   _shapes_arg(shapes, occluders), card)
+    with numba.parallel_chunksize(_LENS_CHUNK):
+        _render_lenses(out, lenses, ptr, idx, par, samples, occluders,
+                       _shapes_arg(shapes, occluders), card)
 
 
 @njit(parallel=True, cache=True)
@@ -993,19 +1025,97 @@ def _render_all(par, samples, occluders, shapes, card, r0, r1, c0, c1, exact):
     return out
 
 
+@njit(cache=True)
+def _image_centre(cx, cy, par):
+    """Where lens C's rays leave the main lens: ``(ex, ey, tan)`` such that the rays
+    through C of a sensor point P pass the main-lens plane near ``h0 = -(P - E) tan``
+    (``E`` the exact centre of the lens image, sensor mm; the ``h0`` of :func:`_bundle`)."""
+    if par[LENS_ON] != 0.0:
+        delta, d, s_l = _lens_geom(cx, cy, par)
+        sc = (s_l + d) / s_l
+        return (par[AXX] + (cx - par[AXX]) * sc, par[AXY] + (cy - par[AXY]) * sc, s_l / d)
+    return cx * par[SCALE], cy * par[SCALE], par[S_I] / par[F_ML]
+
+
+@njit(cache=True)
+def _shadow_discs(i, j, par, occluders, idx, p0, p1, discs):
+    """Sensor discs holding every pixel centre whose rays may meet ``occluders[idx[p0:p1]]``.
+
+    The rays are those of the pixels' sample points through lens (i, j) or one of its 8
+    index neighbours (every lens a sample of a pixel owned by lens (i, j) can use). For
+    neighbour C and occluder q: every ray of a pixel centred at P through C leaves the
+    main lens within ``r_h`` of ``h0 = -(P - E) tan`` (:func:`_image_centre`, the
+    pixel's ``r_h`` of :func:`_bundle`) and crosses the focal plane within ``r_q`` of
+    ``qo0``, with ``qo0``, ``r_q`` and ``sec`` the bounds of :func:`_bundle_h` over C's
+    whole cell (every sensor point that uses C); so it may meet q (depth ``t s_o``)
+    only if ``|h0 (1 - t) + qo0 t - o| <= reach``, which is a disc in P of centre
+    ``E + (qo0 t - o) / (tan (1 - t))`` and radius ``reach / (tan |1 - t|)``. These bounds
+    contain those of :func:`_bundle_candidates` for any pixel. Writes rows
+    ``(x, y, radius^2)`` (sensor mm; radius^2 = inf for every pixel) to ``discs`` and
+    returns their number.
+    """
+    nd = 0
+    s_o = par[S_O]
+    r_cell = par[CELL_R] * par[SCALE] * (1.0 + 1e-6)
+    for ni in range(i - 1, i + 2):
+        for nj in range(j - 1, j + 2):
+            lx, ly = _lens_center(ni, nj, par)
+            ex, ey, tan = _image_centre(lx, ly, par)
+            r_h = _bundle_h(ex, ey, lx, ly, par, par[HALF_DIAG])[4]
+            _, _, qo0x, qo0y, _, r_q, sec = _bundle_h(lx * par[SCALE], ly * par[SCALE], lx, ly,
+                                                      par, r_cell)
+            for m in range(p0, p1):
+                q = idx[m]
+                t = occluders[q, 2] / s_o
+                reach = ((r_h * abs(1.0 - t) + r_q * t + math.sqrt(occluders[q, 3]) * sec)
+                         * (1.0 + 1e-7) + 1e-9)
+                kx = qo0x * t - occluders[q, 0]
+                ky = qo0y * t - occluders[q, 1]
+                u = tan * (1.0 - t)
+                if abs(u) < 1e-6:
+                    # |u (P - E)| < 1e-6 mm over the lens's pixels: all of them or none.
+                    lim = reach + 1e-6
+                    if kx * kx + ky * ky <= lim * lim:
+                        discs[nd, 0] = ex
+                        discs[nd, 1] = ey
+                        discs[nd, 2] = math.inf
+                        nd += 1
+                    continue
+                rad = reach / abs(u) * (1.0 + 1e-9) + 1e-9
+                discs[nd, 0] = ex + kx / u
+                discs[nd, 1] = ey + ky / u
+                discs[nd, 2] = rad * rad
+                nd += 1
+    return nd
+
+
 @njit(parallel=True, cache=True)
 def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, card):
-    """:func:`render_lenses` (numba core)."""
+    """:func:`render_lenses` (numba core).
+
+    Without a card, a lens's pixels are visited only where one of its
+    :func:`_shadow_discs` holds their centre (row by row, between the first and last
+    column any disc reaches): every other pixel has no candidate occluder for any of its
+    lenses in :func:`_trace_pixel`, so it keeps the unoccluded value.
+    """
     rows = out.shape[0]
     cols = out.shape[1]
     inv_n = 1.0 / samples.shape[0]
     half_r = (par[ROWS] - 1.0) * 0.5
     half_c = (par[COLS] - 1.0) * 0.5
     reach = par[CELL_PX] + 1.0
+    filtered = card[0] <= 0.0
+    pp = par[PP]
     for k in prange(lenses.shape[0]):
         i = lenses[k, 0]
         j = lenses[k, 1]
         cand = np.empty(ptr[k + 1] - ptr[k], dtype=np.int64)
+        discs = np.empty((9 * (ptr[k + 1] - ptr[k]), 3))
+        nd = 0
+        if filtered:
+            nd = _shadow_discs(i, j, par, occluders, idx, ptr[k], ptr[k + 1], discs)
+            if nd == 0:
+                continue
         cx, cy = _lens_center(i, j, par)
         crow = cy * par[SCALE] / par[PP] + half_r
         ccol = cx * par[SCALE] / par[PP] + half_c
@@ -1014,7 +1124,38 @@ def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, card)
         ca = max(0, int(math.floor(ccol - reach)))
         cb = min(cols, int(math.ceil(ccol + reach)) + 1)
         for r in range(ra, rb):
-            for c in range(ca, cb):
+            c_lo, c_hi = ca, cb
+            if filtered:
+                y0 = (r - half_r) * pp
+                lo = float(cb)
+                hi = float(ca - 1)
+                for m in range(nd):
+                    dy = y0 - discs[m, 1]
+                    rem = discs[m, 2] - dy * dy
+                    if rem < 0.0:
+                        continue
+                    w = math.sqrt(rem)
+                    lo = min(lo, (discs[m, 0] - w) / pp + half_c - 1.0)
+                    hi = max(hi, (discs[m, 0] + w) / pp + half_c + 1.0)
+                lo = max(lo, float(ca))
+                hi = min(hi, float(cb - 1))
+                if hi < lo:
+                    continue
+                c_lo = int(math.floor(lo))
+                c_hi = int(math.ceil(hi)) + 1
+            for c in range(c_lo, min(c_hi, cb)):
+                if filtered:
+                    x0 = (c - half_c) * pp
+                    y0 = (r - half_r) * pp
+                    inside = False
+                    for m in range(nd):
+                        dx = x0 - discs[m, 0]
+                        dy = y0 - discs[m, 1]
+                        if dx * dx + dy * dy <= discs[m, 2]:
+                            inside = True
+                            break
+                    if not inside:
+                        continue
                 pi, pj = _pixel_lens(r, c, par)
                 if pi != i or pj != j:
                     continue
