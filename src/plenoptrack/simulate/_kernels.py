@@ -307,13 +307,15 @@ def _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
 
 @njit(cache=True)
 def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card, lens_i,
-                 lens_j, row_lo=1, row_hi=0):
+                 lens_j, row_lo=1, row_hi=0,
+                 own_i=0, own_j=0):
     """Lit samples of the pixel centred at sensor point (x0, y0) mm.
 
     ``lens_i`` < -2**40 means "find the lens of every sample" (:func:`_nearest_lens`, or
     :func:`_nearest_lens_rows` over rows ``row_lo..row_hi`` when ``row_lo <= row_hi``:
-    the caller guarantees that they hold every sample's lens); otherwise every sample
-    uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]`` (ellipsoids
+    the caller guarantees that they hold every sample's lens; a sample within the
+    inradius of the cell of lens (own_i, own_j) takes that lens without a search);
+    otherwise every sample uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]`` (ellipsoids
     where ``shapes`` flags them, module notes); the dot card ``card`` only if ``use_card``.
     Extended ``shapes`` rows (particle effects, module notes) go to :func:`_sample_loop_ext`,
     which returns the summed sample values instead of a count. With nothing to test
@@ -322,7 +324,7 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
     """
     if shapes.shape[1] > N_SHAPE_BASE:
         return _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card,
-                                use_card, lens_i, lens_j, row_lo, row_hi)
+                                use_card, lens_i, lens_j, row_lo, row_hi, own_i, own_j)
     has_shapes = shapes.shape[0] > 0
     bare = nc == 0 and not use_card
     rows = row_lo <= row_hi
@@ -332,6 +334,9 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
     inv_so = 1.0 / s_o
     conj = -s_o / par[S_I]
     per_sample = lens_i < -(1 << 40)
+    # A point within the inradius of lens (own_i, own_j)'s cell is nearest to that lens.
+    own_x, own_y = _lens_center(own_i, own_j, par)
+    inr2 = (0.5 * min(par[PITCH], par[ROW_STEP]) * (1.0 - 1e-7)) ** 2
     cx, cy = 0.0, 0.0
     lens_on = par[LENS_ON] != 0.0
     inv_d, s_l, w = 0.0, 0.0, 0.0
@@ -345,8 +350,13 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
         py = y0 + samples[k, 1]
         if per_sample:
             if rows:
-                i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
-                                          row_lo, row_hi)
+                mx = px * par[INV_SCALE] - own_x
+                my = py * par[INV_SCALE] - own_y
+                if mx * mx + my * my < inr2:
+                    i, j = own_i, own_j
+                else:
+                    i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
+                                              row_lo, row_hi)
             else:
                 i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
             if i != cur_i or j != cur_j:
@@ -406,7 +416,8 @@ def _sort_head(cand, nc):
 
 @njit(cache=True)
 def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card,
-                     lens_i, lens_j, row_lo=1, row_hi=0):
+                     lens_i, lens_j, row_lo=1, row_hi=0,
+                     own_i=0, own_j=0):
     """:func:`_sample_loop` with the particle effects: the sum of the sample values."""
     _sort_head(cand, nc)
     rows = row_lo <= row_hi
@@ -416,6 +427,9 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
     inv_so = 1.0 / s_o
     conj = -s_o / par[S_I]
     per_sample = lens_i < -(1 << 40)
+    # A point within the inradius of lens (own_i, own_j)'s cell is nearest to that lens.
+    own_x, own_y = _lens_center(own_i, own_j, par)
+    inr2 = (0.5 * min(par[PITCH], par[ROW_STEP]) * (1.0 - 1e-7)) ** 2
     has_t = samples.shape[1] > 4
     cx, cy = 0.0, 0.0
     lens_on = par[LENS_ON] != 0.0
@@ -430,8 +444,13 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
         py = y0 + samples[k, 1]
         if per_sample:
             if rows:
-                i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
-                                          row_lo, row_hi)
+                mx = px * par[INV_SCALE] - own_x
+                my = py * par[INV_SCALE] - own_y
+                if mx * mx + my * my < inr2:
+                    i, j = own_i, own_j
+                else:
+                    i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
+                                              row_lo, row_hi)
             else:
                 i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
             if i != cur_i or j != cur_j:
@@ -913,9 +932,11 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
     Its samples may use any lens whose image centre lies within ``e + 2 * half-diagonal``
     of the pixel centre (``e``: distance to the image centre of the pixel's own lens
     (i, j)): the pixel is dark when every such lens's bundle misses the aperture, keeps
-    its unoccluded value (``keep``) when no occluder can touch any of them and none can
-    land on a dot, and otherwise traces every sample, searching its lens only in the
-    rows of those lenses (:func:`_nearest_lens_rows`).
+    its unoccluded value (``keep``) when no occluder can touch the bundle of any of them
+    that passes the aperture and none can land on a dot, and otherwise traces every
+    sample, searching its lens only in the rows of those lenses
+    (:func:`_nearest_lens_rows`) unless it lies within the inradius of lens (i, j)'s
+    cell.
     """
     lim = (e + 2.0 * par[HALF_DIAG]) * (1.0 + 1e-9)
     nc = 0
@@ -932,27 +953,28 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
                 row_hi = max(row_hi, ni)
                 if not no_card and missed and not _card_missed(x0, y0, lx, ly, par, card):
                     missed = False
+                # A lens whose bundle misses the aperture has no lit sample: its
+                # candidates are not needed.
                 if p1 > p0 and par[LENS_ON] != 0.0:
                     # One bundle for both tests (the arithmetic of _bundle_dark).
                     h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, lx, ly, par,
                                                                        par[HALF_DIAG])
-                    if dark and not (math.sqrt(h0x * h0x + h0y * h0y) - r_h
-                                     > par[R_AP] * (1.0 + 1e-9)):
+                    if not (math.sqrt(h0x * h0x + h0y * h0y) - r_h > par[R_AP] * (1.0 + 1e-9)):
                         dark = False
-                    nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders,
-                                       idx, p0, p1, cand, nc)
+                        nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par,
+                                           occluders, idx, p0, p1, cand, nc)
                     continue
-                if dark and not _bundle_dark(x0, y0, lx, ly, par):
+                if not _bundle_dark(x0, y0, lx, ly, par):
                     dark = False
-                if p1 > p0:
-                    nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1,
-                                            cand, nc)
+                    if p1 > p0:
+                        nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1,
+                                                cand, nc)
     if dark:
         return 0
     if nc == 0 and missed and keep:
         return KEEP
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
-                        not (no_card or missed), _PER_SAMPLE, 0, row_lo, row_hi)
+                        not (no_card or missed), _PER_SAMPLE, 0, row_lo, row_hi, i, j)
 
 
 _LENS_CHUNK = 16
