@@ -306,9 +306,62 @@ def _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
 
 
 @njit(cache=True)
+def _clear_table(cx, cy, par, occluders, cand, nc):
+    """Bounds that prove a sample ray through lens C clear (:func:`_surely_clear`).
+
+    Every ray through C of a sensor point within the lens's cell crosses the focal plane
+    within ``r_q`` of ``qo0`` (:func:`_bundle_h` over the cell) with ``sec`` bounding
+    1 / cos of its angle, so a ray leaving the main lens at H lies, at depth ``t s_o``,
+    within ``r_q t`` of ``H (1 - t) + qo0 t``. Row 0 holds ``(qo0x, qo0y, t_stop,
+    limit^2)`` of the front stop (``limit`` = stop radius less ``r_q t_stop``, 0 when
+    it cannot be proved), row ``1 + m`` ``(t, X, Y, reach^2)`` of occluder ``cand[m]``
+    (its bounding sphere, as in :func:`_bundle_cands`).
+    """
+    _, _, qo0x, qo0y, _, r_q, sec = _bundle_h(cx * par[SCALE], cy * par[SCALE], cx, cy, par,
+                                              par[CELL_R] * par[SCALE] * (1.0 + 1e-6))
+    tab = np.empty((nc + 1, 4))
+    tab[0, 0] = qo0x
+    tab[0, 1] = qo0y
+    tab[0, 2] = par[VIG_L] / par[S_O]
+    lim = par[VIG_R] * (1.0 - 1e-9) - r_q * tab[0, 2] * (1.0 + 1e-7) - 1e-12
+    tab[0, 3] = lim * lim if lim > 0.0 else 0.0
+    for m in range(nc):
+        q = cand[m]
+        t = occluders[q, 2] / par[S_O]
+        reach = (r_q * t + math.sqrt(occluders[q, 3]) * sec) * (1.0 + 1e-7) + 1e-9
+        tab[m + 1, 0] = t
+        tab[m + 1, 1] = occluders[q, 0]
+        tab[m + 1, 2] = occluders[q, 1]
+        tab[m + 1, 3] = reach * reach
+    return tab
+
+
+@njit(cache=True)
+def _surely_clear(hx, hy, tab, nc, vig_on):
+    """True if the ray through the lens of :func:`_clear_table` that leaves the main
+    lens at (hx, hy) (relative to the axis) provably passes the front stop and meets no
+    occluder of the table: its sample is fully lit, value 1."""
+    qo0x = tab[0, 0]
+    qo0y = tab[0, 1]
+    if vig_on:
+        t = tab[0, 2]
+        vx = hx + (qo0x - hx) * t
+        vy = hy + (qo0y - hy) * t
+        if not vx * vx + vy * vy < tab[0, 3]:
+            return False
+    for m in range(1, nc + 1):
+        t = tab[m, 0]
+        bx = hx + (qo0x - hx) * t - tab[m, 1]
+        by = hy + (qo0y - hy) * t - tab[m, 2]
+        if bx * bx + by * by <= tab[m, 3]:
+            return False
+    return True
+
+
+@njit(cache=True)
 def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card, lens_i,
                  lens_j, row_lo=1, row_hi=0,
-                 own_i=0, own_j=0):
+                 own_i=0, own_j=0, tab=None):
     """Lit samples of the pixel centred at sensor point (x0, y0) mm.
 
     ``lens_i`` < -2**40 means "find the lens of every sample" (:func:`_nearest_lens`, or
@@ -320,11 +373,14 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
     Extended ``shapes`` rows (particle effects, module notes) go to :func:`_sample_loop_ext`,
     which returns the summed sample values instead of a count. With nothing to test
     (``nc == 0``, no card) a sample that passes the aperture (and the front stop) is lit
-    without computing the rest of its ray.
+    without computing the rest of its ray; so is one whose ray provably passes and meets
+    nothing when ``tab`` (lens effects on, no card) is given: :func:`_clear_table` of
+    lens (lens_i, lens_j), or with a lens per sample of lens (own_i, own_j), which then
+    applies to the samples that use that lens.
     """
     if shapes.shape[1] > N_SHAPE_BASE:
         return _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card,
-                                use_card, lens_i, lens_j, row_lo, row_hi, own_i, own_j)
+                                use_card, lens_i, lens_j, row_lo, row_hi, own_i, own_j, tab)
     has_shapes = shapes.shape[0] > 0
     bare = nc == 0 and not use_card
     rows = row_lo <= row_hi
@@ -344,6 +400,7 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
         cx, cy = _lens_center(lens_i, lens_j, par)
         if lens_on:
             inv_d, s_l, w = _lens_consts(cx, cy, par)
+    vig_on = par[VIG_ON] != 0.0
     lit = 0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
@@ -366,6 +423,17 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
                     inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
+        if tab is not None and (not per_sample or (cur_i == own_i and cur_j == own_j)):
+            # The first lines of _lens_ray_at, verbatim: the same aperture test.
+            sx = (qx - px) * inv_d - (qx - cx) * par[INV_F_ML]
+            sy = (qy - py) * inv_d - (qy - cy) * par[INV_F_ML]
+            hx = qx + sx * s_l - par[AXX]
+            hy = qy + sy * s_l - par[AXY]
+            if hx * hx + hy * hy > par[R_AP2]:
+                continue
+            if _surely_clear(hx, hy, tab, nc, vig_on):
+                lit += 1
+                continue
         if lens_on:
             ok, hx, hy, dx, dy = _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w)
             if not ok:
@@ -417,7 +485,7 @@ def _sort_head(cand, nc):
 @njit(cache=True)
 def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card,
                      lens_i, lens_j, row_lo=1, row_hi=0,
-                     own_i=0, own_j=0):
+                     own_i=0, own_j=0, tab=None):
     """:func:`_sample_loop` with the particle effects: the sum of the sample values."""
     _sort_head(cand, nc)
     rows = row_lo <= row_hi
@@ -438,6 +506,7 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
         cx, cy = _lens_center(lens_i, lens_j, par)
         if lens_on:
             inv_d, s_l, w = _lens_consts(cx, cy, par)
+    vig_on = par[VIG_ON] != 0.0
     total = 0.0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
@@ -460,6 +529,17 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
                     inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
+        if tab is not None and (not per_sample or (cur_i == own_i and cur_j == own_j)):
+            # The first lines of _lens_ray_at, verbatim: the same aperture test.
+            sx = (qx - px) * inv_d - (qx - cx) * par[INV_F_ML]
+            sy = (qy - py) * inv_d - (qy - cy) * par[INV_F_ML]
+            hx = qx + sx * s_l - par[AXX]
+            hy = qy + sy * s_l - par[AXY]
+            if hx * hx + hy * hy > par[R_AP2]:
+                continue
+            if _surely_clear(hx, hy, tab, nc, vig_on):
+                total += 1.0
+                continue
         if lens_on:
             ok, hx, hy, dx, dy = _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w)
             if not ok:
@@ -905,6 +985,11 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
         vy = h0y + (qo0y - h0y) * t
         if math.sqrt(vx * vx + vy * vy) + r_h * (1.0 - t) + r_q * t < par[VIG_R] * (1.0 - 1e-9):
             return n
+    if no_card and nc > 0:
+        # Samples whose rays provably pass and meet nothing are lit without the rest of
+        # their ray (the pixel lies inside lens (i, j)'s cell).
+        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, False,
+                            i, j, 1, 0, 0, 0, _clear_table(cx, cy, par, occluders, cand, nc))
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, not no_card,
                         i, j)
 
@@ -973,6 +1058,12 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
         return 0
     if nc == 0 and missed and keep:
         return KEEP
+    if par[LENS_ON] != 0.0 and nc > 0 and (no_card or missed):
+        # The samples that use lens (i, j) may be proved lit (its cell holds their P).
+        cx, cy = _lens_center(i, j, par)
+        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, False,
+                            _PER_SAMPLE, 0, row_lo, row_hi, i, j,
+                            _clear_table(cx, cy, par, occluders, cand, nc))
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
                         not (no_card or missed), _PER_SAMPLE, 0, row_lo, row_hi, i, j)
 
