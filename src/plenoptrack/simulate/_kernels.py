@@ -1049,11 +1049,13 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
                         nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par,
                                            occluders, idx, p0, p1, cand, nc)
                     continue
-                if not _bundle_dark(x0, y0, lx, ly, par):
-                    dark = False
-                    if p1 > p0:
+                if p1 > p0:
+                    if not _bundle_dark(x0, y0, lx, ly, par):
+                        dark = False
                         nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1,
                                                 cand, nc)
+                elif dark and not _bundle_dark(x0, y0, lx, ly, par):
+                    dark = False
     if dark:
         return 0
     if nc == 0 and missed and keep:
