@@ -7,8 +7,9 @@ window holding 1/100 of the pixels and scaled by 100.
 
 A last section times a full-sensor frame with the image-domain realism effects
 (back-light, dust, microlens blur and crosstalk, sensor fixed patterns), with the lens
-group, and with both, against the ideal frame in the same run, caches warm (``--realism``
-runs only that section). Peak memory of each mode: run
+group, and with both, against the ideal frame and against the code of
+:data:`FRAME_BASELINE_REV` in the same run, caches warm (``--realism`` runs only that
+section). Peak memory of each mode: run
 ``python benchmarks/bench_simulate.py --memory ideal`` (or ``realistic``), which renders a
 white image and three frames and prints the peak resident set size.
 
@@ -27,6 +28,7 @@ Run: ``python benchmarks/bench_simulate.py``.
 from __future__ import annotations
 
 import importlib.util
+import os
 import resource
 import subprocess
 import sys
@@ -87,17 +89,75 @@ def bench(name, n_particles, brute_side):
     print(f"  speed-up of culling vs brute force  : {t_brute / t_irr:7.1f} x")
 
 
+FRAME_BASELINE_REV = "19952299fa8daf5d4ead718af16e9620dc732a39"
+"""Revision whose kernels, back-light code and FFT blur are the baseline of ``--realism``
+(before the shadow discs of ``render_lenses``, the direct blur and the fused back-light)."""
+
+
+def _baseline_module(rev, relpath, name):
+    """Module ``relpath`` (under ``src/plenoptrack/simulate``) of revision ``rev``, imported
+    from a temporary folder as a sibling of the current package (its relative imports
+    resolve to the current modules)."""
+    root = Path(__file__).resolve().parents[1]
+    src = subprocess.run(["git", "show", f"{rev}:src/plenoptrack/simulate/{relpath}"],
+                         cwd=root, capture_output=True, text=True, check=True).stdout
+    folder = Path(tempfile.mkdtemp(prefix="bench_base_"))
+    path = folder / f"{name}.py"
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location(f"plenoptrack.simulate.{name}", path)
+    module = importlib.util.module_from_spec(spec)
+    module.__package__ = "plenoptrack.simulate"
+    spec.loader.exec_module(module)
+    return module
+
+
+def _baseline_frame(base, optics, particles, seed):
+    """:func:`render_frame` as at :data:`FRAME_BASELINE_REV`: the baseline kernels' trace,
+    copy then back-light in place, FFT blur, the same exposure."""
+    from plenoptrack.simulate.illumination import image_rng
+    from plenoptrack.simulate.psf import (_optics_transfer, apply_transfer, crosstalk_shifts,
+                                          psf_kernel)
+    from plenoptrack.simulate.render import _NO_CARD, _particle_arrays, particle_lenses
+    from plenoptrack.simulate.sensor import fixed_pattern
+
+    kernels, illumination = base
+    occ, shapes = _particle_arrays(optics, particles)
+    irr = background_irradiance(optics, 16).copy()
+    lenses, ptr, idx = particle_lenses(optics, occ)
+    kernels.render_lenses(irr, lenses, ptr, idx, kernels.pack_params(optics),
+                          sample_pattern(optics, 16), occ, _NO_CARD, shapes=shapes)
+    real, sensor, cam = optics.realism, SensorModel(), optics.camera
+    rng = np.random.default_rng(seed)
+    if real.illumination.enabled:
+        irr = np.array(irr, dtype=np.float32, copy=True)
+        illumination.illuminate(irr, optics, image_rng(rng))
+    if real.blur.enabled:
+        k = psf_kernel(real.blur, f_number=cam.microlens_f_number,
+                       pixel_pitch_um=cam.pixel_pitch_um)
+        irr = apply_transfer(irr, k, crosstalk_shifts(optics), real.blur.crosstalk,
+                             transfer=_optics_transfer(optics))
+    return expose(irr, level=sensor.background_level, bit_depth=cam.bit_depth, sensor=sensor,
+                  rng=rng, fixed=fixed_pattern(optics) if real.sensor.enabled else None)
+
+
 def bench_realism(name, n_particles, repeats=3):
     """Frame time, ideal vs realistic effects (spec and target off: same first-order optics).
 
     ``lens`` adds the lens group (drawn distortion, Seidel terms, cat's-eye vignetting, axis
     offset, MLA tilt) to the geometry, so its background is traced anew; the last row has
-    every image and lens effect.
+    every image and lens effect. Each mode is timed now and with the code of
+    :data:`FRAME_BASELINE_REV` (:func:`_baseline_frame`), alternating, in the same run; the
+    traced irradiance must be identical, and so must the raw frame where the blur is off
+    (with it on the direct blur differs from the FFT by float32 rounding, which moves some
+    dark pixels' Poisson draws and so the later draws: the largest difference in counts
+    is printed). ``os.getloadavg`` is printed before and after.
     """
     from dataclasses import replace
 
     from plenoptrack.simulate.realism import Realism
 
+    base = (_baseline_module(FRAME_BASELINE_REV, "_kernels.py", "_kernels_frame_base"),
+            _baseline_module(FRAME_BASELINE_REV, "illumination.py", "_illumination_base"))
     camera = preset(name)
     off = Realism.ideal()
     image = replace(Realism.realistic(), spec=off.spec, target=off.target, lens=off.lens)
@@ -105,22 +165,35 @@ def bench_realism(name, n_particles, repeats=3):
     full = replace(Realism.realistic(), spec=off.spec, target=off.target)
     particles = random_particles(n_particles, volume=default_volume(camera), diameter_mm=1.0,
                                  seed=1)
-    times, backgrounds = {}, {}
+    times, old, backgrounds, diffs = {}, {}, {}, {}
     modes = (("ideal", "ideal"), ("image", image), ("lens", lens), ("realistic", full))
+    load0 = os.getloadavg()
     for mode, realism in modes:
         optics = make_optics(camera, seed=0, realism=realism)
         backgrounds[mode] = _timed(background_irradiance, optics)[1]
-        render_frame(optics, particles, seed=0)             # caches: background, maps
-        times[mode] = min(_timed(render_frame, optics, particles, seed=s)[1]
-                          for s in range(1, repeats + 1))
-    print(f"{name}: render_frame with {n_particles} particles, best of {repeats} "
-          f"(background traced once per optics)")
+        a = render_frame(optics, particles, seed=0)         # caches: background, maps
+        b = _baseline_frame(base, optics, particles, 0)
+        diffs[mode] = int(np.abs(a.astype(np.int32) - b).max())
+        if not optics.realism.blur.enabled and diffs[mode]:
+            raise AssertionError(f"{mode}: the frame differs from the baseline's")
+        t_new, t_old = [], []
+        for s in range(1, repeats + 1):
+            t_new.append(_clocked(render_frame, optics, particles, seed=s)[1:])
+            t_old.append(_clocked(_baseline_frame, base, optics, particles, s)[1:])
+        times[mode], old[mode] = np.min(t_new, axis=0), np.min(t_old, axis=0)
+    print(f"{name}: render_frame with {n_particles} particles, best of {repeats}, now and "
+          f"at {FRAME_BASELINE_REV[:7]} alternating (background traced once per optics); "
+          f"wall s / process CPU s (all threads)")
     labels = {"ideal": "ideal", "image": "blur, illumination, sensor",
               "lens": "lens group only", "realistic": "all of them"}
     for mode, _ in modes:
-        print(f"  {labels[mode]:28s}: frame {times[mode]:6.2f} s "
-              f"({times[mode] / times['ideal']:.2f} x), background {backgrounds[mode]:6.2f} s "
-              f"({backgrounds[mode] / backgrounds['ideal']:.2f} x)")
+        (w, c), (wo, co) = times[mode], old[mode]
+        print(f"  {labels[mode]:26s}: now {w:5.2f} / {c:5.2f} ({w / times['ideal'][0]:.2f} x "
+              f"ideal), baseline {wo:5.2f} / {co:5.2f}, speed-up {wo / w:.2f} x wall, "
+              f"{co / c:.2f} x CPU; background {backgrounds[mode]:5.2f} s; largest count "
+              f"difference {diffs[mode]}")
+    print(f"  load average (1, 5, 15 min) before {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, "
+          "after {:.2f} {:.2f} {:.2f}".format(*os.getloadavg()))
 
 
 BASELINE_REV = "035107c4e8abbd31e49957593e72d3fc95aab4f1"

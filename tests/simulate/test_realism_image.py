@@ -10,14 +10,16 @@ from scipy.spatial import cKDTree
 
 from plenoptrack import preset
 from plenoptrack.simulate import make_optics, render_dotcard, render_frame, render_white
-from plenoptrack.simulate.illumination import backlight_field, dust_patches, dust_table, image_rng
-from plenoptrack.simulate.psf import (AIRY_FIRST_ZERO, apply_crosstalk, apply_transfer,
-                                      blur_image, convolve_psf, crosstalk_shifts,
+from plenoptrack.simulate.illumination import (backlight_field, dust_patches, dust_table,
+                                               illuminate, illuminated, image_rng)
+from plenoptrack.simulate.psf import (AIRY_FIRST_ZERO, DIRECT_MAX_TAPS, _optics_transfer,
+                                      apply_crosstalk, apply_transfer, blur_image,
+                                      convolve_direct, convolve_psf, crosstalk_shifts,
                                       fill_transmission, psf_kernel)
 from plenoptrack.simulate.realism import (BlurEffects, IlluminationEffects, Realism,
                                           SensorEffects)
 from plenoptrack.simulate.render import background_irradiance, render_dark
-from plenoptrack.simulate.sensor import fixed_pattern, output_regions
+from plenoptrack.simulate.sensor import SensorModel, expose, fixed_pattern, output_regions
 
 CAM = preset("small")
 NO_BLUR = BlurEffects().scaled(0)
@@ -105,6 +107,49 @@ def test_blur_and_crosstalk_conserve_light(ideal):
     for dr, dc in shifts:
         r, c = int(np.floor(50 + dr)), int(np.floor(50 + dc))
         assert ghost[r:r + 2, c:c + 2].sum() == pytest.approx(0.01, abs=1e-6)
+
+
+def test_direct_blur_is_the_fft_blur_up_to_rounding():
+    o = _optics(blur=BlurEffects())
+    k = psf_kernel(o.realism.blur, f_number=CAM.microlens_f_number,
+                   pixel_pitch_um=CAM.pixel_pitch_um)
+    assert k.size <= DIRECT_MAX_TAPS        # blur_image sums the taps directly
+    shifts, xt = crosstalk_shifts(o), o.realism.blur.crosstalk
+    # Points at the edges and corners: light blurred just off the sensor is scattered
+    # back in by the crosstalk in both; random pixels elsewhere.
+    img = np.zeros(CAM.sensor_shape_px, dtype=np.float32)
+    img[[0, 1, 2, -1, -3, 300], [0, 2, -1, 5, -2, 450]] = 1.0
+    rng = np.random.default_rng(0)
+    img[100:200, 100:300] = rng.random((100, 200))
+    for kern, sh, f in ((k, shifts, xt), (k, shifts[:0], 0.0), (np.ones((1, 1)), shifts, xt)):
+        fft = apply_transfer(img, kern, sh, f).astype(float)
+        direct = convolve_direct(img, kern, sh, f)
+        assert np.abs(direct - fft).max() < 2e-6
+        assert direct.sum() == pytest.approx(fft.sum(), rel=1e-5)
+    # A realistic white image: against the cached FFT transfer of blur_image before.
+    irr = background_irradiance(o)
+    fft = apply_transfer(irr, k, shifts, xt, transfer=_optics_transfer(o)).astype(float)
+    direct = blur_image(irr, o)
+    assert np.abs(direct - fft).max() < 1e-5      # of the back-light: far below the noise
+    assert 0 < np.count_nonzero(direct != fft)    # (a different rounding, not the same sum)
+    # Raw counts without noise: at most 1 count (of 4095) apart, in rare pixels.
+    sensor = SensorModel()
+    a, b = (expose(x, level=0.7, bit_depth=CAM.bit_depth, sensor=sensor, rng=None, noise=False)
+            for x in (fft, direct))
+    diff = np.abs(a.astype(int) - b)
+    assert diff.max() <= 1 and diff.mean() < 1e-3
+
+
+def test_illuminated_is_a_copy_then_illuminate():
+    o = _optics(illumination=IlluminationEffects(dust_particles=4, dust_diameter_um=120))
+    irr = background_irradiance(o)
+    for rng in (None, np.random.default_rng(3)):
+        before = irr.copy()
+        a = illuminated(irr, o, None if rng is None else image_rng(rng))
+        b = illuminate(irr.copy(), o, None if rng is None else image_rng(np.random.default_rng(3)))
+        assert np.array_equal(irr, before)
+        assert a.dtype == np.float32 and np.array_equal(a, b)
+        assert not np.array_equal(a, irr)
 
 
 def test_fill_gap_loses_the_dead_cell_area(ideal):

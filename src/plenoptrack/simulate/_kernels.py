@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from numba import njit, prange
 
@@ -305,23 +306,81 @@ def _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
 
 
 @njit(cache=True)
+def _clear_table(cx, cy, par, occluders, cand, nc):
+    """Bounds that prove a sample ray through lens C clear (:func:`_surely_clear`).
+
+    Every ray through C of a sensor point within the lens's cell crosses the focal plane
+    within ``r_q`` of ``qo0`` (:func:`_bundle_h` over the cell) with ``sec`` bounding
+    1 / cos of its angle, so a ray leaving the main lens at H lies, at depth ``t s_o``,
+    within ``r_q t`` of ``H (1 - t) + qo0 t``. Row 0 holds ``(qo0x, qo0y, t_stop,
+    limit^2)`` of the front stop (``limit`` = stop radius less ``r_q t_stop``, 0 when
+    it cannot be proved), row ``1 + m`` ``(t, X, Y, reach^2)`` of occluder ``cand[m]``
+    (its bounding sphere, as in :func:`_bundle_cands`).
+    """
+    _, _, qo0x, qo0y, _, r_q, sec = _bundle_h(cx * par[SCALE], cy * par[SCALE], cx, cy, par,
+                                              par[CELL_R] * par[SCALE] * (1.0 + 1e-6))
+    tab = np.empty((nc + 1, 4))
+    tab[0, 0] = qo0x
+    tab[0, 1] = qo0y
+    tab[0, 2] = par[VIG_L] / par[S_O]
+    lim = par[VIG_R] * (1.0 - 1e-9) - r_q * tab[0, 2] * (1.0 + 1e-7) - 1e-12
+    tab[0, 3] = lim * lim if lim > 0.0 else 0.0
+    for m in range(nc):
+        q = cand[m]
+        t = occluders[q, 2] / par[S_O]
+        reach = (r_q * t + math.sqrt(occluders[q, 3]) * sec) * (1.0 + 1e-7) + 1e-9
+        tab[m + 1, 0] = t
+        tab[m + 1, 1] = occluders[q, 0]
+        tab[m + 1, 2] = occluders[q, 1]
+        tab[m + 1, 3] = reach * reach
+    return tab
+
+
+@njit(cache=True)
+def _surely_clear(hx, hy, tab, nc, vig_on):
+    """True if the ray through the lens of :func:`_clear_table` that leaves the main
+    lens at (hx, hy) (relative to the axis) provably passes the front stop and meets no
+    occluder of the table: its sample is fully lit, value 1."""
+    qo0x = tab[0, 0]
+    qo0y = tab[0, 1]
+    if vig_on:
+        t = tab[0, 2]
+        vx = hx + (qo0x - hx) * t
+        vy = hy + (qo0y - hy) * t
+        if not vx * vx + vy * vy < tab[0, 3]:
+            return False
+    for m in range(1, nc + 1):
+        t = tab[m, 0]
+        bx = hx + (qo0x - hx) * t - tab[m, 1]
+        by = hy + (qo0y - hy) * t - tab[m, 2]
+        if bx * bx + by * by <= tab[m, 3]:
+            return False
+    return True
+
+
+@njit(cache=True)
 def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card, lens_i,
-                 lens_j, row_lo=1, row_hi=0):
+                 lens_j, row_lo=1, row_hi=0,
+                 own_i=0, own_j=0, tab=None):
     """Lit samples of the pixel centred at sensor point (x0, y0) mm.
 
     ``lens_i`` < -2**40 means "find the lens of every sample" (:func:`_nearest_lens`, or
     :func:`_nearest_lens_rows` over rows ``row_lo..row_hi`` when ``row_lo <= row_hi``:
-    the caller guarantees that they hold every sample's lens); otherwise every sample
-    uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]`` (ellipsoids
+    the caller guarantees that they hold every sample's lens; a sample within the
+    inradius of the cell of lens (own_i, own_j) takes that lens without a search);
+    otherwise every sample uses lens (lens_i, lens_j). Occluders tested: ``occluders[cand[:nc]]`` (ellipsoids
     where ``shapes`` flags them, module notes); the dot card ``card`` only if ``use_card``.
     Extended ``shapes`` rows (particle effects, module notes) go to :func:`_sample_loop_ext`,
     which returns the summed sample values instead of a count. With nothing to test
     (``nc == 0``, no card) a sample that passes the aperture (and the front stop) is lit
-    without computing the rest of its ray.
+    without computing the rest of its ray; so is one whose ray provably passes and meets
+    nothing when ``tab`` (lens effects on, no card) is given: :func:`_clear_table` of
+    lens (lens_i, lens_j), or with a lens per sample of lens (own_i, own_j), which then
+    applies to the samples that use that lens.
     """
     if shapes.shape[1] > N_SHAPE_BASE:
         return _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card,
-                                use_card, lens_i, lens_j, row_lo, row_hi)
+                                use_card, lens_i, lens_j, row_lo, row_hi, own_i, own_j, tab)
     has_shapes = shapes.shape[0] > 0
     bare = nc == 0 and not use_card
     rows = row_lo <= row_hi
@@ -331,6 +390,9 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
     inv_so = 1.0 / s_o
     conj = -s_o / par[S_I]
     per_sample = lens_i < -(1 << 40)
+    # A point within the inradius of lens (own_i, own_j)'s cell is nearest to that lens.
+    own_x, own_y = _lens_center(own_i, own_j, par)
+    inr2 = (0.5 * min(par[PITCH], par[ROW_STEP]) * (1.0 - 1e-7)) ** 2
     cx, cy = 0.0, 0.0
     lens_on = par[LENS_ON] != 0.0
     inv_d, s_l, w = 0.0, 0.0, 0.0
@@ -338,14 +400,20 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
         cx, cy = _lens_center(lens_i, lens_j, par)
         if lens_on:
             inv_d, s_l, w = _lens_consts(cx, cy, par)
+    vig_on = par[VIG_ON] != 0.0
     lit = 0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
         py = y0 + samples[k, 1]
         if per_sample:
             if rows:
-                i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
-                                          row_lo, row_hi)
+                mx = px * par[INV_SCALE] - own_x
+                my = py * par[INV_SCALE] - own_y
+                if mx * mx + my * my < inr2:
+                    i, j = own_i, own_j
+                else:
+                    i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
+                                              row_lo, row_hi)
             else:
                 i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
             if i != cur_i or j != cur_j:
@@ -355,6 +423,17 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
                     inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
+        if tab is not None and (not per_sample or (cur_i == own_i and cur_j == own_j)):
+            # The first lines of _lens_ray_at, verbatim: the same aperture test.
+            sx = (qx - px) * inv_d - (qx - cx) * par[INV_F_ML]
+            sy = (qy - py) * inv_d - (qy - cy) * par[INV_F_ML]
+            hx = qx + sx * s_l - par[AXX]
+            hy = qy + sy * s_l - par[AXY]
+            if hx * hx + hy * hy > par[R_AP2]:
+                continue
+            if _surely_clear(hx, hy, tab, nc, vig_on):
+                lit += 1
+                continue
         if lens_on:
             ok, hx, hy, dx, dy = _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w)
             if not ok:
@@ -405,7 +484,8 @@ def _sort_head(cand, nc):
 
 @njit(cache=True)
 def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card,
-                     lens_i, lens_j, row_lo=1, row_hi=0):
+                     lens_i, lens_j, row_lo=1, row_hi=0,
+                     own_i=0, own_j=0, tab=None):
     """:func:`_sample_loop` with the particle effects: the sum of the sample values."""
     _sort_head(cand, nc)
     rows = row_lo <= row_hi
@@ -415,6 +495,9 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
     inv_so = 1.0 / s_o
     conj = -s_o / par[S_I]
     per_sample = lens_i < -(1 << 40)
+    # A point within the inradius of lens (own_i, own_j)'s cell is nearest to that lens.
+    own_x, own_y = _lens_center(own_i, own_j, par)
+    inr2 = (0.5 * min(par[PITCH], par[ROW_STEP]) * (1.0 - 1e-7)) ** 2
     has_t = samples.shape[1] > 4
     cx, cy = 0.0, 0.0
     lens_on = par[LENS_ON] != 0.0
@@ -423,14 +506,20 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
         cx, cy = _lens_center(lens_i, lens_j, par)
         if lens_on:
             inv_d, s_l, w = _lens_consts(cx, cy, par)
+    vig_on = par[VIG_ON] != 0.0
     total = 0.0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
         py = y0 + samples[k, 1]
         if per_sample:
             if rows:
-                i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
-                                          row_lo, row_hi)
+                mx = px * par[INV_SCALE] - own_x
+                my = py * par[INV_SCALE] - own_y
+                if mx * mx + my * my < inr2:
+                    i, j = own_i, own_j
+                else:
+                    i, j = _nearest_lens_rows(px * par[INV_SCALE], py * par[INV_SCALE], par,
+                                              row_lo, row_hi)
             else:
                 i, j = _nearest_lens(px * par[INV_SCALE], py * par[INV_SCALE], par)
             if i != cur_i or j != cur_j:
@@ -440,6 +529,17 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
                     inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
+        if tab is not None and (not per_sample or (cur_i == own_i and cur_j == own_j)):
+            # The first lines of _lens_ray_at, verbatim: the same aperture test.
+            sx = (qx - px) * inv_d - (qx - cx) * par[INV_F_ML]
+            sy = (qy - py) * inv_d - (qy - cy) * par[INV_F_ML]
+            hx = qx + sx * s_l - par[AXX]
+            hy = qy + sy * s_l - par[AXY]
+            if hx * hx + hy * hy > par[R_AP2]:
+                continue
+            if _surely_clear(hx, hy, tab, nc, vig_on):
+                total += 1.0
+                continue
         if lens_on:
             ok, hx, hy, dx, dy = _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w)
             if not ok:
@@ -688,13 +788,20 @@ def _bundle(x0, y0, cx, cy, par):
     ``h0 + (qo0 - h0) t``; ``sec`` bounds 1 / cos of the ray angle to the axis. Returns
     (h0x, h0y, qo0x, qo0y, r_h, r_q, sec).
     """
+    return _bundle_h(x0, y0, cx, cy, par, par[HALF_DIAG])
+
+
+@njit(cache=True)
+def _bundle_h(x0, y0, cx, cy, par, half):
+    """:func:`_bundle` of the rays through lens C of every sensor point within ``half``
+    (mm) of (x0, y0): the pixel's bounds with its half-diagonal replaced by ``half``."""
     if par[LENS_ON] != 0.0:
-        return _bundle_lens(x0, y0, cx, cy, par)
+        return _bundle_lens(x0, y0, cx, cy, par, half)
     ex = x0 - cx * par[SCALE]
     ey = y0 - cy * par[SCALE]
     tan_s = par[S_I] / par[F_ML]
     conj = par[S_O] / par[S_I]
-    r_h = par[HALF_DIAG] * tan_s + par[CELL_R]
+    r_h = half * tan_s + par[CELL_R]
     h0x = -ex * tan_s
     h0y = -ey * tan_s
     rc2 = (cx * cx + cy * cy) * par[INV_RN2]
@@ -712,8 +819,8 @@ def _bundle(x0, y0, cx, cy, par):
 
 
 @njit(cache=True)
-def _bundle_lens(x0, y0, cx, cy, par):
-    """:func:`_bundle` with the lens effects (module notes)."""
+def _bundle_lens(x0, y0, cx, cy, par, half):
+    """:func:`_bundle_h` with the lens effects (module notes)."""
     delta, d, s_l = _lens_geom(cx, cy, par)
     # Pixel centre minus the exact image centre a + (C - a) (s_l + d) / s_l.
     sc = (s_l + d) / s_l
@@ -723,7 +830,7 @@ def _bundle_lens(x0, y0, cx, cy, par):
     h0x = -ex * tan_d
     h0y = -ey * tan_d
     # H = h0 + q (1 + s_l/d - s_l/f) - dP s_l/d for q in the cell, dP in the pixel.
-    r_h = (par[HALF_DIAG] * tan_d + par[CELL_R] * abs(1.0 + tan_d - s_l / par[F_ML])) * (1.0 + 1e-12)
+    r_h = (half * tan_d + par[CELL_R] * abs(1.0 + tan_d - s_l / par[F_ML])) * (1.0 + 1e-12)
     # Nominal-plane point U = (Q - a)(1 + w) - H w.
     w = delta / s_l
     ux = (cx - par[AXX]) * (1.0 + w) - h0x * w
@@ -752,6 +859,13 @@ def _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, nc):
     ``sec``, is never hit. Returns the new count.
     """
     h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(x0, y0, cx, cy, par)
+    return _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders, idx, p0, p1,
+                         cand, nc)
+
+
+@njit(cache=True)
+def _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders, idx, p0, p1, cand, nc):
+    """:func:`_bundle_candidates` of an already computed bundle."""
     s_o = par[S_O]
     for m in range(p0, p1):
         q = idx[m]
@@ -851,7 +965,7 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
     shortcuts on the bounds of :func:`_bundle_lens`; a pixel is fully lit only if its
     whole bundle also passes the front stop."""
     n = samples.shape[0]
-    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par)
+    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par, par[HALF_DIAG])
     h = math.sqrt(h0x * h0x + h0y * h0y)
     if h - r_h > par[R_AP] * (1.0 + 1e-9):
         return 0
@@ -859,7 +973,8 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
         no_card = True
     nc = 0
     if p1 > p0:
-        nc = _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, 0)
+        nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders, idx, p0, p1,
+                           cand, 0)
     if nc == 0 and no_card and keep:
         return KEEP
     if nc == 0 and no_card and h + r_h < par[R_AP] * (1.0 - 1e-9):
@@ -870,6 +985,11 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
         vy = h0y + (qo0y - h0y) * t
         if math.sqrt(vx * vx + vy * vy) + r_h * (1.0 - t) + r_q * t < par[VIG_R] * (1.0 - 1e-9):
             return n
+    if no_card and nc > 0:
+        # Samples whose rays provably pass and meet nothing are lit without the rest of
+        # their ray (the pixel lies inside lens (i, j)'s cell).
+        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, False,
+                            i, j, 1, 0, 0, 0, _clear_table(cx, cy, par, occluders, cand, nc))
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, not no_card,
                         i, j)
 
@@ -879,7 +999,8 @@ def _bundle_dark(x0, y0, cx, cy, par):
     """True if no ray of the pixel through lens C passes the main-lens aperture (the
     bounds of :func:`_bundle`, as in :func:`_trace_pixel`)."""
     if par[LENS_ON] != 0.0:
-        h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par)
+        h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, cx, cy, par,
+                                                           par[HALF_DIAG])
         return math.sqrt(h0x * h0x + h0y * h0y) - r_h > par[R_AP] * (1.0 + 1e-9)
     ex = x0 - cx * par[SCALE]
     ey = y0 - cy * par[SCALE]
@@ -896,9 +1017,11 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
     Its samples may use any lens whose image centre lies within ``e + 2 * half-diagonal``
     of the pixel centre (``e``: distance to the image centre of the pixel's own lens
     (i, j)): the pixel is dark when every such lens's bundle misses the aperture, keeps
-    its unoccluded value (``keep``) when no occluder can touch any of them and none can
-    land on a dot, and otherwise traces every sample, searching its lens only in the
-    rows of those lenses (:func:`_nearest_lens_rows`).
+    its unoccluded value (``keep``) when no occluder can touch the bundle of any of them
+    that passes the aperture and none can land on a dot, and otherwise traces every
+    sample, searching its lens only in the rows of those lenses
+    (:func:`_nearest_lens_rows`) unless it lies within the inradius of lens (i, j)'s
+    cell.
     """
     lim = (e + 2.0 * par[HALF_DIAG]) * (1.0 + 1e-9)
     nc = 0
@@ -913,20 +1036,43 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
             if fx * fx + fy * fy <= lim * lim:
                 row_lo = min(row_lo, ni)
                 row_hi = max(row_hi, ni)
-                if dark and not _bundle_dark(x0, y0, lx, ly, par):
-                    dark = False
                 if not no_card and missed and not _card_missed(x0, y0, lx, ly, par, card):
                     missed = False
+                # A lens whose bundle misses the aperture has no lit sample: its
+                # candidates are not needed.
+                if p1 > p0 and par[LENS_ON] != 0.0:
+                    # One bundle for both tests (the arithmetic of _bundle_dark).
+                    h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle_lens(x0, y0, lx, ly, par,
+                                                                       par[HALF_DIAG])
+                    if not (math.sqrt(h0x * h0x + h0y * h0y) - r_h > par[R_AP] * (1.0 + 1e-9)):
+                        dark = False
+                        nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par,
+                                           occluders, idx, p0, p1, cand, nc)
+                    continue
                 if p1 > p0:
-                    nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1,
-                                            cand, nc)
+                    if not _bundle_dark(x0, y0, lx, ly, par):
+                        dark = False
+                        nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1,
+                                                cand, nc)
+                elif dark and not _bundle_dark(x0, y0, lx, ly, par):
+                    dark = False
     if dark:
         return 0
     if nc == 0 and missed and keep:
         return KEEP
+    if par[LENS_ON] != 0.0 and nc > 0 and (no_card or missed):
+        # The samples that use lens (i, j) may be proved lit (its cell holds their P).
+        cx, cy = _lens_center(i, j, par)
+        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, False,
+                            _PER_SAMPLE, 0, row_lo, row_hi, i, j,
+                            _clear_table(cx, cy, par, occluders, cand, nc))
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
-                        not (no_card or missed), _PER_SAMPLE, 0, row_lo, row_hi)
+                        not (no_card or missed), _PER_SAMPLE, 0, row_lo, row_hi, i, j)
 
+
+_LENS_CHUNK = 16
+"""Lenses handed to a thread at a time by :func:`render_lenses` (dynamic scheduling: the
+lenses near a particle cost far more than the others)."""
 
 NO_SHAPES = np.zeros((0, 7))
 """``shapes`` argument for occluders that are all spheres (module notes). Kept writeable
@@ -967,8 +1113,9 @@ def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card, shapes=N
     the pixels of lens ``k`` are tested against ``occluders[idx[ptr[k]:ptr[k + 1]]]``.
     ``shapes`` (module notes) marks ellipsoids; None: all spheres.
     """
-    _render_lenses(out, lenses, ptr, idx, par, samples, occluders,
-                   _shapes_arg(shapes, occluders), card)
+    with numba.parallel_chunksize(_LENS_CHUNK):
+        _render_lenses(out, lenses, ptr, idx, par, samples, occluders,
+                       _shapes_arg(shapes, occluders), card)
 
 
 @njit(parallel=True, cache=True)
@@ -993,19 +1140,97 @@ def _render_all(par, samples, occluders, shapes, card, r0, r1, c0, c1, exact):
     return out
 
 
+@njit(cache=True)
+def _image_centre(cx, cy, par):
+    """Where lens C's rays leave the main lens: ``(ex, ey, tan)`` such that the rays
+    through C of a sensor point P pass the main-lens plane near ``h0 = -(P - E) tan``
+    (``E`` the exact centre of the lens image, sensor mm; the ``h0`` of :func:`_bundle`)."""
+    if par[LENS_ON] != 0.0:
+        delta, d, s_l = _lens_geom(cx, cy, par)
+        sc = (s_l + d) / s_l
+        return (par[AXX] + (cx - par[AXX]) * sc, par[AXY] + (cy - par[AXY]) * sc, s_l / d)
+    return cx * par[SCALE], cy * par[SCALE], par[S_I] / par[F_ML]
+
+
+@njit(cache=True)
+def _shadow_discs(i, j, par, occluders, idx, p0, p1, discs):
+    """Sensor discs holding every pixel centre whose rays may meet ``occluders[idx[p0:p1]]``.
+
+    The rays are those of the pixels' sample points through lens (i, j) or one of its 8
+    index neighbours (every lens a sample of a pixel owned by lens (i, j) can use). For
+    neighbour C and occluder q: every ray of a pixel centred at P through C leaves the
+    main lens within ``r_h`` of ``h0 = -(P - E) tan`` (:func:`_image_centre`, the
+    pixel's ``r_h`` of :func:`_bundle`) and crosses the focal plane within ``r_q`` of
+    ``qo0``, with ``qo0``, ``r_q`` and ``sec`` the bounds of :func:`_bundle_h` over C's
+    whole cell (every sensor point that uses C); so it may meet q (depth ``t s_o``)
+    only if ``|h0 (1 - t) + qo0 t - o| <= reach``, which is a disc in P of centre
+    ``E + (qo0 t - o) / (tan (1 - t))`` and radius ``reach / (tan |1 - t|)``. These bounds
+    contain those of :func:`_bundle_candidates` for any pixel. Writes rows
+    ``(x, y, radius^2)`` (sensor mm; radius^2 = inf for every pixel) to ``discs`` and
+    returns their number.
+    """
+    nd = 0
+    s_o = par[S_O]
+    r_cell = par[CELL_R] * par[SCALE] * (1.0 + 1e-6)
+    for ni in range(i - 1, i + 2):
+        for nj in range(j - 1, j + 2):
+            lx, ly = _lens_center(ni, nj, par)
+            ex, ey, tan = _image_centre(lx, ly, par)
+            r_h = _bundle_h(ex, ey, lx, ly, par, par[HALF_DIAG])[4]
+            _, _, qo0x, qo0y, _, r_q, sec = _bundle_h(lx * par[SCALE], ly * par[SCALE], lx, ly,
+                                                      par, r_cell)
+            for m in range(p0, p1):
+                q = idx[m]
+                t = occluders[q, 2] / s_o
+                reach = ((r_h * abs(1.0 - t) + r_q * t + math.sqrt(occluders[q, 3]) * sec)
+                         * (1.0 + 1e-7) + 1e-9)
+                kx = qo0x * t - occluders[q, 0]
+                ky = qo0y * t - occluders[q, 1]
+                u = tan * (1.0 - t)
+                if abs(u) < 1e-6:
+                    # |u (P - E)| < 1e-6 mm over the lens's pixels: all of them or none.
+                    lim = reach + 1e-6
+                    if kx * kx + ky * ky <= lim * lim:
+                        discs[nd, 0] = ex
+                        discs[nd, 1] = ey
+                        discs[nd, 2] = math.inf
+                        nd += 1
+                    continue
+                rad = reach / abs(u) * (1.0 + 1e-9) + 1e-9
+                discs[nd, 0] = ex + kx / u
+                discs[nd, 1] = ey + ky / u
+                discs[nd, 2] = rad * rad
+                nd += 1
+    return nd
+
+
 @njit(parallel=True, cache=True)
 def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, card):
-    """:func:`render_lenses` (numba core)."""
+    """:func:`render_lenses` (numba core).
+
+    Without a card, a lens's pixels are visited only where one of its
+    :func:`_shadow_discs` holds their centre (row by row, between the first and last
+    column any disc reaches): every other pixel has no candidate occluder for any of its
+    lenses in :func:`_trace_pixel`, so it keeps the unoccluded value.
+    """
     rows = out.shape[0]
     cols = out.shape[1]
     inv_n = 1.0 / samples.shape[0]
     half_r = (par[ROWS] - 1.0) * 0.5
     half_c = (par[COLS] - 1.0) * 0.5
     reach = par[CELL_PX] + 1.0
+    filtered = card[0] <= 0.0
+    pp = par[PP]
     for k in prange(lenses.shape[0]):
         i = lenses[k, 0]
         j = lenses[k, 1]
         cand = np.empty(ptr[k + 1] - ptr[k], dtype=np.int64)
+        discs = np.empty((9 * (ptr[k + 1] - ptr[k]), 3))
+        nd = 0
+        if filtered:
+            nd = _shadow_discs(i, j, par, occluders, idx, ptr[k], ptr[k + 1], discs)
+            if nd == 0:
+                continue
         cx, cy = _lens_center(i, j, par)
         crow = cy * par[SCALE] / par[PP] + half_r
         ccol = cx * par[SCALE] / par[PP] + half_c
@@ -1014,7 +1239,38 @@ def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, card)
         ca = max(0, int(math.floor(ccol - reach)))
         cb = min(cols, int(math.ceil(ccol + reach)) + 1)
         for r in range(ra, rb):
-            for c in range(ca, cb):
+            c_lo, c_hi = ca, cb
+            if filtered:
+                y0 = (r - half_r) * pp
+                lo = float(cb)
+                hi = float(ca - 1)
+                for m in range(nd):
+                    dy = y0 - discs[m, 1]
+                    rem = discs[m, 2] - dy * dy
+                    if rem < 0.0:
+                        continue
+                    w = math.sqrt(rem)
+                    lo = min(lo, (discs[m, 0] - w) / pp + half_c - 1.0)
+                    hi = max(hi, (discs[m, 0] + w) / pp + half_c + 1.0)
+                lo = max(lo, float(ca))
+                hi = min(hi, float(cb - 1))
+                if hi < lo:
+                    continue
+                c_lo = int(math.floor(lo))
+                c_hi = int(math.ceil(hi)) + 1
+            for c in range(c_lo, min(c_hi, cb)):
+                if filtered:
+                    x0 = (c - half_c) * pp
+                    y0 = (r - half_r) * pp
+                    inside = False
+                    for m in range(nd):
+                        dx = x0 - discs[m, 0]
+                        dy = y0 - discs[m, 1]
+                        if dx * dx + dy * dy <= discs[m, 2]:
+                            inside = True
+                            break
+                    if not inside:
+                        continue
                 pi, pj = _pixel_lens(r, c, par)
                 if pi != i or pj != j:
                     continue

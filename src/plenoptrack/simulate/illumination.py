@@ -52,7 +52,7 @@ from . import _kernels
 from .sensor import camera_rng
 
 __all__ = ["backlight_field", "backlight_coefficients", "dust_table", "dust_patches",
-           "illuminate", "image_rng", "DUST_SAMPLES_PER_PIXEL"]
+           "illuminate", "illuminated", "image_rng", "DUST_SAMPLES_PER_PIXEL"]
 
 DUST_SAMPLES_PER_PIXEL = 64
 """Rays per pixel used to trace the dust shadows (once per camera)."""
@@ -135,34 +135,41 @@ def backlight_field(optics, rng: np.random.Generator | None = None) -> np.ndarra
     return out
 
 
-def _apply_backlight(img, optics, rng):
+def _apply_backlight(img, optics, rng, src=None):
+    """Multiply by the back-light field, into ``img`` (from ``src``, default ``img``
+    itself). Returns False, writing nothing, when the field is uniform."""
     eff = optics.realism.illumination
     if eff.backlight_nonuniformity == 0 and (rng is None or eff.backlight_frame_change == 0):
-        return
+        return False
     b0, a = ((1.0, np.zeros(len(_MODES))) if eff.backlight_nonuniformity == 0
              else _camera_backlight(optics))
     f0, fa = _frame_backlight(optics, rng)
     rb, cb = _bases(img.shape)
-    _multiply_fields(img, rb, cb, b0, a, f0, fa)
+    _multiply_fields(img if src is None else src, img, rb, cb, b0, a, f0, fa)
+    return True
 
 
 @njit(parallel=True, cache=True)
-def _multiply_fields(img, rb, cb, b0, a, f0, fa):
+def _multiply_fields(src, img, rb, cb, b0, a, f0, fa):
+    """``img = src * B * F`` with ``B = b0 + sum_m a_m rb[m, row] cb[m, col]`` and ``F`` the
+    same with ``f0, fa`` (float64 sums in the order of the modes, one pixel at a time;
+    computed a row at a time so that the column loops vectorise)."""
     rows, cols = img.shape
     k = a.shape[0]
     for r in prange(rows):
-        ar = np.empty(k)
-        far = np.empty(k)
-        for m in range(k):
-            ar[m] = a[m] * rb[m, r]
-            far[m] = fa[m] * rb[m, r]
+        s1 = np.empty(cols)
+        s2 = np.empty(cols)
         for c in range(cols):
-            s1 = b0
-            s2 = f0
-            for m in range(k):
-                s1 += ar[m] * cb[m, c]
-                s2 += far[m] * cb[m, c]
-            img[r, c] = img[r, c] * (s1 * s2)
+            s1[c] = b0
+            s2[c] = f0
+        for m in range(k):
+            am = a[m] * rb[m, r]
+            fm = fa[m] * rb[m, r]
+            for c in range(cols):
+                s1[c] += am * cb[m, c]
+                s2[c] += fm * cb[m, c]
+        for c in range(cols):
+            img[r, c] = src[r, c] * (s1[c] * s2[c])
 
 
 @functools.lru_cache(maxsize=4)
@@ -289,7 +296,25 @@ def illuminate(irradiance: np.ndarray, optics, rng: np.random.Generator | None) 
         ``irradiance`` (the same array).
     """
     _apply_backlight(irradiance, optics, rng)
+    _apply_dust(irradiance, optics)
+    return irradiance
+
+
+def illuminated(irradiance: np.ndarray, optics, rng: np.random.Generator | None) -> np.ndarray:
+    """:func:`illuminate` into a new float32 array (the input is not changed).
+
+    The same pixels as a copy followed by :func:`illuminate`, without the separate pass
+    of the copy.
+    """
+    src = np.ascontiguousarray(irradiance, dtype=np.float32)
+    out = np.empty_like(src)
+    if not _apply_backlight(out, optics, rng, src=src):
+        out[...] = src
+    _apply_dust(out, optics)
+    return out
+
+
+def _apply_dust(irradiance, optics):
     if optics.realism.illumination.dust_particles >= 0.5:
         for r0, c0, patch in dust_patches(optics):
             irradiance[r0:r0 + patch.shape[0], c0:c0 + patch.shape[1]] *= patch
-    return irradiance

@@ -71,7 +71,7 @@ from . import _kernels
 from .optics import SimOptics
 from .scene import ELLIPSOID, SceneError, _fragments, _shape_arrays
 from ..errors import SettingsError
-from .illumination import illuminate, image_rng
+from .illumination import illuminated, image_rng
 from .psf import blur_image, live_cell_scale
 from .sensor import SensorModel, expose, fixed_pattern
 
@@ -645,8 +645,7 @@ def expose_image(irradiance: np.ndarray, optics: SimOptics, *, level: float,
     rng = np.random.default_rng(seed)
     irr = irradiance
     if real.illumination.enabled:
-        irr = np.array(irr, dtype=np.float32, copy=True)
-        illuminate(irr, optics, None if white else image_rng(rng))
+        irr = illuminated(irr, optics, None if white else image_rng(rng))
     if real.blur.enabled:
         irr = blur_image(irr, optics)
     return expose(irr, level=level, bit_depth=optics.camera.bit_depth, sensor=sensor, rng=rng,
