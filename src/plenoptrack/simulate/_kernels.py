@@ -239,6 +239,16 @@ def _lens_consts(cx, cy, par):
 
 
 @njit(cache=True)
+def _aperture_point(px, py, qx, qy, cx, cy, par, inv_d, s_l):
+    """Where the ray of sensor point P through point Q of lens C meets the aperture plane,
+    relative to the optical axis (lens effects on; ``inv_d, s_l`` from :func:`_lens_consts`)."""
+    # Thin microlens at distance d from the sensor: slope out = (Q - P) / d - (Q - C) / f.
+    sx = (qx - px) * inv_d - (qx - cx) * par[INV_F_ML]
+    sy = (qy - py) * inv_d - (qy - cy) * par[INV_F_ML]
+    return qx + sx * s_l - par[AXX], qy + sy * s_l - par[AXY]
+
+
+@njit(cache=True)
 def _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w):
     """Object-side ray of sensor point P through point Q of lens C with the lens effects.
 
@@ -247,11 +257,7 @@ def _lens_ray_at(px, py, qx, qy, cx, cy, par, inv_d, s_l, w):
     Returns (ok, hx, hy, dx, dy): ``ok`` False when the ray is stopped by the aperture or
     the front stop; otherwise the ray ``H + Z (d, 1)`` relative to the optical axis.
     """
-    # Thin microlens at distance d from the sensor: slope out = (Q - P) / d - (Q - C) / f.
-    sx = (qx - px) * inv_d - (qx - cx) * par[INV_F_ML]
-    sy = (qy - py) * inv_d - (qy - cy) * par[INV_F_ML]
-    hx = qx + sx * s_l - par[AXX]
-    hy = qy + sy * s_l - par[AXY]
+    hx, hy = _aperture_point(px, py, qx, qy, cx, cy, par, inv_d, s_l)
     h2 = hx * hx + hy * hy
     if h2 > par[R_AP2]:
         return False, hx, hy, 0.0, 0.0
@@ -424,11 +430,8 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
         if tab is not None and (not per_sample or (cur_i == own_i and cur_j == own_j)):
-            # The first lines of _lens_ray_at, verbatim: the same aperture test.
-            sx = (qx - px) * inv_d - (qx - cx) * par[INV_F_ML]
-            sy = (qy - py) * inv_d - (qy - cy) * par[INV_F_ML]
-            hx = qx + sx * s_l - par[AXX]
-            hy = qy + sy * s_l - par[AXY]
+            # The aperture test of _lens_ray_at.
+            hx, hy = _aperture_point(px, py, qx, qy, cx, cy, par, inv_d, s_l)
             if hx * hx + hy * hy > par[R_AP2]:
                 continue
             if _surely_clear(hx, hy, tab, nc, vig_on):
@@ -530,11 +533,8 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
         if tab is not None and (not per_sample or (cur_i == own_i and cur_j == own_j)):
-            # The first lines of _lens_ray_at, verbatim: the same aperture test.
-            sx = (qx - px) * inv_d - (qx - cx) * par[INV_F_ML]
-            sy = (qy - py) * inv_d - (qy - cy) * par[INV_F_ML]
-            hx = qx + sx * s_l - par[AXX]
-            hy = qy + sy * s_l - par[AXY]
+            # The aperture test of _lens_ray_at.
+            hx, hy = _aperture_point(px, py, qx, qy, cx, cy, par, inv_d, s_l)
             if hx * hx + hy * hy > par[R_AP2]:
                 continue
             if _surely_clear(hx, hy, tab, nc, vig_on):
