@@ -53,10 +53,10 @@ from scipy import ndimage
 
 from .._columns import POS_COLUMNS, T_COLUMN
 from ..errors import NoParticlesWarning, SettingsError
-from ..io import warn_exposure
-from ..lightfield.decode import LightField, decode
+from ..lightfield.decode import LightField
 from ..lightfield.refocus import view_shift_per_u
-from .perspective import PARTICLE_COLUMNS, LocateResult, PerspectiveLocator, locate_frame
+from .perspective import (PARTICLE_COLUMNS, LocateResult, PerspectiveLocator, _decoded,
+                          locate_frame)
 from .segment import segment_array
 from .triangulate import triangulate_clusters
 
@@ -495,20 +495,6 @@ class HybridLocator:
 
 
 # --- shared steps ---------------------------------------------------------------------
-
-def _decoded(raw_or_lf, calibration, frame, white) -> LightField:
-    if isinstance(raw_or_lf, LightField):
-        lf = raw_or_lf
-    else:
-        image = np.asarray(raw_or_lf)
-        calibration.check_image(image)
-        warn_exposure(image, calibration.camera.full_scale, source=f"frame {frame}")
-        lf = decode(image, calibration.grid, white=white)
-    if calibration.vignetting is not None and calibration.vignetting.shape == lf.valid_fraction.shape:
-        lf = dataclasses.replace(lf, valid_fraction=np.minimum(lf.valid_fraction,
-                                                               calibration.vignetting))
-    return lf
-
 
 def _to_object(dlfc, lf: LightField, ts: np.ndarray, parallax: np.ndarray, initial: np.ndarray):
     """Object positions of particles seen at central-view sample ``ts`` (n, 2: t, s)
