@@ -191,6 +191,42 @@ def test_interrupts_are_deferred_to_the_end_of_the_block():
     assert done == ["finished the block first"]
 
 
+def test_a_ctrl_c_swallowed_by_a_c_callback_stops_the_next_commit(tmp_path, monkeypatch):
+    """A KeyboardInterrupt raised in a ctypes callback is dropped by C (as llvmlite's are
+    while numba compiles); the command line's hook records it and no output is committed."""
+    import ctypes
+    import ctypes.util
+    import sys
+
+    import plenoptrack.io as pio
+    from plenoptrack.cli import _unraisable
+
+    monkeypatch.setattr(pio, "_lost_interrupts", [])
+    seen = []
+    monkeypatch.setattr(sys, "unraisablehook", _unraisable(seen.append))
+
+    compare = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.POINTER(ctypes.c_int), ctypes.POINTER(ctypes.c_int))
+
+    def interrupted(a, b):
+        raise KeyboardInterrupt
+
+    values = (ctypes.c_int * 3)(3, 1, 2)
+    libc = ctypes.CDLL(ctypes.util.find_library("c"))
+    libc.qsort(values, 3, ctypes.sizeof(ctypes.c_int), compare(interrupted))  # returns normally
+    assert seen == [] and pio._lost_interrupts  # recorded, not printed
+
+    target = tmp_path / "out.txt"
+    with pytest.raises(KeyboardInterrupt), atomic_path(target) as tmp:
+        tmp.write_text("never committed")
+    assert list(tmp_path.iterdir()) == []
+
+    def failing(a, b):
+        raise ValueError("not an interrupt")
+
+    libc.qsort(values, 3, ctypes.sizeof(ctypes.c_int), compare(failing))
+    assert seen and all(type(info.exc_value) is ValueError for info in seen)  # the old hook
+
+
 def test_colour_tiff_is_refused_and_a_stack_of_three_frames_read(tmp_path):
     grey = np.arange(4 * 5, dtype=np.uint16).reshape(4, 5)
     tifffile.imwrite(tmp_path / "rgb.tif", np.stack([grey] * 3, axis=-1), photometric="rgb")

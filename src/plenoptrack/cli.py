@@ -20,6 +20,7 @@ when the whole command has succeeded.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import os
@@ -1040,20 +1041,54 @@ def demo(
     console.print(f"files in {out_dir}")
 
 
+def _unraisable(hook):
+    """An unraisable-exception hook that turns a swallowed Ctrl-C into a pending interrupt."""
+
+    def unraisable(info) -> None:
+        if isinstance(info.exc_value, KeyboardInterrupt):
+            from .io import note_lost_interrupt
+
+            note_lost_interrupt()  # no traceback; the next commit of an output raises it
+            return
+        hook(info)
+
+    return unraisable
+
+
 def main() -> None:
     """Console entry point: run a command; a Ctrl-C once it has finished changes nothing."""
     import signal
 
+    # Ctrl-C while numba compiles a kernel can land in a C callback, which prints and drops
+    # the KeyboardInterrupt: record it instead, so that no output is committed after it.
+    sys.unraisablehook = _unraisable(sys.unraisablehook)
     try:
         app()
-    except SystemExit:
+    except SystemExit as exc:
         # The command is over and its outputs are committed (or it failed cleanly): ignore
         # a late Ctrl-C so that it cannot end the process by signal during shutdown.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        if exc.code == 130:
+            _exit_interrupted()
         raise
     except KeyboardInterrupt:  # between the command's end and the line above
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
         _error_line("interrupted; nothing half-written was kept")
-        sys.exit(130)
+        _exit_interrupted()
+
+
+def _exit_interrupted() -> None:
+    """Exit with code 130 now, after a Ctrl-C that the command has handled.
+
+    When the ``KeyboardInterrupt`` passed through code that the interpreter ran with
+    ``PyRun_*`` (some compiled extensions do), the interpreter would end the process by
+    SIGINT at shutdown whatever exit code was asked for. Cleanup has already run, so
+    leave without the interpreter's shutdown.
+    """
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            stream.flush()
+    os._exit(130)
 
 
 if __name__ == "__main__":  # pragma: no cover

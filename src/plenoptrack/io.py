@@ -51,6 +51,26 @@ def default_file_mode() -> int:
     return 0o666 & ~_umask()
 
 
+_lost_interrupts: list[int] = []
+
+
+def note_lost_interrupt() -> None:
+    """Record a Ctrl-C that compiled or C code swallowed instead of raising it.
+
+    A ``KeyboardInterrupt`` raised inside a C callback (llvmlite calls back into Python
+    while numba compiles a kernel) is printed and ignored by the C caller, so the command
+    would run on and commit its outputs as if the user had not pressed Ctrl-C. The command
+    line records such interrupts here (from :data:`sys.unraisablehook`); every commit of an
+    output raises the ``KeyboardInterrupt`` instead of committing.
+    """
+    _lost_interrupts.append(signal.SIGINT)
+
+
+def _raise_lost_interrupt() -> None:
+    if _lost_interrupts:
+        raise KeyboardInterrupt
+
+
 @contextlib.contextmanager
 def interrupts_deferred() -> Iterator[None]:
     """Hold back Ctrl-C (SIGINT) for the body, then raise the ``KeyboardInterrupt``.
@@ -179,6 +199,7 @@ def _commit(pairs: list[tuple[Path, Path]]) -> None:
     """Rename every temporary onto its target; on any failure restore every old target."""
     mode = default_file_mode()
     backups: list[tuple[Path, Path | None]] = []
+    _raise_lost_interrupt()
     with interrupts_deferred():
         try:
             for tmp, target in pairs:
@@ -277,6 +298,7 @@ def atomic_folder(path: str | Path) -> Iterator[Path]:
     try:
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it 0700
         yield tmp
+        _raise_lost_interrupt()
         with interrupts_deferred():
             old = None
             if path.exists():
