@@ -215,3 +215,49 @@ def test_dark_area_is_the_shadow_area_whatever_the_blur(blur_px):
     assert row["dark_area"] == pytest.approx(true, rel=0.08)
     if blur_px:
         assert abs(row["area"] - true) > 5 * abs(row["dark_area"] - true)
+
+
+def _opaque_discs(shape, centres, radius, blur):
+    """View of opaque discs (row, col centres, radius px) in front of a flat back-light."""
+    from scipy.ndimage import gaussian_filter
+
+    rows, cols = np.mgrid[:shape[0], :shape[1]] + 0.5 - 0.5  # pixel centres at integers
+    transmission = np.ones(shape)
+    # 8x8 supersampled coverage keeps the sub-pixel position in the image
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+    for r, c in centres:
+        covered = np.zeros(shape)
+        for dr in sub:
+            for dc in sub:
+                covered += np.hypot(rows + dr - r, cols + dc - c) < radius
+        transmission *= 1.0 - covered / 64
+    return gaussian_filter(transmission, blur)
+
+
+def test_merged_images_are_shared_out_between_their_cores():
+    shape = (40, 60)
+    centres = np.array([[20.3, 24.6], [21.1, 32.2], [10.4, 48.7]])  # a touching pair, one alone
+    img = _opaque_discs(shape, centres, radius=3.2, blur=0.8).astype(np.float32)
+    plain = segment_view(img)
+    assert len(plain) == 2  # the pair is one region
+    det = segment_view(img, core_contrast=0.9)
+    assert list(det.columns) == [*DETECTION_COLUMNS, "whole"]
+    assert len(det) == 3
+    dist, idx = _match(det, centres)
+    assert sorted(idx) == [0, 1, 2]
+    assert det.loc[idx == 2, "whole"].all() and not det.loc[idx < 2, "whole"].any()
+    # the parts share out the region's pixels and shadow exactly
+    merged = plain.loc[plain["area"].idxmax()]
+    parts = det[~det["whole"]]
+    assert parts["area"].sum() == merged["area"]
+    assert parts["dark_area"].sum() == pytest.approx(merged["dark_area"])
+    # each part's centroid is its particle's (a part misses the shared rim: < 0.35 px)
+    assert dist.max() < 0.35, dist
+    # the area range judges the merged region as a whole
+    assert len(segment_view(img, core_contrast=0.9,
+                            area_range=(2, merged["area"] - 1))) == 1
+
+
+def test_core_contrast_must_lie_between_contrast_and_one():
+    with pytest.raises(ValueError, match="core_contrast must be between"):
+        segment_view(np.ones((10, 10)), contrast=0.3, core_contrast=0.2)

@@ -1,5 +1,7 @@
-"""Region-level steps of the perspective-shift locator: splitting merged particle images
-and measuring each particle's size and shape from its member regions.
+"""Region-level steps of the perspective-shift locator: splitting large elongated regions
+into the two particle images they are made of, and measuring each particle's size and
+shape from its member regions (merged images with several dark cores are already split
+by the segmentation, :func:`~plenoptrack.locate.segment.segment_array`).
 
 Regions are rows of a detections table (:data:`~plenoptrack.locate.segment.DETECTION_COLUMNS`,
 view pixels).
@@ -11,35 +13,6 @@ import math
 
 import numpy as np
 import pandas as pd
-
-
-def _split_merged(coarse: pd.DataFrame, cores: pd.DataFrame) -> pd.DataFrame:
-    """Replace regions that hold two or more dark cores by those cores.
-
-    ``coarse`` are regions at the segmentation contrast, ``cores`` regions of the same
-    views at the (higher) core contrast. Each core joins the nearest coarse region of
-    its view within half the region's major axis plus a pixel; a coarse region with
-    several cores is the merged image of several particles.
-    """
-    if len(coarse) == 0 or len(cores) == 0:
-        return coarse
-    from scipy.spatial import cKDTree
-
-    def key(df):
-        return np.column_stack([df["s"].to_numpy() + 1e4 * (df["u"].to_numpy() + 100),
-                                df["t"].to_numpy() + 1e4 * (df["v"].to_numpy() + 100)])
-
-    dist, nearest = cKDTree(key(coarse)).query(key(cores))
-    reach = 0.5 * coarse["major_axis_px"].to_numpy()[np.minimum(nearest, len(coarse) - 1)] + 1.0
-    inside = np.isfinite(dist) & (dist <= reach)
-    n_cores = np.bincount(nearest[inside], minlength=len(coarse))
-    merged = n_cores >= 2
-    if not merged.any():
-        return coarse
-    replacement = cores[inside & merged[np.minimum(nearest, len(coarse) - 1)]]
-    out = pd.concat([coarse[~merged], replacement.assign(whole=False)], ignore_index=True)
-    out["whole"] = out["whole"].fillna(True).astype(bool)
-    return out.sort_values(["v", "u"], kind="stable").reset_index(drop=True)
 
 
 def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,

@@ -4,9 +4,10 @@
 (section 2 of the method paper):
 
 1. :func:`segment_frame` -- decode the raw image and segment dark particles in every
-   valid perspective view (:mod:`~plenoptrack.locate.segment`); split regions holding
-   several dark cores into those cores and large elongated regions into the two particle
-   images their second moments imply; ignore views dominated by noise;
+   valid perspective view (:mod:`~plenoptrack.locate.segment`); share out the pixels of
+   regions holding several dark cores between those cores, and split large elongated
+   regions into the two particle images their second moments imply; ignore views
+   dominated by noise;
 2. :func:`cluster_unassigned` -- group the unassigned centroids of each particle across
    views by k-means on projected refocus planes, finished by a density sweep
    (:mod:`~plenoptrack.locate.cluster`); large regions and split halves wait until
@@ -41,7 +42,6 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
-import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -56,7 +56,7 @@ from ..lightfield.decode import LightField, decode
 from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_duplicates,
                       _predict_all, _release_single_large, _trim_refit)
 from ._nearby import pairs_within
-from ._regions import _region_shape, _split_merged, _split_pairs
+from ._regions import _region_shape, _split_pairs
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
@@ -324,12 +324,8 @@ def segment_frame(lf: LightField, settings: SegmentSettings, *, frame: int = 0) 
               max_eccentricity=settings.max_eccentricity)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NoParticlesWarning)
-        detections = segment_views(lf, contrast=settings.contrast, **kw)
-        if settings.core_contrast is not None and len(detections):
-            cores = segment_views(lf, contrast=settings.core_contrast,
-                                  **{**kw, "area_range": (1.0, math.inf),
-                                     "max_eccentricity": 1.0})
-            detections = _split_merged(detections, cores)
+        detections = segment_views(lf, contrast=settings.contrast,
+                                   core_contrast=settings.core_contrast, **kw)
     if len(detections) and settings.max_view_ratio is not None:
         # A view with far more regions than the typical view is dominated by noise (a
         # dim, partly vignetted rim view): its regions would only inflate k and the

@@ -36,8 +36,9 @@ DETECTION_COLUMNS = (T_COLUMN, "u", "v", "s", "t", "area", "diameter_px", "major
 """Columns of a detections table, in order (see :func:`segment_array` for units)."""
 
 # Per-region accumulator layout written by the kernel.
-_N, _SW, _SWS, _SWT, _SS, _ST, _SSS, _STT, _SST, _DARK, _EDGE, _S0, _T0, _SD = range(14)
-_N_STATS = 14
+_N, _SW, _SWS, _SWT, _SS, _ST, _SSS, _STT, _SST, _DARK, _EDGE, _S0, _T0, _SD, _PART, _PARENT_N = (
+    range(16))
+_N_STATS = 16
 # Regions per view the kernel has room for on its first pass. The buffer is allocated
 # with np.empty and only the rows written become resident memory, so a generous capacity
 # costs address space, not memory; views with more regions are segmented again.
@@ -146,8 +147,121 @@ def _at(row, jlo, jw, j):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
-def _segment_one(img, mask, zero_invalid, b, rb, contrast, conn8, out):  # pragma: no cover
-    """Segment one view; write per-region sums into ``out``; return the region count."""
+def _label_cores(reg, rel_dark, core_contrast, conn8):  # pragma: no cover - compiled
+    """Connected cores (pixels darker than ``core_contrast``) of the regions ``reg``.
+
+    Returns the core index of every pixel (-1 outside cores; cores numbered in raster
+    order of their first pixel) and the number of cores.
+    """
+    h, w = reg.shape
+    labels = np.zeros((h, w), dtype=np.int32)
+    parent = np.empty(h * w // 2 + 2, dtype=np.int32)
+    parent[0] = 0
+    n_lab = 0
+    for i in range(h):
+        for j in range(w):
+            if reg[i, j] < 0 or not (rel_dark[i, j] > core_contrast):
+                continue
+            lab = 0
+            if j > 0 and labels[i, j - 1] > 0:
+                lab = labels[i, j - 1]
+            if i > 0:
+                if labels[i - 1, j] > 0:
+                    lab = labels[i - 1, j] if lab == 0 else _union(parent, lab, labels[i - 1, j])
+                if conn8:
+                    if j > 0 and labels[i - 1, j - 1] > 0:
+                        lab = labels[i - 1, j - 1] if lab == 0 else _union(parent, lab,
+                                                                           labels[i - 1, j - 1])
+                    if j < w - 1 and labels[i - 1, j + 1] > 0:
+                        lab = labels[i - 1, j + 1] if lab == 0 else _union(parent, lab,
+                                                                           labels[i - 1, j + 1])
+            if lab == 0:
+                n_lab += 1
+                parent[n_lab] = n_lab
+                lab = n_lab
+            labels[i, j] = lab
+    core = np.full((h, w), -1, dtype=np.int32)
+    compact = np.full(n_lab + 1, -1, dtype=np.int64)
+    n_core = 0
+    for i in range(h):
+        for j in range(w):
+            if labels[i, j] > 0:
+                root = _find(parent, labels[i, j])
+                if compact[root] < 0:
+                    compact[root] = n_core
+                    n_core += 1
+                core[i, j] = compact[root]
+    return core, n_core
+
+
+@numba.njit(cache=True)
+def _split_by_cores(reg, n_reg, rel_dark, core_contrast, conn8):  # pragma: no cover
+    """Unit of every pixel: its region, or the core it is nearest to in a merged region.
+
+    A region holding two or more cores is the merged image of several particles. Its
+    pixels are shared out between its cores by a breadth-first flood from the cores
+    through the region (nearest core by path length within the region), so that each
+    part keeps the region's soft edge for its centroid. Units ``0 .. n_reg - 1`` are
+    regions; unit ``n_reg + c`` is the part of core ``c``. Returns the unit of every
+    pixel (-1 outside regions) and the number of unit indices.
+    """
+    h, w = reg.shape
+    core, n_core = _label_cores(reg, rel_dark, core_contrast, conn8)
+    cores_in = np.zeros(n_reg, dtype=np.int64)
+    core_region = np.full(n_core, -1, dtype=np.int64)
+    for i in range(h):
+        for j in range(w):
+            c = core[i, j]
+            if c >= 0 and core_region[c] < 0:
+                core_region[c] = reg[i, j]
+                cores_in[reg[i, j]] += 1
+    unit = reg.copy()
+    n_split_px = 0
+    for i in range(h):
+        for j in range(w):
+            r = reg[i, j]
+            if r >= 0 and cores_in[r] >= 2:
+                n_split_px += 1
+                unit[i, j] = -2  # not yet reached
+    if n_split_px == 0:
+        return unit, n_reg + n_core
+    qi = np.empty(n_split_px, dtype=np.int64)
+    qj = np.empty(n_split_px, dtype=np.int64)
+    tail = 0
+    for i in range(h):
+        for j in range(w):
+            if unit[i, j] == -2 and core[i, j] >= 0:
+                unit[i, j] = n_reg + core[i, j]
+                qi[tail] = i
+                qj[tail] = j
+                tail += 1
+    head = 0
+    while head < tail:
+        i = qi[head]
+        j = qj[head]
+        head += 1
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                if (di == 0 and dj == 0) or (not conn8 and di != 0 and dj != 0):
+                    continue
+                ii = i + di
+                jj = j + dj
+                if 0 <= ii < h and 0 <= jj < w and unit[ii, jj] == -2:
+                    unit[ii, jj] = unit[i, j]
+                    qi[tail] = ii
+                    qj[tail] = jj
+                    tail += 1
+    return unit, n_reg + n_core
+
+
+@numba.njit(cache=True)
+def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, conn8,
+                 out):  # pragma: no cover - compiled
+    """Segment one view; write per-region sums into ``out``; return the region count.
+
+    With ``core_contrast > 0`` a region with several cores is written as one row per
+    core (its part of the region, see :func:`_split_by_cores`) instead of one row.
+    """
     h, w = img.shape
     cap = out.shape[0]
     nbi = (h + b - 1) // b
@@ -227,6 +341,8 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, conn8, out):  # pragm
             labels[i, j] = lab
     if n_lab == 0:
         return 0
+    reg = np.full((h, w), -1, dtype=np.int32)
+    reg_n = np.zeros(n_lab + 1, dtype=np.float64)
     compact = np.full(n_lab + 1, -1, dtype=np.int64)
     n_reg = 0
     for i in range(h):
@@ -235,16 +351,34 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, conn8, out):  # pragm
             if lab == 0:
                 continue
             root = _find(parent, lab)
-            k = compact[root]
-            if k < 0:
-                k = n_reg
-                compact[root] = k
+            if compact[root] < 0:
+                compact[root] = n_reg
                 n_reg += 1
+            reg[i, j] = compact[root]
+            reg_n[compact[root]] += 1.0
+    if core_contrast > 0.0:
+        unit, n_units = _split_by_cores(reg, n_reg, rel_dark, core_contrast, conn8)
+    else:
+        unit, n_units = reg, n_reg
+    row_of = np.full(n_units, -1, dtype=np.int64)
+    n_row = 0
+    for i in range(h):
+        for j in range(w):
+            un = unit[i, j]
+            if un < 0:
+                continue
+            k = row_of[un]
+            if k < 0:
+                k = n_row
+                row_of[un] = k
+                n_row += 1
                 if k < cap:
                     for c in range(_N_STATS):
                         out[k, c] = 0.0
                     out[k, _S0] = j
                     out[k, _T0] = i
+                    out[k, _PART] = 1.0 if un >= n_reg else 0.0
+                    out[k, _PARENT_N] = reg_n[reg[i, j]]
             if k >= cap:
                 continue
             wgt = weight[i, j]
@@ -271,23 +405,23 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, conn8, out):  # pragm
                                 edge = True
                 if edge:
                     out[k, _EDGE] = 1.0
-    return n_reg
+    return n_row
 
 
 @numba.njit(parallel=True, cache=True)
-def _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, conn8, out,
-                   counts):  # pragma: no cover - compiled
+def _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast, conn8,
+                   out, counts):  # pragma: no cover - compiled
     for k in numba.prange(stack.shape[0]):
         if use[k]:
-            counts[k] = _segment_one(stack[k], mask, zero_invalid, b, rb, contrast, conn8,
-                                     out[k])
+            counts[k] = _segment_one(stack[k], mask, zero_invalid, b, rb, contrast,
+                                     core_contrast, conn8, out[k])
         else:
             counts[k] = 0
 
 
 # --------------------------------------------------------------------------------------
 # array level
-def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8):
+def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8, core_contrast=0.0):
     """Per-region sums of every view: ``(stats (M, _N_STATS), view index (M,))``.
 
     Regions are in view order, and in raster order of their first pixel within a view.
@@ -297,7 +431,8 @@ def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8):
     n_views = stack.shape[0]
     counts = np.zeros(n_views, dtype=np.int64)
     out = np.empty((n_views, _INITIAL_CAPACITY, _N_STATS), dtype=np.float64)
-    _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, conn8, out, counts)
+    _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast, conn8, out,
+                   counts)
     view_idx = np.repeat(np.arange(n_views), counts)
     rank = np.arange(len(view_idx)) - np.repeat(np.cumsum(counts) - counts, counts)
     full = counts > _INITIAL_CAPACITY
@@ -309,7 +444,8 @@ def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8):
     again = np.flatnonzero(full)
     more = np.empty((len(again), int(counts[again].max()), _N_STATS), dtype=np.float64)
     _segment_stack(np.ascontiguousarray(stack[again]), np.ones(len(again), dtype=bool), mask,
-                   zero_invalid, b, rb, contrast, conn8, more, counts[again].copy())
+                   zero_invalid, b, rb, contrast, core_contrast, conn8, more,
+                   counts[again].copy())
     slot = np.zeros(n_views, dtype=np.int64)
     slot[again] = np.arange(len(again))
     stats[~fits] = more[slot[view_idx[~fits]], rank[~fits]]
@@ -371,7 +507,7 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
                   frame: int = 0, window: int = 31, contrast: float = 0.15,
                   area_range=(2, np.inf), max_eccentricity: float = 1.0,
                   exclude_edge: bool = True, zero_invalid: bool = False,
-                  connectivity: int = 2) -> pd.DataFrame:
+                  connectivity: int = 2, core_contrast: float | None = None) -> pd.DataFrame:
     """Segment dark particles in every view of a 4-D light-field array.
 
     Parameters
@@ -406,11 +542,20 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
         samples with 0).
     connectivity : {1, 2}
         Pixel connectivity of a region: 1 = 4-neighbours, 2 = 8-neighbours.
+    core_contrast : float, optional
+        Split merged images: a region holding two or more cores (connected pixels darker
+        than ``(1 - core_contrast)`` times the background, ``contrast < core_contrast <
+        1``) is the merged image of several particles and is replaced by one detection
+        per core, made of the region's pixels nearest that core (path length within the
+        region). Such parts keep the region's soft-edged centroid weights; the area range
+        applies to the whole region and the eccentricity limit not at all. Adds the
+        column ``whole`` (False for parts). Default: no splitting.
 
     Returns
     -------
     pandas.DataFrame
-        One row per detection, columns :data:`DETECTION_COLUMNS`:
+        One row per detection, columns :data:`DETECTION_COLUMNS` (and ``whole`` with
+        ``core_contrast``):
         ``frame`` (int); ``u, v`` view coordinates; ``s, t`` darkness-weighted centroid (see
         Notes), view pixels (column, row; pixel centres at integers); ``area`` pixels (int);
         ``diameter_px`` equivalent-circle diameter; ``major_axis_px, minor_axis_px``
@@ -464,26 +609,34 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
     if not 0.0 < contrast < 1.0:
         raise SettingsError(f"contrast must be between 0 and 1; got {contrast!r}")
     a_lo, a_hi = _check_range("area_range", area_range)
+    if core_contrast is not None and not contrast < core_contrast < 1.0:
+        raise SettingsError(f"core_contrast must be between contrast ({contrast}) and 1; "
+                            f"got {core_contrast!r}")
     if connectivity not in (1, 2):
         raise SettingsError(f"connectivity must be 1 or 2; got {connectivity!r}")
 
     stack = np.ascontiguousarray(data).reshape(n_v * n_u, n_t, n_s)
     stats, view_idx = _region_stats(stack, np.ascontiguousarray(use.ravel()), smask,
                                     bool(zero_invalid), b, rb, float(contrast),
-                                    connectivity == 2)
+                                    connectivity == 2,
+                                    0.0 if core_contrast is None else float(core_contrast))
     props = _region_properties(stats)
-    keep = (props["area"] >= a_lo) & (props["area"] <= a_hi)
-    keep &= props["eccentricity"] <= max_eccentricity
+    part = stats[:, _PART] > 0.0
+    keep = (stats[:, _PARENT_N] >= a_lo) & (stats[:, _PARENT_N] <= a_hi)
+    keep &= part | (props["eccentricity"] <= max_eccentricity)
     if exclude_edge:
         keep &= stats[:, _EDGE] == 0.0
     iv, iu = np.divmod(view_idx[keep], n_u)
     table = pd.DataFrame({T_COLUMN: np.full(int(keep.sum()), int(frame), dtype=np.int64),
                           "u": u[iu], "v": v[iv],
                           **{k: props[k][keep] for k in DETECTION_COLUMNS[3:]}})
+    if core_contrast is not None:
+        table["whole"] = ~part[keep]
     if len(table) == 0:
         warnings.warn("no particles found in any view; returning an empty detections table",
                       NoParticlesWarning, stacklevel=2)
-        return _empty_detections()
+        empty = _empty_detections()
+        return empty if core_contrast is None else empty.assign(whole=np.zeros(0, bool))
     return table.reset_index(drop=True)
 
 
@@ -491,7 +644,7 @@ def segment_view(image: np.ndarray, *, mask=None, u: float = 0.0, v: float = 0.0
                  frame: int = 0, window: int = 31, contrast: float = 0.15,
                  area_range=(2, np.inf), max_eccentricity: float = 1.0,
                  exclude_edge: bool = True, zero_invalid: bool = False,
-                 connectivity: int = 2) -> pd.DataFrame:
+                 connectivity: int = 2, core_contrast: float | None = None) -> pd.DataFrame:
     """Segment dark particles in one perspective view.
 
     Parameters
@@ -502,13 +655,14 @@ def segment_view(image: np.ndarray, *, mask=None, u: float = 0.0, v: float = 0.0
         True where the view carries data (default: everywhere).
     u, v : float
         View coordinates written to the ``u`` and ``v`` columns.
-    frame, window, contrast, area_range, max_eccentricity, exclude_edge, zero_invalid, connectivity
+    frame, window, contrast, area_range, max_eccentricity, exclude_edge, zero_invalid, connectivity, core_contrast
         As in :func:`segment_array`.
 
     Returns
     -------
     pandas.DataFrame
-        Columns :data:`DETECTION_COLUMNS`, see :func:`segment_array`.
+        Columns :data:`DETECTION_COLUMNS` (and ``whole`` with ``core_contrast``), see
+        :func:`segment_array`.
     """
     image = np.asarray(image)
     if image.ndim != 2:
@@ -516,13 +670,14 @@ def segment_view(image: np.ndarray, *, mask=None, u: float = 0.0, v: float = 0.0
     return segment_array(image[None, None], [u], [v], spatial_mask=mask, frame=frame,
                          window=window, contrast=contrast, area_range=area_range,
                          max_eccentricity=max_eccentricity, exclude_edge=exclude_edge,
-                         zero_invalid=zero_invalid, connectivity=connectivity)
+                         zero_invalid=zero_invalid, connectivity=connectivity,
+                         core_contrast=core_contrast)
 
 
 def segment_views(lf, *, frame: int = 0, views=None, window: int = 31,
                   contrast: float = 0.15, area_range=(2, np.inf),
                   max_eccentricity: float = 1.0, exclude_edge: bool = True,
-                  connectivity: int = 2) -> pd.DataFrame:
+                  connectivity: int = 2, core_contrast: float | None = None) -> pd.DataFrame:
     """Segment dark particles in every valid view of a light field.
 
     Parameters
@@ -534,13 +689,14 @@ def segment_views(lf, *, frame: int = 0, views=None, window: int = 31,
         Frame index written to the ``frame`` column.
     views : (n_v, n_u) bool ndarray, optional
         Views to segment; default ``lf.view_mask``.
-    window, contrast, area_range, max_eccentricity, exclude_edge, connectivity
+    window, contrast, area_range, max_eccentricity, exclude_edge, connectivity, core_contrast
         As in :func:`segment_array`.
 
     Returns
     -------
     pandas.DataFrame
-        Columns :data:`DETECTION_COLUMNS`, see :func:`segment_array`. Samples outside
+        Columns :data:`DETECTION_COLUMNS` (and ``whole`` with ``core_contrast``), see
+        :func:`segment_array`. Samples outside
         ``lf.spatial_mask`` and, for a flat-fielded light field, samples set to 0
         (vignetted) are masked.
     """
@@ -550,4 +706,4 @@ def segment_views(lf, *, frame: int = 0, views=None, window: int = 31,
                          contrast=contrast, area_range=area_range,
                          max_eccentricity=max_eccentricity, exclude_edge=exclude_edge,
                          zero_invalid=bool(getattr(lf, "flat_fielded", False)),
-                         connectivity=connectivity)
+                         connectivity=connectivity, core_contrast=core_contrast)

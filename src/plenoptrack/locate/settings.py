@@ -66,9 +66,10 @@ class SegmentSettings:
     contrast : float
         A particle pixel is darker than its local background by at least this fraction.
     core_contrast : float or None
-        A second segmentation at this (higher) contrast finds the dark cores of the
-        particle images; a region that holds two or more cores is the merged image of
-        touching particles and is replaced by its cores. None disables the split.
+        A second, higher threshold finds the dark cores of the particle images; a region
+        that holds two or more cores is the merged image of touching particles, and its
+        pixels are shared out between its cores (each pixel to the nearest core along
+        paths within the region), one detection per core. None disables the split.
     area_range : (float, float)
         Accepted region areas in a view, view pixels.
     max_eccentricity : float
