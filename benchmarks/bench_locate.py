@@ -12,8 +12,8 @@ timing.
 
 Stages are those :func:`~plenoptrack.locate.perspective.locate_frame` reports in
 ``LocateResult.stage_seconds`` for the fastest of ``--repeat`` calls on the raw image:
-decode (raw to light field); segment (every view, merged regions split into their dark
-cores); cluster (every clustering pass); triangulate + addition (solves, duplicate
+decode (raw to light field); segment (every view, merged regions shared out between
+their dark cores); cluster (every clustering pass); triangulate + addition (solves, duplicate
 merging, centroid addition); checks (final consistency checks, last solve, table);
 total (the whole call). Peak memory is the process's ``VmHWM``.
 
