@@ -174,3 +174,27 @@ def test_locate_frame_matches_previous_steps(small_calibrated, monkeypatch, n_pa
     assert len(new.particles) >= 0.9 * n_particles
     assert new.particles.equals(old.particles)
     assert new.detections.equals(old.detections)
+
+
+def test_a_crowd_of_shares_does_not_raise_the_size_reference_of_pair_splitting():
+    """Shares of merged images (``whole`` False) are as large as a particle's image; were
+    they counted in the median area, a crowd of them would let a merged pair pass for
+    one image."""
+    import pandas as pd
+
+    from plenoptrack.locate._regions import _split_pairs
+
+    def regions(n, area, major, minor, whole):
+        return pd.DataFrame({"frame": 0, "u": 0.0, "v": 0.0, "s": np.arange(n) * 20.0,
+                             "t": 5.0, "area": area, "diameter_px": np.sqrt(4 * area / np.pi),
+                             "major_axis_px": major, "minor_axis_px": minor,
+                             "orientation": 0.0, "eccentricity": 0.0, "darkness": 0.9,
+                             "dark_area": area * 0.8, "whole": whole})
+
+    singles = regions(5, 12, 4.0, 4.0, True)
+    pair = regions(1, 26, 8.0, 4.0, True)             # two touching 12-pixel images
+    shares = regions(20, 24, 5.0, 5.0, False)         # a crowd split between its cores
+    out = _split_pairs(pd.concat([singles, pair, shares], ignore_index=True), 1.3, 1.25)
+    halves = out[out["split_pair"]]
+    assert len(halves) == 2 and np.allclose(sorted(halves["s"]), [-1.732, 1.732], atol=0.01)
+    assert not out.loc[~out["whole"], "split_pair"].any()

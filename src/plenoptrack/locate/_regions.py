@@ -19,7 +19,8 @@ def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
                  elongation: float) -> pd.DataFrame:
     """Replace large elongated regions by the two particle images they are made of.
 
-    A region larger than ``max_area_ratio`` times the median area and more elongated
+    A region larger than ``max_area_ratio`` times the median area of the whole regions
+    (not shares of merged images, which would raise it in a crowd) and more elongated
     than ``elongation`` (major over minor axis) is taken for the merged image of two
     equal particles. Two discs of radius ``r`` with centres ``c +- a e`` have second
     moments ``r^2 / 4 + a^2`` along ``e`` and ``r^2 / 4`` across it, so
@@ -32,7 +33,9 @@ def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
     area = detections["area"].to_numpy(float)
     major = detections["major_axis_px"].to_numpy(float)
     minor = detections["minor_axis_px"].to_numpy(float)
-    pair = (area > max_area_ratio * np.median(area)) & (major > elongation * minor)
+    whole = detections["whole"].to_numpy(bool)
+    reference = np.median(area[whole]) if whole.any() else np.median(area)
+    pair = (area > max_area_ratio * reference) & (major > elongation * minor)
     if not pair.any():
         return detections.assign(split_pair=False)
     src = detections[pair]

@@ -208,7 +208,14 @@ class ParticleState:
         """No particles yet; large regions and split halves are held back as merged."""
         area = ctx.detections["area"].to_numpy(float)
         owner = np.full(len(area), -1, dtype=np.int64)
-        owner[area > segment.max_area_ratio * np.median(area)] = _MERGED
+        # What one particle's image looks like: the median whole region. Shares of
+        # merged images are as large as their particle's image would be, and in a crowd
+        # they would raise the reference until merged regions pass for single images.
+        whole = (ctx.detections["whole"].to_numpy(bool) if "whole" in ctx.detections.columns
+                 else np.ones(len(area), bool))
+        whole = whole & ~_split(ctx.detections)
+        reference = np.median(area[whole]) if whole.any() else np.median(area)
+        owner[area > segment.max_area_ratio * reference] = _MERGED
         # Halves of split merged images wait, like merged regions, until particles have
         # been located: only those no located particle accounts for join the pool.
         owner[_split(ctx.detections)] = _MERGED
