@@ -527,9 +527,9 @@ def _size_members(ctx: FrameContext, held_owner: np.ndarray, owner: np.ndarray,
     as merged images (owner ``_MERGED`` in ``held_owner``) in which it is the only kept
     particle predicted.
 
-    In a crowded frame the median region area falls (split cores and halves are small)
-    and ordinary single images exceed ``max_area_ratio`` times it; they are held back
-    and the particle is left with its cores. A held-back region that exactly one
+    An ordinary single image can exceed ``max_area_ratio`` times the median whole
+    region (a larger particle, or one further from focus); it is held back and the
+    particle would be left with its other regions. A held-back region that exactly one
     located particle accounts for is that particle's whole image, so its size counts.
     """
     held = np.flatnonzero(held_owner == _MERGED)
