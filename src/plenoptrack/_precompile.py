@@ -98,6 +98,9 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate.segment._block_mean", "plenoptrack.locate.segment._fill_nan",
     "plenoptrack.locate.segment._interp_axis", "plenoptrack.locate.segment._grid_row",
     "plenoptrack.locate.segment._at", "plenoptrack.locate.segment._segment_one",
+    "plenoptrack.locate.segment._label_pixel", "plenoptrack.locate.segment._label_cores",
+    "plenoptrack.locate.segment._split_by_cores", "plenoptrack.locate._order._before",
+    "plenoptrack.locate._order.median", "plenoptrack.locate._order.stable_argsort",
     "plenoptrack.locate.triangulate._coefficients_one",
     "plenoptrack.locate.triangulate._normal_one", "plenoptrack.locate.triangulate._solve3",
 })

@@ -147,6 +147,33 @@ def _at(row, jlo, jw, j):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True)
+def _label_pixel(labels, parent, n_lab, i, j, conn8):  # pragma: no cover - compiled
+    """Label foreground pixel ``(i, j)`` in a raster scan with union-find; return ``n_lab``.
+
+    Joins the neighbours already visited (W, N, and NW, NE with 8-connectivity); a pixel
+    with none starts a new label.
+    """
+    w = labels.shape[1]
+    lab = 0
+    if j > 0 and labels[i, j - 1] > 0:
+        lab = labels[i, j - 1]
+    if i > 0:
+        if labels[i - 1, j] > 0:
+            lab = labels[i - 1, j] if lab == 0 else _union(parent, lab, labels[i - 1, j])
+        if conn8:
+            if j > 0 and labels[i - 1, j - 1] > 0:
+                lab = labels[i - 1, j - 1] if lab == 0 else _union(parent, lab, labels[i - 1, j - 1])
+            if j < w - 1 and labels[i - 1, j + 1] > 0:
+                lab = labels[i - 1, j + 1] if lab == 0 else _union(parent, lab, labels[i - 1, j + 1])
+    if lab == 0:
+        n_lab += 1
+        parent[n_lab] = n_lab
+        lab = n_lab
+    labels[i, j] = lab
+    return n_lab
+
+
+@numba.njit(cache=True)
 def _label_cores(reg, rel_dark, core_contrast, conn8):  # pragma: no cover - compiled
     """Connected cores (pixels darker than ``core_contrast``) of the regions ``reg``.
 
@@ -162,24 +189,7 @@ def _label_cores(reg, rel_dark, core_contrast, conn8):  # pragma: no cover - com
         for j in range(w):
             if reg[i, j] < 0 or not (rel_dark[i, j] > core_contrast):
                 continue
-            lab = 0
-            if j > 0 and labels[i, j - 1] > 0:
-                lab = labels[i, j - 1]
-            if i > 0:
-                if labels[i - 1, j] > 0:
-                    lab = labels[i - 1, j] if lab == 0 else _union(parent, lab, labels[i - 1, j])
-                if conn8:
-                    if j > 0 and labels[i - 1, j - 1] > 0:
-                        lab = labels[i - 1, j - 1] if lab == 0 else _union(parent, lab,
-                                                                           labels[i - 1, j - 1])
-                    if j < w - 1 and labels[i - 1, j + 1] > 0:
-                        lab = labels[i - 1, j + 1] if lab == 0 else _union(parent, lab,
-                                                                           labels[i - 1, j + 1])
-            if lab == 0:
-                n_lab += 1
-                parent[n_lab] = n_lab
-                lab = n_lab
-            labels[i, j] = lab
+            n_lab = _label_pixel(labels, parent, n_lab, i, j, conn8)
     core = np.full((h, w), -1, dtype=np.int32)
     compact = np.full(n_lab + 1, -1, dtype=np.int64)
     n_core = 0
@@ -320,25 +330,7 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, conn8,
                 continue
             weight[i, j] = bgv * scale - img[i, j]
             rel_dark[i, j] = (bgv - img[i, j]) / bgv
-            lab = 0
-            # neighbours already visited: W, N (and NW, NE with 8-connectivity)
-            if j > 0 and labels[i, j - 1] > 0:
-                lab = labels[i, j - 1]
-            if i > 0:
-                if labels[i - 1, j] > 0:
-                    lab = labels[i - 1, j] if lab == 0 else _union(parent, lab, labels[i - 1, j])
-                if conn8:
-                    if j > 0 and labels[i - 1, j - 1] > 0:
-                        lab = labels[i - 1, j - 1] if lab == 0 else _union(parent, lab,
-                                                                           labels[i - 1, j - 1])
-                    if j < w - 1 and labels[i - 1, j + 1] > 0:
-                        lab = labels[i - 1, j + 1] if lab == 0 else _union(parent, lab,
-                                                                           labels[i - 1, j + 1])
-            if lab == 0:
-                n_lab += 1
-                parent[n_lab] = n_lab
-                lab = n_lab
-            labels[i, j] = lab
+            n_lab = _label_pixel(labels, parent, n_lab, i, j, conn8)
     if n_lab == 0:
         return 0
     reg = np.full((h, w), -1, dtype=np.int32)
