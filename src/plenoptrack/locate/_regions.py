@@ -15,6 +15,19 @@ import numpy as np
 import pandas as pd
 
 
+def _single_image_area(detections: pd.DataFrame) -> float:
+    """What one particle's image covers, pixels: the median area of the whole regions.
+
+    Shares of merged images (``whole`` False) are as large as their particle's image
+    would be; in a crowd they would raise the reference until merged regions passed for
+    single images. Falls back to every region when none is whole.
+    """
+    area = detections["area"].to_numpy(float)
+    whole = (detections["whole"].to_numpy(bool) if "whole" in detections.columns
+             else np.ones(len(area), bool))
+    return float(np.median(area[whole] if whole.any() else area))
+
+
 def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
                  elongation: float) -> pd.DataFrame:
     """Replace large elongated regions by the two particle images they are made of.
@@ -33,9 +46,7 @@ def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
     area = detections["area"].to_numpy(float)
     major = detections["major_axis_px"].to_numpy(float)
     minor = detections["minor_axis_px"].to_numpy(float)
-    whole = detections["whole"].to_numpy(bool)
-    reference = np.median(area[whole]) if whole.any() else np.median(area)
-    pair = (area > max_area_ratio * reference) & (major > elongation * minor)
+    pair = (area > max_area_ratio * _single_image_area(detections)) & (major > elongation * minor)
     if not pair.any():
         return detections.assign(split_pair=False)
     src = detections[pair]

@@ -56,7 +56,7 @@ from ..lightfield.decode import LightField, decode
 from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_duplicates,
                       _predict_all, _release_single_large, _trim_refit)
 from ._nearby import pairs_within
-from ._regions import _region_shape, _split_pairs
+from ._regions import _region_shape, _single_image_area, _split_pairs
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
@@ -208,14 +208,7 @@ class ParticleState:
         """No particles yet; large regions and split halves are held back as merged."""
         area = ctx.detections["area"].to_numpy(float)
         owner = np.full(len(area), -1, dtype=np.int64)
-        # What one particle's image looks like: the median whole region. Shares of
-        # merged images are as large as their particle's image would be, and in a crowd
-        # they would raise the reference until merged regions pass for single images.
-        whole = (ctx.detections["whole"].to_numpy(bool) if "whole" in ctx.detections.columns
-                 else np.ones(len(area), bool))
-        whole = whole & ~_split(ctx.detections)
-        reference = np.median(area[whole]) if whole.any() else np.median(area)
-        owner[area > segment.max_area_ratio * reference] = _MERGED
+        owner[area > segment.max_area_ratio * _single_image_area(ctx.detections)] = _MERGED
         # Halves of split merged images wait, like merged regions, until particles have
         # been located: only those no located particle accounts for join the pool.
         owner[_split(ctx.detections)] = _MERGED
