@@ -22,6 +22,10 @@ one card's exposure and TIFF write and read with and without zlib. Wall-clock an
 process CPU time (all threads) are both printed: on a shared machine the CPU time is the
 steadier of the two.
 
+``--pins`` times the irradiance of the translation-stage study's pin field (stems of
+aspect 13) culled with chains of small balls along each stem against its bounding sphere,
+in the same run.
+
 Run: ``python benchmarks/bench_simulate.py``.
 """
 
@@ -300,7 +304,52 @@ def peak_memory(mode, name="hall2019"):
     print(f"{name} {mode}: white + 3 frames, peak RSS {rss:.0f} MB")
 
 
+def bench_pins(positions=(0, 25, 50), threads=1):
+    """Irradiance of the translation-stage study's pin field (40 heads, 40 stems of aspect
+    13, ``hall2019``, realistic optics) culled with the stems' chains of culling balls
+    against culled with their bounding spheres (``balls=None``, as before the chains), in
+    the same run, alternating, identical images required; ``threads`` numba threads (the
+    study's workers use one)."""
+    from plenoptrack.simulate import with_particle_effects
+    from plenoptrack.simulate.render import _NO_CARD, _particle_geometry, particle_lenses
+    from plenoptrack.study import StudyConfig, _frame_particles, study_field, traverse_positions
+
+    numba.set_num_threads(threads)
+    cfg = StudyConfig(camera=preset("hall2019"))
+    optics = make_optics(cfg.camera, cfg.seed, realism=cfg.realism)
+    field, _ = study_field(cfg)
+    field = with_particle_effects(field.assign(frame=0), optics.realism.particles,
+                                  seed=np.random.default_rng([cfg.seed, 6]),
+                                  velocity=None).drop(columns=["frame"])
+    par, samples = _kernels.pack_params(optics), sample_pattern(optics, 16)
+    background = background_irradiance(optics, 16)
+
+    def render(parts, chains):
+        occ, shapes, balls = _particle_geometry(optics, parts)
+        bounds = balls if chains else occ
+        out = background.copy()
+        lenses, ptr, idx = particle_lenses(optics, bounds[:, :4])
+        _kernels.render_lenses(out, lenses, ptr, idx, par, samples, occ, _NO_CARD,
+                               shapes=shapes, balls=balls if chains else None)
+        return out, len(lenses)
+
+    render(_frame_particles(field, 0.0, 0), True)          # compiles
+    pos = traverse_positions(cfg.travel_mm, cfg.step_mm)
+    print(f"study pin field, hall2019 realistic, {threads} numba thread(s)")
+    print(f"{'position mm':>11s} {'spheres s':>10s} {'chains s':>9s} {'lenses':>15s} {'speed-up':>9s}")
+    for i in positions:
+        parts = _frame_particles(field, float(pos[i]), 0)
+        (a, la), ta = _timed(render, parts, False)
+        (b, lb), tb = _timed(render, parts, True)
+        if not np.array_equal(a, b):
+            raise SystemExit(f"position {pos[i]}: chained culling changed the image")
+        print(f"{pos[i]:11.1f} {ta:10.2f} {tb:9.2f} {la:7d}/{lb:7d} {ta / tb:8.2f}x")
+
+
 def main():
+    if len(sys.argv) == 2 and sys.argv[1] == "--pins":
+        bench_pins()
+        return
     if len(sys.argv) == 3 and sys.argv[1] == "--memory":
         peak_memory(sys.argv[2])
         return

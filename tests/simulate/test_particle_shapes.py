@@ -13,7 +13,7 @@ from plenoptrack._columns import SHAPE_COLUMNS, TRUTH_COLUMNS
 from plenoptrack.simulate import (fragment_geometry, make_optics, make_scene, particle_silhouettes,
                                   random_particles, render_irradiance)
 from plenoptrack.simulate.fragments import FRAGMENT_REACH
-from plenoptrack.simulate.render import background_irradiance
+from plenoptrack.simulate.render import _particle_geometry, background_irradiance
 from plenoptrack.simulate.scene import SceneError, Volume
 
 
@@ -73,6 +73,56 @@ def test_culled_equals_exact_with_ellipsoids(small_optics):
     culled = render_irradiance(small_optics, parts)
     exact = render_irradiance(small_optics, parts, cull=False)
     np.testing.assert_array_equal(culled, exact)
+
+
+PINS = [  # pin heads with their stems (aspect 13), as in the translation-stage study
+    _spheroid(0.5, -0.3, 2.0, 0.35, 13.3, (0.3, 0.2, 1.0)),
+    _spheroid(-2.0, 1.0, -6.0, 0.4, 13.3, (1.0, -0.5, 0.4)),
+    _spheroid(1.5, 1.0, 5.0, 0.3, 8.0, (0.0, 1.0, 0.1)),
+    {"x": 0.4, "y": -0.5, "z": -0.2, "diameter": 0.8, "shape": "sphere", "aspect": 1.0,
+     "axis_x": 0.0, "axis_y": 0.0, "axis_z": 1.0},
+    _spheroid(-1.0, -1.5, 4.0, 0.5, 2.5, (1, -2, 0.5)),
+]
+
+
+@pytest.mark.parametrize("realism", ["ideal", "realistic"])
+def test_culled_equals_exact_with_chained_spheroids(realism):
+    # Long spheroids are culled with chains of small balls (the realistic optics add lens
+    # effects, highlights and the extended shape rows); the image must not change.
+    optics = make_optics(preset("small"), seed=2, realism=realism)
+    parts = pd.DataFrame(PINS)
+    culled = render_irradiance(optics, parts)
+    assert (culled != background_irradiance(optics)).sum() > 3000
+    np.testing.assert_array_equal(culled, render_irradiance(optics, parts, cull=False))
+
+
+def test_culling_balls_contain_long_spheroids():
+    rng = np.random.default_rng(4)
+    parts = pd.DataFrame(PINS)
+    optics = make_optics(preset("small"), seed=0, realism="ideal")
+    occ, shapes, balls = _particle_geometry(optics, parts)
+    # every occluder keeps at least one ball; the pins get chains of small ones
+    counts = np.bincount(balls[:, 4].astype(int), minlength=len(parts))
+    assert counts.tolist() == [14, 14, 8, 1, 3]
+    for q, row in parts.iterrows():
+        k, d = row["aspect"], row["diameter"]
+        a, b = d / 2 * k ** (2 / 3), d / 2 * k ** (-1 / 3)
+        v = np.array([-row["axis_x"], -row["axis_y"], row["axis_z"]])     # camera frame
+        e1 = np.cross(v, [1.0, 0.0, 0.0] if abs(v[0]) < 0.9 else [0.0, 1.0, 0.0])
+        e1 /= np.linalg.norm(e1)
+        e2 = np.cross(v, e1)
+        # points on the surface of the body (the hardest to cover; a hair inside, so
+        # that a sphere, its own ball, is not judged on rounding)
+        s = rng.uniform(-1, 1, 20000) * (1 - 1e-9)
+        phi = rng.uniform(0, 2 * np.pi, s.size)
+        rad = b * np.sqrt(1 - s ** 2) * (1 - 1e-9)
+        pts = (occ[q, :3] + (a * s)[:, None] * v + (rad * np.cos(phi))[:, None] * e1
+               + (rad * np.sin(phi))[:, None] * e2)
+        own = balls[balls[:, 4] == q]
+        dist2 = ((pts[:, None, :] - own[None, :, :3]) ** 2).sum(axis=2)
+        assert (dist2 <= own[None, :, 3]).any(axis=1).all()
+        if k >= 8:      # the balls of a pin are much tighter than its bounding sphere
+            assert own[0, 3] < 0.1 * occ[q, 3]
 
 
 def _shadow(optics, particle):

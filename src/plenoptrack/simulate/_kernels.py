@@ -52,6 +52,15 @@ sphere test of :func:`_sample_loop`, which spheres keep verbatim; an ellipsoid r
 ``M' = I`` evaluates the same products and sums in the same order, so an aspect-1
 ellipsoid is bit-identical to the sphere.
 
+Culling balls. Every bound that decides which occluders a pixel or a sample ray may meet
+tests spheres: ``balls`` is a ``(B, 5)`` float64 array of rows (X, Y, Z, r^2, q), a sphere
+in the frame of ``occluders`` and the index ``q`` of the occluder it helps to bound; the
+balls of an occluder together contain it (over the whole exposure). A sphere, a fragment
+or a mildly elongated ellipsoid has one ball, its ``occluders`` row; a long thin spheroid
+(a pin's stem) has a chain of small balls along its axis (:func:`~.render._culling_balls`),
+which is far tighter than its bounding sphere of radius ``a``. Lens lists (``idx``) index
+balls; candidate lists (``cand``) hold occluders, each once.
+
 Lens effects (:class:`~.realism.LensEffects`, see :mod:`.optics`). With any of axis offset,
 MLA tilt, Seidel terms or front stop on (``par[LENS_ON]``), every kernel takes a second
 code path, :func:`_lens_ray_at` for the rays and the general branch of :func:`_bundle` for
@@ -312,7 +321,7 @@ def _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
 
 
 @njit(cache=True)
-def _clear_table(cx, cy, par, occluders, cand, nc):
+def _clear_table(cx, cy, par, balls, idx, p0, p1, cand, nc):
     """Bounds that prove a sample ray through lens C clear (:func:`_surely_clear`).
 
     Every ray through C of a sensor point within the lens's cell crosses the focal plane
@@ -320,30 +329,42 @@ def _clear_table(cx, cy, par, occluders, cand, nc):
     1 / cos of its angle, so a ray leaving the main lens at H lies, at depth ``t s_o``,
     within ``r_q t`` of ``H (1 - t) + qo0 t``. Row 0 holds ``(qo0x, qo0y, t_stop,
     limit^2)`` of the front stop (``limit`` = stop radius less ``r_q t_stop``, 0 when
-    it cannot be proved), row ``1 + m`` ``(t, X, Y, reach^2)`` of occluder ``cand[m]``
-    (its bounding sphere, as in :func:`_bundle_cands`).
+    it cannot be proved), then one row ``(t, X, Y, reach^2)`` per culling ball
+    ``balls[idx[p0:p1]]`` of an occluder in ``cand[:nc]`` (as in :func:`_bundle_cands`).
+    The balls of a candidate that are not in ``idx[p0:p1]`` cannot meet the rays of the
+    pixels those lists serve (:func:`~.render.particle_lenses`), so they need no row.
     """
     _, _, qo0x, qo0y, _, r_q, sec = _bundle_h(cx * par[SCALE], cy * par[SCALE], cx, cy, par,
                                               par[CELL_R] * par[SCALE] * (1.0 + 1e-6))
-    tab = np.empty((nc + 1, 4))
+    tab = np.empty((p1 - p0 + 1, 4))
     tab[0, 0] = qo0x
     tab[0, 1] = qo0y
     tab[0, 2] = par[VIG_L] / par[S_O]
     lim = par[VIG_R] * (1.0 - 1e-9) - r_q * tab[0, 2] * (1.0 + 1e-7) - 1e-12
     tab[0, 3] = lim * lim if lim > 0.0 else 0.0
-    for m in range(nc):
-        q = cand[m]
-        t = occluders[q, 2] / par[S_O]
-        reach = (r_q * t + math.sqrt(occluders[q, 3]) * sec) * (1.0 + 1e-7) + 1e-9
-        tab[m + 1, 0] = t
-        tab[m + 1, 1] = occluders[q, 0]
-        tab[m + 1, 2] = occluders[q, 1]
-        tab[m + 1, 3] = reach * reach
-    return tab
+    n = 0
+    for m in range(p0, p1):
+        b = idx[m]
+        q = int(balls[b, 4])
+        member = False
+        for k in range(nc):
+            if cand[k] == q:
+                member = True
+                break
+        if not member:
+            continue
+        n += 1
+        t = balls[b, 2] / par[S_O]
+        reach = (r_q * t + math.sqrt(balls[b, 3]) * sec) * (1.0 + 1e-7) + 1e-9
+        tab[n, 0] = t
+        tab[n, 1] = balls[b, 0]
+        tab[n, 2] = balls[b, 1]
+        tab[n, 3] = reach * reach
+    return tab[:n + 1]
 
 
 @njit(cache=True)
-def _surely_clear(hx, hy, tab, nc, vig_on):
+def _surely_clear(hx, hy, tab, vig_on):
     """True if the ray through the lens of :func:`_clear_table` that leaves the main
     lens at (hx, hy) (relative to the axis) provably passes the front stop and meets no
     occluder of the table: its sample is fully lit, value 1."""
@@ -355,7 +376,7 @@ def _surely_clear(hx, hy, tab, nc, vig_on):
         vy = hy + (qo0y - hy) * t
         if not vx * vx + vy * vy < tab[0, 3]:
             return False
-    for m in range(1, nc + 1):
+    for m in range(1, tab.shape[0]):
         t = tab[m, 0]
         bx = hx + (qo0x - hx) * t - tab[m, 1]
         by = hy + (qo0y - hy) * t - tab[m, 2]
@@ -434,7 +455,7 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
             hx, hy = _aperture_point(px, py, qx, qy, cx, cy, par, inv_d, s_l)
             if hx * hx + hy * hy > par[R_AP2]:
                 continue
-            if _surely_clear(hx, hy, tab, nc, vig_on):
+            if _surely_clear(hx, hy, tab, vig_on):
                 lit += 1
                 continue
         if lens_on:
@@ -537,7 +558,7 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
             hx, hy = _aperture_point(px, py, qx, qy, cx, cy, par, inv_d, s_l)
             if hx * hx + hy * hy > par[R_AP2]:
                 continue
-            if _surely_clear(hx, hy, tab, nc, vig_on):
+            if _surely_clear(hx, hy, tab, vig_on):
                 total += 1.0
                 continue
         if lens_on:
@@ -852,28 +873,30 @@ def _bundle_lens(x0, y0, cx, cy, par, half):
 
 
 @njit(cache=True)
-def _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, nc):
+def _bundle_candidates(x0, y0, cx, cy, par, balls, idx, p0, p1, cand, nc):
     """Append to ``cand[:nc]`` the occluders the pixel's rays through lens C may meet.
 
-    A sphere further from the bundle (:func:`_bundle`) than its radius, stretched by
+    Each occluder is bounded by one or more culling balls (``balls[idx[p0:p1]]``, module
+    notes); a ball further from the bundle (:func:`_bundle`) than its radius, stretched by
     ``sec``, is never hit. Returns the new count.
     """
     h0x, h0y, qo0x, qo0y, r_h, r_q, sec = _bundle(x0, y0, cx, cy, par)
-    return _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders, idx, p0, p1,
+    return _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, balls, idx, p0, p1,
                          cand, nc)
 
 
 @njit(cache=True)
-def _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders, idx, p0, p1, cand, nc):
+def _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, balls, idx, p0, p1, cand, nc):
     """:func:`_bundle_candidates` of an already computed bundle."""
     s_o = par[S_O]
     for m in range(p0, p1):
-        q = idx[m]
-        t = occluders[q, 2] / s_o
-        bx = h0x + (qo0x - h0x) * t - occluders[q, 0]
-        by = h0y + (qo0y - h0y) * t - occluders[q, 1]
-        reach = r_h * abs(1.0 - t) + r_q * t + math.sqrt(occluders[q, 3]) * sec + 1e-9
+        b = idx[m]
+        t = balls[b, 2] / s_o
+        bx = h0x + (qo0x - h0x) * t - balls[b, 0]
+        by = h0y + (qo0y - h0y) * t - balls[b, 1]
+        reach = r_h * abs(1.0 - t) + r_q * t + math.sqrt(balls[b, 3]) * sec + 1e-9
         if bx * bx + by * by <= reach * reach:
+            q = int(balls[b, 4])
             seen = False
             for k in range(nc):
                 if cand[k] == q:
@@ -909,7 +932,7 @@ KEEP = -1
 
 
 @njit(cache=True)
-def _trace_pixel(row, col, par, samples, occluders, shapes, idx, p0, p1, card, cand,
+def _trace_pixel(row, col, par, samples, occluders, shapes, balls, idx, p0, p1, card, cand,
                  keep):
     """Number of lit samples of pixel (row, col), with provably exact shortcuts.
 
@@ -919,8 +942,9 @@ def _trace_pixel(row, col, par, samples, occluders, shapes, idx, p0, p1, card, c
     whose bundle passes it entirely, meeting nothing, is fully lit. With ``keep`` True,
     a pixel that no occluder can touch and whose rays provably miss every dot of the
     card (:func:`_card_missed`) returns :data:`KEEP`: its value is the unoccluded one
-    (the background irradiance), unchanged. Candidates are ``occluders[idx[p0:p1]]``;
-    ``cand`` is a scratch buffer of at least ``p1 - p0`` entries. ``card`` is
+    (the background irradiance), unchanged. Candidates are the occluders of the culling
+    balls ``balls[idx[p0:p1]]``; ``cand`` is a scratch buffer of at least ``p1 - p0``
+    entries. ``card`` is
     (Z, spacing, r^2) of a dot card (Z > 0) or Z <= 0 for none.
     """
     n = samples.shape[0]
@@ -934,11 +958,11 @@ def _trace_pixel(row, col, par, samples, occluders, shapes, idx, p0, p1, card, c
     ey = y0 - cy * par[SCALE]
     e = math.sqrt(ex * ex + ey * ey)
     if e + par[HALF_DIAG] > par[INRADIUS_IMG] * (1.0 - 1e-9):
-        return _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
-                                 p1, card, no_card, cand, keep)
-    if par[LENS_ON] != 0.0:
-        return _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx,
+        return _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, balls, idx,
                                  p0, p1, card, no_card, cand, keep)
+    if par[LENS_ON] != 0.0:
+        return _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, balls,
+                                 idx, p0, p1, card, no_card, cand, keep)
     tan_s = par[S_I] / par[F_ML]
     r_h = par[HALF_DIAG] * tan_s + par[CELL_R]          # spread of H about its centre
     h_lo = e * tan_s - r_h
@@ -949,7 +973,7 @@ def _trace_pixel(row, col, par, samples, occluders, shapes, idx, p0, p1, card, c
         no_card = True
     nc = 0
     if p1 > p0:
-        nc = _bundle_candidates(x0, y0, cx, cy, par, occluders, idx, p0, p1, cand, 0)
+        nc = _bundle_candidates(x0, y0, cx, cy, par, balls, idx, p0, p1, cand, 0)
     if nc == 0 and no_card and keep:
         return KEEP
     if nc == 0 and no_card and h_hi < par[R_AP] * (1.0 - 1e-9):
@@ -959,8 +983,8 @@ def _trace_pixel(row, col, par, samples, occluders, shapes, idx, p0, p1, card, c
 
 
 @njit(cache=True)
-def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx, p0, p1,
-                      card, no_card, cand, keep):
+def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, balls, idx, p0,
+                      p1, card, no_card, cand, keep):
     """The in-cell part of :func:`_trace_pixel` with the lens effects: the same
     shortcuts on the bounds of :func:`_bundle_lens`; a pixel is fully lit only if its
     whole bundle also passes the front stop."""
@@ -973,7 +997,7 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
         no_card = True
     nc = 0
     if p1 > p0:
-        nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, occluders, idx, p0, p1,
+        nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, balls, idx, p0, p1,
                            cand, 0)
     if nc == 0 and no_card and keep:
         return KEEP
@@ -989,7 +1013,8 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, idx
         # Samples whose rays provably pass and meet nothing are lit without the rest of
         # their ray (the pixel lies inside lens (i, j)'s cell).
         return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, False,
-                            i, j, 1, 0, 0, 0, _clear_table(cx, cy, par, occluders, cand, nc))
+                            i, j, 1, 0, 0, 0,
+                            _clear_table(cx, cy, par, balls, idx, p0, p1, cand, nc))
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, not no_card,
                         i, j)
 
@@ -1010,8 +1035,8 @@ def _bundle_dark(x0, y0, cx, cy, par):
 
 
 @njit(cache=True)
-def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0, p1, card,
-                      no_card, cand, keep):
+def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, balls, idx, p0, p1,
+                      card, no_card, cand, keep):
     """The part of :func:`_trace_pixel` for a pixel that straddles lens cells.
 
     Its samples may use any lens whose image centre lies within ``e + 2 * half-diagonal``
@@ -1047,12 +1072,12 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
                     if not (math.sqrt(h0x * h0x + h0y * h0y) - r_h > par[R_AP] * (1.0 + 1e-9)):
                         dark = False
                         nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par,
-                                           occluders, idx, p0, p1, cand, nc)
+                                           balls, idx, p0, p1, cand, nc)
                     continue
                 if p1 > p0:
                     if not _bundle_dark(x0, y0, lx, ly, par):
                         dark = False
-                        nc = _bundle_candidates(x0, y0, lx, ly, par, occluders, idx, p0, p1,
+                        nc = _bundle_candidates(x0, y0, lx, ly, par, balls, idx, p0, p1,
                                                 cand, nc)
                 elif dark and not _bundle_dark(x0, y0, lx, ly, par):
                     dark = False
@@ -1065,7 +1090,7 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, idx, p0,
         cx, cy = _lens_center(i, j, par)
         return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, False,
                             _PER_SAMPLE, 0, row_lo, row_hi, i, j,
-                            _clear_table(cx, cy, par, occluders, cand, nc))
+                            _clear_table(cx, cy, par, balls, idx, p0, p1, cand, nc))
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
                         not (no_card or missed), _PER_SAMPLE, 0, row_lo, row_hi, i, j)
 
@@ -1077,6 +1102,19 @@ lenses near a particle cost far more than the others)."""
 NO_SHAPES = np.zeros((0, 7))
 """``shapes`` argument for occluders that are all spheres (module notes). Kept writeable
 so that numba compiles one specialisation for both cases; never written to."""
+
+
+def _balls_arg(balls, occluders):
+    """The culling balls (module notes); None: one per occluder, its bounding sphere."""
+    if balls is None:
+        m = occluders.shape[0]
+        return np.column_stack([np.asarray(occluders, dtype=np.float64).reshape(m, 4),
+                                np.arange(m, dtype=np.float64)])
+    balls = np.ascontiguousarray(balls, dtype=np.float64)
+    if balls.ndim != 2 or balls.shape[1] != 5:
+        raise ValueError(f"balls must be (B, 5) rows (X, Y, Z, r^2, occluder); got shape "
+                         f"{balls.shape}")
+    return balls
 
 
 def _shapes_arg(shapes, occluders):
@@ -1091,39 +1129,45 @@ def _shapes_arg(shapes, occluders):
     return shapes
 
 
-def render_all(par, samples, occluders, card, r0, r1, c0, c1, exact, shapes=None):
+def render_all(par, samples, occluders, card, r0, r1, c0, c1, exact, shapes=None, balls=None):
     """Trace every pixel of the window rows [r0, r1), cols [c0, c1) against all occluders.
 
     ``exact`` True traces every sample of every pixel against every occluder (the
     brute-force reference); False uses the per-pixel shortcuts of :func:`_trace_pixel`.
-    ``shapes`` (module notes) marks ellipsoids; None: all spheres.
+    ``shapes`` (module notes) marks ellipsoids; None: all spheres. ``balls``: the culling
+    balls (module notes); None: each occluder's bounding sphere.
     Returns a ``(r1 - r0, c1 - c0)`` float32 irradiance image in [0, 1].
     """
-    return _render_all(par, samples, occluders, _shapes_arg(shapes, occluders), card, r0, r1,
-                       c0, c1, exact)
+    return _render_all(par, samples, occluders, _shapes_arg(shapes, occluders),
+                       _balls_arg(balls, occluders), card, r0, r1, c0, c1, exact)
 
 
-def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card, shapes=None):
+def render_lenses(out, lenses, ptr, idx, par, samples, occluders, card, shapes=None,
+                  balls=None):
     """Re-trace, in place, every pixel of ``out`` owned by one of ``lenses``.
 
     ``out`` must hold the unoccluded irradiance: pixels no occluder can touch keep it.
 
     A pixel is owned by the lens whose image centre is nearest to the pixel centre (its
     samples may still use a neighbouring lens). ``lenses`` is ``(L, 2)`` int64 (i, j);
-    the pixels of lens ``k`` are tested against ``occluders[idx[ptr[k]:ptr[k + 1]]]``.
+    the pixels of lens ``k`` are tested against the occluders of the culling balls
+    ``balls[idx[ptr[k]:ptr[k + 1]]]`` (module notes; None: ``balls`` are the occluders'
+    bounding spheres and ``idx`` indexes the occluders).
     ``shapes`` (module notes) marks ellipsoids; None: all spheres.
     """
     with numba.parallel_chunksize(_LENS_CHUNK):
         _render_lenses(out, lenses, ptr, idx, par, samples, occluders,
-                       _shapes_arg(shapes, occluders), card)
+                       _shapes_arg(shapes, occluders), _balls_arg(balls, occluders), card)
 
 
 @njit(parallel=True, cache=True)
-def _render_all(par, samples, occluders, shapes, card, r0, r1, c0, c1, exact):
+def _render_all(par, samples, occluders, shapes, balls, card, r0, r1, c0, c1, exact):
     """:func:`render_all` (numba core)."""
     out = np.empty((r1 - r0, c1 - c0), dtype=np.float32)
     m = occluders.shape[0]
     idx = np.arange(m)
+    n_balls = balls.shape[0]
+    ball_idx = np.arange(n_balls)
     inv_n = 1.0 / samples.shape[0]
     for r in prange(r0, r1):
         cand = np.empty(m, dtype=np.int64)
@@ -1134,8 +1178,8 @@ def _render_all(par, samples, occluders, shapes, card, r0, r1, c0, c1, exact):
                 lit = _sample_loop(x0, y0, par, samples, occluders, shapes, idx, m, card,
                                    card[0] > 0.0, _PER_SAMPLE, 0)
             else:
-                lit = _trace_pixel(r, c, par, samples, occluders, shapes, idx, 0, m, card, cand,
-                                   False)
+                lit = _trace_pixel(r, c, par, samples, occluders, shapes, balls, ball_idx, 0,
+                                   n_balls, card, cand, False)
             out[r - r0, c - c0] = lit * inv_n
     return out
 
@@ -1153,8 +1197,9 @@ def _image_centre(cx, cy, par):
 
 
 @njit(cache=True)
-def _shadow_discs(i, j, par, occluders, idx, p0, p1, discs):
-    """Sensor discs holding every pixel centre whose rays may meet ``occluders[idx[p0:p1]]``.
+def _shadow_discs(i, j, par, balls, idx, p0, p1, discs):
+    """Sensor discs holding every pixel centre whose rays may meet a culling ball
+    ``balls[idx[p0:p1]]`` (module notes).
 
     The rays are those of the pixels' sample points through lens (i, j) or one of its 8
     index neighbours (every lens a sample of a pixel owned by lens (i, j) can use). For
@@ -1181,11 +1226,11 @@ def _shadow_discs(i, j, par, occluders, idx, p0, p1, discs):
                                                       par, r_cell)
             for m in range(p0, p1):
                 q = idx[m]
-                t = occluders[q, 2] / s_o
-                reach = ((r_h * abs(1.0 - t) + r_q * t + math.sqrt(occluders[q, 3]) * sec)
+                t = balls[q, 2] / s_o
+                reach = ((r_h * abs(1.0 - t) + r_q * t + math.sqrt(balls[q, 3]) * sec)
                          * (1.0 + 1e-7) + 1e-9)
-                kx = qo0x * t - occluders[q, 0]
-                ky = qo0y * t - occluders[q, 1]
+                kx = qo0x * t - balls[q, 0]
+                ky = qo0y * t - balls[q, 1]
                 u = tan * (1.0 - t)
                 if abs(u) < 1e-6:
                     # |u (P - E)| < 1e-6 mm over the lens's pixels: all of them or none.
@@ -1205,7 +1250,7 @@ def _shadow_discs(i, j, par, occluders, idx, p0, p1, discs):
 
 
 @njit(parallel=True, cache=True)
-def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, card):
+def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, balls, card):
     """:func:`render_lenses` (numba core).
 
     Without a card, a lens's pixels are visited only where one of its
@@ -1228,7 +1273,7 @@ def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, card)
         discs = np.empty((9 * (ptr[k + 1] - ptr[k]), 3))
         nd = 0
         if filtered:
-            nd = _shadow_discs(i, j, par, occluders, idx, ptr[k], ptr[k + 1], discs)
+            nd = _shadow_discs(i, j, par, balls, idx, ptr[k], ptr[k + 1], discs)
             if nd == 0:
                 continue
         cx, cy = _lens_center(i, j, par)
@@ -1274,7 +1319,7 @@ def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, card)
                 pi, pj = _pixel_lens(r, c, par)
                 if pi != i or pj != j:
                     continue
-                lit = _trace_pixel(r, c, par, samples, occluders, shapes, idx, ptr[k],
+                lit = _trace_pixel(r, c, par, samples, occluders, shapes, balls, idx, ptr[k],
                                    ptr[k + 1], card, cand, True)
                 if lit != KEEP:
                     out[r, c] = lit * inv_n
@@ -1302,12 +1347,13 @@ def render_card(out, par, samples, card, r0=0, c0=0):
 def _render_card(out, par, samples, card, shapes, r0, c0):
     """:func:`render_card` (numba core)."""
     occluders = np.zeros((0, 4))
+    balls = np.zeros((0, 5))
     idx = np.zeros(0, dtype=np.int64)
     cand = np.zeros(0, dtype=np.int64)
     inv_n = 1.0 / samples.shape[0]
     for r in prange(out.shape[0]):
         for c in range(out.shape[1]):
-            lit = _trace_pixel(r0 + r, c0 + c, par, samples, occluders, shapes, idx, 0, 0, card,
-                               cand, True)
+            lit = _trace_pixel(r0 + r, c0 + c, par, samples, occluders, shapes, balls, idx, 0, 0,
+                               card, cand, True)
             if lit != KEEP:
                 out[r, c] = lit * inv_n

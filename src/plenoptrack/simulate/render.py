@@ -236,7 +236,15 @@ def _particle_table(optics: SimOptics, particles) -> np.ndarray:
 
 
 def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarray]:
-    """Validate a particles table; return the kernels' ``occluders`` and ``shapes``.
+    """Validate a particles table; return the kernels' ``occluders`` and ``shapes``
+    (:func:`_particle_geometry` without the culling balls)."""
+    return _particle_geometry(optics, particles)[:2]
+
+
+def _particle_geometry(optics: SimOptics, particles
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Validate a particles table; return the kernels' ``occluders``, ``shapes`` and
+    culling ``balls``.
 
     Returns
     -------
@@ -251,6 +259,9 @@ def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarr
         aspect, ``v`` the unit long axis in the camera frame); ``(m, W)``, ``W >= 16``,
         the extended rows of the particle effects (fragments, transmission, highlights,
         motion), see :mod:`._kernels`.
+    balls : (B, 5) float64 ndarray
+        Culling balls (X, Y, Z, r^2, occluder index), camera frame, mm
+        (:func:`_culling_balls`).
 
     Notes
     -----
@@ -263,7 +274,7 @@ def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarr
     ``optics.realism.particles.exposure_fraction`` of the frame interval.
     """
     if particles is None:
-        return np.zeros((0, 4)), _kernels.NO_SHAPES
+        return np.zeros((0, 4)), _kernels.NO_SHAPES, np.zeros((0, 5))
     if not isinstance(particles, pd.DataFrame):
         raise TypeError(f"particles must be a pandas DataFrame; got {type(particles).__name__}")
     needed = [*POS_COLUMNS, DIAMETER_COLUMN]
@@ -305,11 +316,12 @@ def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarr
                          f"keep z - diameter/2 > {-0.95 * optics.s_o:.1f} mm")
     occ = np.column_stack([-(values[:, 0] + centre[:, 0]), -(values[:, 1] + centre[:, 1]),
                            big_z + centre[:, 2], reach ** 2])
+    v = axis * np.array([-1.0, -1.0, 1.0])              # world -> camera frame
+    balls = _culling_balls(occ, np.where(ell, aspect, 1.0), v, radius, reach - radius)
     if not ell.any() and not extended:
-        return occ, _kernels.NO_SHAPES
+        return occ, _kernels.NO_SHAPES, balls
     n_planes = max((sum(len(p) for p in f.planes) for f in frags.values()), default=0)
     shapes = np.zeros((len(occ), _kernels.S_PLANES + 4 * n_planes if extended else 7))
-    v = axis * np.array([-1.0, -1.0, 1.0])              # world -> camera frame
     k2 = aspect ** 2
     c = 1.0 - k2
     shapes[:, 0] = ell
@@ -321,7 +333,7 @@ def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarr
     shapes[:, 6] = c * v[:, 1] * v[:, 2]
     shapes[~ell, 1:7] = 0.0
     if not extended:
-        return occ, shapes
+        return occ, shapes, balls
     shapes[:, _kernels.S_R2] = radius ** 2
     shapes[:, _kernels.S_TAU] = tau
     shapes[:, _kernels.S_VX:_kernels.S_VZ + 1] = sweep
@@ -340,7 +352,61 @@ def _particle_arrays(optics: SimOptics, particles) -> tuple[np.ndarray, np.ndarr
             rel = np.column_stack([planes[:, :3], planes[:, 3] - planes[:, :3] @ centre[r]])
             shapes[r, col:col + 4 * len(planes)] = (rel * flip).ravel()
             col += 4 * len(planes)
-    return occ, shapes
+    return occ, shapes, balls
+
+
+CHAIN_ASPECT = 2.0
+"""Spheroids at least this elongated are bounded by a chain of culling balls."""
+MAX_CHAIN = 16
+"""Most culling balls per spheroid."""
+
+
+def _culling_balls(occluders: np.ndarray, aspect: np.ndarray, axis: np.ndarray,
+                   radius: np.ndarray, sweep_reach: np.ndarray) -> np.ndarray:
+    """Spheres that together contain each occluder, for the renderer's culling bounds.
+
+    A prolate spheroid of long semi-axis ``a`` and aspect ``k >= CHAIN_ASPECT`` is covered
+    by ``n = min(ceil(k), MAX_CHAIN)`` balls centred on its axis at ``-a + (2 i + 1) h``,
+    ``h = a / n``, of radius ``sqrt(h^2 + b^2)``, ``b = a / k``: a point of the body lies
+    within ``b`` of the axis and within ``h`` (along it) of a ball centre. A pin's stem
+    (``k`` about 13) then touches about a tenth of the lenses its bounding sphere would.
+    Every other occluder keeps one ball, its ``occluders`` row (so renders without such
+    spheroids run exactly as before).
+
+    Parameters
+    ----------
+    occluders : (m, 4) float ndarray
+        (X, Y, Z, reach^2) camera frame, mm (:func:`_particle_geometry`).
+    aspect : (m,) float ndarray
+        ``a / b`` of spheroids, 1 for every other occluder.
+    axis : (m, 3) float ndarray
+        Unit long axes, camera frame.
+    radius : (m,) float ndarray
+        Bounding radius without motion (``a`` of a spheroid), mm.
+    sweep_reach : (m,) float ndarray
+        Half the path over the exposure, mm, added to every ball's radius.
+
+    Returns
+    -------
+    (B, 5) float64 ndarray
+        Rows (X, Y, Z, r^2, occluder index).
+    """
+    m = len(occluders)
+    one = np.column_stack([occluders, np.arange(m, dtype=np.float64)])
+    chain = np.flatnonzero(aspect >= CHAIN_ASPECT)
+    if len(chain) == 0:
+        return one
+    rows = [one[aspect < CHAIN_ASPECT]]
+    for q in chain:
+        a = radius[q]
+        n = min(math.ceil(aspect[q]), MAX_CHAIN)
+        h = a / n
+        r = math.sqrt(h * h + (a / aspect[q]) ** 2) * (1.0 + 1e-9) + sweep_reach[q]
+        s = -a + (2 * np.arange(n) + 1) * h
+        centres = occluders[q, :3] + s[:, None] * axis[q]
+        rows.append(np.column_stack([centres, np.full(n, r * r), np.full(n, float(q))]))
+    balls = np.concatenate(rows)
+    return balls[np.argsort(balls[:, 4], kind="stable")]
 
 
 def _transmissions(particles: pd.DataFrame) -> np.ndarray:
@@ -424,13 +490,14 @@ def _lens_margins(optics: SimOptics) -> tuple[float, float]:
 
 
 def particle_lenses(optics: SimOptics, occluders: np.ndarray):
-    """Lenses to re-trace and the occluders to test for each.
+    """Lenses to re-trace and the spheres to test for each.
 
     Parameters
     ----------
     optics : SimOptics
     occluders : (m, 4) float ndarray
-        Spheres (X, Y, Z, r^2) in the camera frame, mm.
+        Spheres (X, Y, Z, r^2) in the camera frame, mm: the occluders' bounding spheres
+        or their culling balls (:func:`_culling_balls`, first four columns).
 
     Returns
     -------
@@ -439,7 +506,7 @@ def particle_lenses(optics: SimOptics, occluders: np.ndarray):
     ptr : (L + 1,) int64 ndarray
         Lens ``k`` is tested against ``occluders[idx[ptr[k]:ptr[k + 1]]]``.
     idx : int64 ndarray
-        Occluder indices.
+        Row indices into ``occluders``.
     """
     discs = _footprint_discs(optics, occluders)
     keys, owners = [], []
@@ -500,18 +567,18 @@ def render_irradiance(optics: SimOptics, particles: pd.DataFrame | None = None, 
     """
     _check_optics(optics)
     n = _check_samples(samples_per_pixel)
-    occ, shapes = _particle_arrays(optics, particles)
+    occ, shapes, balls = _particle_geometry(optics, particles)
     par = _kernels.pack_params(optics)
     samples = sample_pattern(optics, n)
     if not cull:
         rows, cols = optics.camera.sensor_shape_px
         return _kernels.render_all(par, samples, occ, _NO_CARD, 0, rows, 0, cols, True,
-                                   shapes=shapes)
+                                   shapes=shapes, balls=balls)
     out = background_irradiance(optics, n).copy()
     if len(occ):
-        lenses, ptr, idx = particle_lenses(optics, occ)
+        lenses, ptr, idx = particle_lenses(optics, balls[:, :4])
         _kernels.render_lenses(out, lenses, ptr, idx, par, samples, occ, _NO_CARD,
-                               shapes=shapes)
+                               shapes=shapes, balls=balls)
     return out
 
 
