@@ -10,10 +10,12 @@ data they will run on exist: ``plenoptrack demo`` compiles them in a child proce
 second core while it simulates its scene, and the main process then loads them from the
 cache.
 
-A cache cannot be shipped in a wheel: numba keys each cache entry on the source file's
-modification time and size (reset by installation) and on the processor model and
-features of the machine that compiled it, and a wheel runs no code at installation.
-Compiling on the user's machine, once, is what numba allows.
+A cache is not shipped with the package. numba keys each cache entry on the processor
+model and features of the machine that compiled it (a cache built with
+``NUMBA_CPU_NAME=generic`` would be portable, at the cost of code for the oldest x86-64
+processors), on the exact numba version, and on the source file: its modification time
+and size before numba 0.68 (reset by installation), a hash of its contents from 0.68 on.
+Compiling on the user's machine, once, is what plenoptrack does today.
 
 Set ``PLENOPTRACK_PRECOMPILE=0`` to switch the child process off.
 """

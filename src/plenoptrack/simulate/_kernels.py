@@ -321,6 +321,12 @@ def _ellipsoid_hit(q, hx, hy, dx, dy, occluders, shapes):
 
 
 @njit(cache=True)
+def _no_table():
+    """The ``tab`` argument of :func:`_sample_loop` when no clear table applies."""
+    return np.empty((0, 4))
+
+
+@njit(cache=True)
 def _clear_table(cx, cy, par, balls, idx, p0, p1, cand, nc):
     """Bounds that prove a sample ray through lens C clear (:func:`_surely_clear`).
 
@@ -336,7 +342,11 @@ def _clear_table(cx, cy, par, balls, idx, p0, p1, cand, nc):
     """
     _, _, qo0x, qo0y, _, r_q, sec = _bundle_h(cx * par[SCALE], cy * par[SCALE], cx, cy, par,
                                               par[CELL_R] * par[SCALE] * (1.0 + 1e-6))
-    tab = np.empty((p1 - p0 + 1, 4))
+    rows = 0
+    for m in range(p0, p1):
+        if _in_head(cand, nc, int(balls[idx[m], 4])):
+            rows += 1
+    tab = np.empty((rows + 1, 4))
     tab[0, 0] = qo0x
     tab[0, 1] = qo0y
     tab[0, 2] = par[VIG_L] / par[S_O]
@@ -345,13 +355,7 @@ def _clear_table(cx, cy, par, balls, idx, p0, p1, cand, nc):
     n = 0
     for m in range(p0, p1):
         b = idx[m]
-        q = int(balls[b, 4])
-        member = False
-        for k in range(nc):
-            if cand[k] == q:
-                member = True
-                break
-        if not member:
+        if not _in_head(cand, nc, int(balls[b, 4])):
             continue
         n += 1
         t = balls[b, 2] / par[S_O]
@@ -360,7 +364,16 @@ def _clear_table(cx, cy, par, balls, idx, p0, p1, cand, nc):
         tab[n, 1] = balls[b, 0]
         tab[n, 2] = balls[b, 1]
         tab[n, 3] = reach * reach
-    return tab[:n + 1]
+    return tab
+
+
+@njit(cache=True)
+def _in_head(cand, nc, q):
+    """True if ``q`` is one of ``cand[:nc]``."""
+    for k in range(nc):
+        if cand[k] == q:
+            return True
+    return False
 
 
 @njit(cache=True)
@@ -387,8 +400,7 @@ def _surely_clear(hx, hy, tab, vig_on):
 
 @njit(cache=True)
 def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card, lens_i,
-                 lens_j, row_lo=1, row_hi=0,
-                 own_i=0, own_j=0, tab=None):
+                 lens_j, row_lo, row_hi, own_i, own_j, tab):
     """Lit samples of the pixel centred at sensor point (x0, y0) mm.
 
     ``lens_i`` < -2**40 means "find the lens of every sample" (:func:`_nearest_lens`, or
@@ -401,9 +413,13 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
     which returns the summed sample values instead of a count. With nothing to test
     (``nc == 0``, no card) a sample that passes the aperture (and the front stop) is lit
     without computing the rest of its ray; so is one whose ray provably passes and meets
-    nothing when ``tab`` (lens effects on, no card) is given: :func:`_clear_table` of
+    nothing when ``tab`` (lens effects on, no card) has rows: :func:`_clear_table` of
     lens (lens_i, lens_j), or with a lens per sample of lens (own_i, own_j), which then
-    applies to the samples that use that lens.
+    applies to the samples that use that lens; :func:`_no_table` otherwise.
+
+    Every caller passes every argument with the same non-literal types (``np.int64``,
+    ``np.bool_`` around constants), so that numba compiles this loop, and everything it
+    calls, once instead of once per combination of literal arguments.
     """
     if shapes.shape[1] > N_SHAPE_BASE:
         return _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card,
@@ -428,6 +444,7 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
         if lens_on:
             inv_d, s_l, w = _lens_consts(cx, cy, par)
     vig_on = par[VIG_ON] != 0.0
+    has_tab = tab.shape[0] > 0
     lit = 0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
@@ -450,7 +467,7 @@ def _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_ca
                     inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
-        if tab is not None and (not per_sample or (cur_i == own_i and cur_j == own_j)):
+        if has_tab and (not per_sample or (cur_i == own_i and cur_j == own_j)):
             # The aperture test of _lens_ray_at.
             hx, hy = _aperture_point(px, py, qx, qy, cx, cy, par, inv_d, s_l)
             if hx * hx + hy * hy > par[R_AP2]:
@@ -508,8 +525,7 @@ def _sort_head(cand, nc):
 
 @njit(cache=True)
 def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, use_card,
-                     lens_i, lens_j, row_lo=1, row_hi=0,
-                     own_i=0, own_j=0, tab=None):
+                     lens_i, lens_j, row_lo, row_hi, own_i, own_j, tab):
     """:func:`_sample_loop` with the particle effects: the sum of the sample values."""
     _sort_head(cand, nc)
     rows = row_lo <= row_hi
@@ -531,6 +547,7 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
         if lens_on:
             inv_d, s_l, w = _lens_consts(cx, cy, par)
     vig_on = par[VIG_ON] != 0.0
+    has_tab = tab.shape[0] > 0
     total = 0.0
     for k in range(samples.shape[0]):
         px = x0 + samples[k, 0]
@@ -553,7 +570,7 @@ def _sample_loop_ext(x0, y0, par, samples, occluders, shapes, cand, nc, card, us
                     inv_d, s_l, w = _lens_consts(cx, cy, par)
         qx = cx + samples[k, 2]
         qy = cy + samples[k, 3]
-        if tab is not None and (not per_sample or (cur_i == own_i and cur_j == own_j)):
+        if has_tab and (not per_sample or (cur_i == own_i and cur_j == own_j)):
             # The aperture test of _lens_ray_at.
             hx, hy = _aperture_point(px, py, qx, qy, cx, cy, par, inv_d, s_l)
             if hx * hx + hy * hy > par[R_AP2]:
@@ -971,15 +988,15 @@ def _trace_pixel(row, col, par, samples, occluders, shapes, balls, idx, p0, p1, 
         return 0
     if not no_card and _card_missed(x0, y0, cx, cy, par, card):
         no_card = True
-    nc = 0
+    nc = np.int64(0)
     if p1 > p0:
-        nc = _bundle_candidates(x0, y0, cx, cy, par, balls, idx, p0, p1, cand, 0)
+        nc = _bundle_candidates(x0, y0, cx, cy, par, balls, idx, p0, p1, cand, np.int64(0))
     if nc == 0 and no_card and keep:
         return KEEP
     if nc == 0 and no_card and h_hi < par[R_AP] * (1.0 - 1e-9):
         return n
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, not no_card,
-                        i, j)
+                        i, j, i, i - 1, i, j, _no_table())
 
 
 @njit(cache=True)
@@ -995,10 +1012,10 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, bal
         return 0
     if not no_card and _card_missed(x0, y0, cx, cy, par, card):
         no_card = True
-    nc = 0
+    nc = np.int64(0)
     if p1 > p0:
         nc = _bundle_cands(h0x, h0y, qo0x, qo0y, r_h, r_q, sec, par, balls, idx, p0, p1,
-                           cand, 0)
+                           cand, np.int64(0))
     if nc == 0 and no_card and keep:
         return KEEP
     if nc == 0 and no_card and h + r_h < par[R_AP] * (1.0 - 1e-9):
@@ -1012,11 +1029,11 @@ def _trace_pixel_lens(x0, y0, i, j, cx, cy, par, samples, occluders, shapes, bal
     if no_card and nc > 0:
         # Samples whose rays provably pass and meet nothing are lit without the rest of
         # their ray (the pixel lies inside lens (i, j)'s cell).
-        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, False,
-                            i, j, 1, 0, 0, 0,
+        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
+                            np.bool_(False), i, j, i, i - 1, i, j,
                             _clear_table(cx, cy, par, balls, idx, p0, p1, cand, nc))
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, not no_card,
-                        i, j)
+                        i, j, i, i - 1, i, j, _no_table())
 
 
 @njit(cache=True)
@@ -1049,7 +1066,7 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, balls, i
     cell.
     """
     lim = (e + 2.0 * par[HALF_DIAG]) * (1.0 + 1e-9)
-    nc = 0
+    nc = np.int64(0)
     dark = True
     missed = True
     row_lo, row_hi = i, i
@@ -1088,11 +1105,12 @@ def _trace_straddling(x0, y0, i, j, e, par, samples, occluders, shapes, balls, i
     if par[LENS_ON] != 0.0 and nc > 0 and (no_card or missed):
         # The samples that use lens (i, j) may be proved lit (its cell holds their P).
         cx, cy = _lens_center(i, j, par)
-        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card, False,
-                            _PER_SAMPLE, 0, row_lo, row_hi, i, j,
+        return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
+                            np.bool_(False), np.int64(_PER_SAMPLE), j, row_lo, row_hi, i, j,
                             _clear_table(cx, cy, par, balls, idx, p0, p1, cand, nc))
     return _sample_loop(x0, y0, par, samples, occluders, shapes, cand, nc, card,
-                        not (no_card or missed), _PER_SAMPLE, 0, row_lo, row_hi, i, j)
+                        not (no_card or missed), np.int64(_PER_SAMPLE), j, row_lo, row_hi, i, j,
+                        _no_table())
 
 
 _LENS_CHUNK = 16
@@ -1176,10 +1194,11 @@ def _render_all(par, samples, occluders, shapes, balls, card, r0, r1, c0, c1, ex
                 x0 = (c - (par[COLS] - 1.0) * 0.5) * par[PP]
                 y0 = (r - (par[ROWS] - 1.0) * 0.5) * par[PP]
                 lit = _sample_loop(x0, y0, par, samples, occluders, shapes, idx, m, card,
-                                   card[0] > 0.0, _PER_SAMPLE, 0)
+                                   card[0] > 0.0, np.int64(_PER_SAMPLE), c, r, r - 1, r, c,
+                                   _no_table())
             else:
-                lit = _trace_pixel(r, c, par, samples, occluders, shapes, balls, ball_idx, 0,
-                                   n_balls, card, cand, False)
+                lit = _trace_pixel(r, c, par, samples, occluders, shapes, balls, ball_idx,
+                                   np.int64(0), n_balls, card, cand, np.bool_(False))
             out[r - r0, c - c0] = lit * inv_n
     return out
 
@@ -1320,7 +1339,7 @@ def _render_lenses(out, lenses, ptr, idx, par, samples, occluders, shapes, balls
                 if pi != i or pj != j:
                     continue
                 lit = _trace_pixel(r, c, par, samples, occluders, shapes, balls, idx, ptr[k],
-                                   ptr[k + 1], card, cand, True)
+                                   ptr[k + 1], card, cand, np.bool_(True))
                 if lit != KEEP:
                     out[r, c] = lit * inv_n
 
@@ -1353,7 +1372,7 @@ def _render_card(out, par, samples, card, shapes, r0, c0):
     inv_n = 1.0 / samples.shape[0]
     for r in prange(out.shape[0]):
         for c in range(out.shape[1]):
-            lit = _trace_pixel(r0 + r, c0 + c, par, samples, occluders, shapes, balls, idx, 0, 0,
-                               card, cand, True)
+            lit = _trace_pixel(r0 + r, c0 + c, par, samples, occluders, shapes, balls, idx,
+                               np.int64(0), np.int64(0), card, cand, np.bool_(True))
             if lit != KEEP:
                 out[r, c] = lit * inv_n
