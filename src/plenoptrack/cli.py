@@ -8,7 +8,8 @@ and the exit code says what kind of problem it was:
   overwrite an input) - fix the command line;
 - 1: a data error (a missing, corrupt or implausible file; a failed calibration) - fix the
   data;
-- 130: interrupted with Ctrl-C; nothing half-written is kept.
+- 130: interrupted with Ctrl-C; nothing half-written is kept (outputs that were already
+  complete when the interrupt came are named).
 
 ``plenoptrack --debug COMMAND ...`` (or ``PLENOPTRACK_DEBUG=1``) prints the full traceback
 as well, for bug reports. Warnings are printed as one ``warning: ...`` line each.
@@ -82,7 +83,7 @@ class _OneLineErrors(TyperGroup):
             _error_line(exc.format_message() + hint)
             sys.exit(exc.exit_code)
         except (typer.Abort, KeyboardInterrupt):
-            _error_line("interrupted; nothing half-written was kept")
+            _error_line(_interrupt_message())
             sys.exit(130)
         sys.exit(rv if isinstance(rv, int) else 0)
 
@@ -127,11 +128,30 @@ def _interrupted(exc: BaseException) -> bool:
     return False
 
 
+def _interrupt_message(shown: int = 3) -> str:
+    """What a Ctrl-C left behind: nothing half-written, and which outputs were complete.
+
+    Ctrl-C is held back while outputs are renamed into place, so an interrupt that lands
+    there (or just after) ends the command with its new outputs complete; say so.
+    """
+    from .io import committed_outputs
+
+    done = [str(p) for p in committed_outputs()]
+    message = "interrupted; nothing half-written was kept"
+    if not done:
+        return message
+    more = f" and {len(done) - shown} more" if len(done) > shown else ""
+    return f"{message}; complete before the interrupt: wrote {', '.join(done[:shown])}{more}"
+
+
 def _reports_errors(func):
     """Turn every failure into one readable line and an exit code (2 usage, 1 data, 130 Ctrl-C)."""
 
     @functools.wraps(func)
     def wrapper(*args, **kwargs):
+        from .io import forget_committed_outputs
+
+        forget_committed_outputs()
         with warnings.catch_warnings():
             warnings.showwarning = _show_warning
             try:
@@ -151,7 +171,7 @@ def _reports_errors(func):
 def _describe(exc: BaseException) -> tuple[int, str]:
     """Exit code and one-line message for an exception that ended a command."""
     if _interrupted(exc):
-        return 130, "interrupted; nothing half-written was kept"
+        return 130, _interrupt_message()
     if isinstance(exc, _ClickException):  # typer.BadParameter raised in a command body
         hint = ""
         ctx = getattr(exc, "ctx", None)
@@ -1073,7 +1093,7 @@ def main() -> None:
         raise
     except KeyboardInterrupt:  # between the command's end and the line above
         signal.signal(signal.SIGINT, signal.SIG_IGN)
-        _error_line("interrupted; nothing half-written was kept")
+        _error_line(_interrupt_message())
         _exit_interrupted()
 
 

@@ -71,6 +71,36 @@ def _raise_lost_interrupt() -> None:
         raise KeyboardInterrupt
 
 
+_committed: list[Path] = []
+_staging = threading.local()  # .depth: how many staged outputs enclose the current code
+
+
+@contextlib.contextmanager
+def _staging_level() -> Iterator[bool]:
+    """Yield whether this staged output is the outermost one (the user's, not a helper's)."""
+    depth = getattr(_staging, "depth", 0)
+    _staging.depth = depth + 1
+    try:
+        yield depth == 0
+    finally:
+        _staging.depth = depth
+
+
+def committed_outputs() -> list[Path]:
+    """Outputs committed (renamed into place, complete) since :func:`forget_committed_outputs`.
+
+    A Ctrl-C that arrives while, or just after, a command commits its outputs ends the
+    command with the new outputs already in place; the command line names them in its
+    message instead of claiming that nothing was kept.
+    """
+    return list(_committed)
+
+
+def forget_committed_outputs() -> None:
+    """Start a new record for :func:`committed_outputs` (at the start of each command)."""
+    _committed.clear()
+
+
 @contextlib.contextmanager
 def interrupts_deferred() -> Iterator[None]:
     """Hold back Ctrl-C (SIGINT) for the body, then raise the ``KeyboardInterrupt``.
@@ -195,8 +225,12 @@ def _temporary_beside(path: Path) -> Path:
     return Path(tmp)
 
 
-def _commit(pairs: list[tuple[Path, Path]]) -> None:
-    """Rename every temporary onto its target; on any failure restore every old target."""
+def _commit(pairs: list[tuple[Path, Path]], *, outermost: bool) -> None:
+    """Rename every temporary onto its target; on any failure restore every old target.
+
+    ``outermost`` records the targets for :func:`committed_outputs` (a file written into
+    another output's temporary is not one of the user's outputs).
+    """
     mode = default_file_mode()
     backups: list[tuple[Path, Path | None]] = []
     _raise_lost_interrupt()
@@ -210,6 +244,8 @@ def _commit(pairs: list[tuple[Path, Path]]) -> None:
                     os.replace(target, backup)
                 backups.append((target, backup))
                 os.replace(tmp, target)
+            if outermost:
+                _committed.extend(target for _, target in pairs)
         except BaseException:
             for target, backup in reversed(backups):
                 if backup is not None:
@@ -250,8 +286,10 @@ def staged_outputs(*targets: str | Path | None) -> Iterator[list[Path | None]]:
                 created += _make_parents(path)
                 temporaries.append(_temporary_beside(path))
         staged = iter(temporaries)
-        yield [None if p is None else next(staged) for p in paths]
-        _commit([(tmp, p) for tmp, p in zip(temporaries, [p for p in paths if p is not None])])
+        with _staging_level() as outermost:
+            yield [None if p is None else next(staged) for p in paths]
+        _commit([(tmp, p) for tmp, p in zip(temporaries, [p for p in paths if p is not None])],
+                outermost=outermost)
     finally:
         with interrupts_deferred():
             for tmp in temporaries:
@@ -297,7 +335,8 @@ def atomic_folder(path: str | Path) -> Iterator[Path]:
     committed = False
     try:
         os.chmod(tmp, 0o777 & ~_umask())  # mkdtemp makes it 0700
-        yield tmp
+        with _staging_level() as outermost:
+            yield tmp
         _raise_lost_interrupt()
         with interrupts_deferred():
             old = None
@@ -311,6 +350,8 @@ def atomic_folder(path: str | Path) -> Iterator[Path]:
                     os.replace(old / path.name, path)
                 raise
             committed = True
+            if outermost:
+                _committed.append(path)
             if old is not None:
                 shutil.rmtree(old, ignore_errors=True)
     finally:
