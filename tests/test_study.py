@@ -132,6 +132,11 @@ def test_paper_grid_has_twelve_configurations_with_matched_apertures():
         assert len({c.object_distance_mm for c in grid if abs(c.magnification) == m}) == 3
     for c in grid:   # microlens images filled: image-side f-number equals the microlenses'
         assert c.image_side_f_number == pytest.approx(c.microlens_f_number, rel=1e-3)
+    labels = [StudyConfig(camera=c).label for c in grid]
+    assert len(set(labels)) == 12 and "hall2019_M0.75_F105" in labels  # named once, not twice
+    assert StudyConfig(camera=preset("hall2019")).label == (
+        f"hall2019_M{abs(preset('hall2019').magnification):g}_F"
+        f"{preset('hall2019').focal_length_mm:g}")
 
 
 @pytest.mark.parametrize("kwargs, match", [

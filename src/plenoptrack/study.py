@@ -140,7 +140,10 @@ class StudyConfig:
     def label(self) -> str:
         if self.name:
             return self.name
-        return f"{self.camera.name}_M{abs(self.camera.magnification):g}_F{self.camera.focal_length_mm:g}"
+        suffix = f"_M{abs(self.camera.magnification):g}_F{self.camera.focal_length_mm:g}"
+        if self.camera.name.endswith(suffix):  # a camera of paper_grid is named so already
+            return self.camera.name
+        return self.camera.name + suffix
 
     @property
     def n_repeats(self) -> dict:
