@@ -368,6 +368,7 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
     shift = np.zeros(k)
     half_gap = np.zeros(k)
     grid = _centre_grid(centres)
+    no_skip = np.int64(-1)  # typed, not a literal: one specialisation of _nearest_two
     for it in range(max_iter):
         changed = False
         for i in range(n):
@@ -381,7 +382,7 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
                 upper[i] = math.sqrt(dx * dx + dy * dy)
                 if upper[i] <= m:
                     continue
-            best, d1, d2 = _nearest_two(points[i, 0], points[i, 1], centres, grid, -1)
+            best, d1, d2 = _nearest_two(points[i, 0], points[i, 1], centres, grid, no_skip)
             upper[i] = math.sqrt(d1)
             lower[i] = math.sqrt(d2)
             if labels[i] != best:
@@ -433,8 +434,9 @@ def _kmeanspp_topup(points, centres, n_extra, uniforms):  # pragma: no cover - c
     d2 = np.full(n, np.inf)
     if k0 > 0:
         grid = _centre_grid(centres)
+        no_skip = np.int64(-1)
         for i in range(n):
-            d2[i] = _nearest_two(points[i, 0], points[i, 1], centres, grid, -1)[1]
+            d2[i] = _nearest_two(points[i, 0], points[i, 1], centres, grid, no_skip)[1]
     if k0 == 0:
         d2[:] = 1.0
     m = k0

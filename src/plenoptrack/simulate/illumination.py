@@ -145,7 +145,9 @@ def _apply_backlight(img, optics, rng, src=None):
              else _camera_backlight(optics))
     f0, fa = _frame_backlight(optics, rng)
     rb, cb = _bases(img.shape)
-    _multiply_fields(img if src is None else src, img, rb, cb, b0, a, f0, fa)
+    src = (img if src is None else src).view()
+    src.flags.writeable = False  # one compiled specialisation, whether src is img or not
+    _multiply_fields(src, img, rb, cb, b0, a, f0, fa)
     return True
 
 
