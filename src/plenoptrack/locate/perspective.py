@@ -21,6 +21,9 @@
 5. :func:`check_particles` -- drop particles that fail the consistency checks (too few
    or clustered views, residuals far above the typical one, built from merged images),
    refit those whose centroids are partly pulled by overlapping images, and solve again;
+   optionally (``check.refine_images``) refit particles whose images overlap others' to
+   the view pixels themselves (:func:`refine_particles`,
+   :mod:`~plenoptrack.locate.refine`);
 6. :func:`measure_particles` -- uncertainties (least-squares errors scaled for
    view-correlated centroid errors, plus the DLFC's model error;
    :mod:`~plenoptrack.locate.uncertainty`), in-plane size and shape from the member
@@ -66,7 +69,8 @@ from .uncertainty import reduced_chi2, total_sigma
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
-           "solve_particles", "grow_particles", "check_particles", "measure_particles"]
+           "solve_particles", "grow_particles", "check_particles", "refine_particles",
+           "measure_particles"]
 
 PARTICLE_COLUMNS = (T_COLUMN, *POS_COLUMNS, "sigma_x", "sigma_y", "sigma_z", "n_views",
                     "confidence", "residual_px", "chi2", "diameter", "major_axis", "minor_axis",
@@ -280,6 +284,8 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         return _finish_empty(detections, frame, clock.seconds)
     with clock("checks"):
         state = check_particles(ctx, state, locator)
+        if locator.check.refine_images:
+            state = refine_particles(ctx, state, locator)
         particles, detections = measure_particles(ctx, state, locator.solve, frame=frame)
     if len(particles) == 0:
         return _finish_empty(detections, frame, clock.seconds)
@@ -462,6 +468,68 @@ def check_particles(ctx: FrameContext, state: ParticleState,
         state = grow_particles(ctx, state, locator.grow)
         state = solve_particles(ctx, state, locator.solve)
     return state
+
+
+def refine_particles(ctx: FrameContext, state: ParticleState,
+                     locator: PerspectiveLocator, *, sweeps: int = 2) -> ParticleState:
+    """Stage 5b: refit particles whose images overlap others' to the view pixels.
+
+    Each particle kept by the checks whose image another particle's overlaps in at least
+    ``check.refine_min_overlap`` of the valid views is fitted to the pixels around it
+    (:func:`~plenoptrack.locate.refine.fit_images`), with its neighbours held; jointly
+    with its strongest neighbour when they overlap in at least
+    ``check.refine_pair_overlap`` of the views. Image radii start from the particles'
+    whole regions. A fit that moves a particle by more than a tenth of the volume depth
+    is discarded. ``sweeps`` passes over the particles. Positions change; the
+    uncertainties stay those of the centroid solve.
+    """
+    from ._assign import _predict_all
+    from .refine import fit_images, overlap_fraction
+
+    settings = locator.check
+    table = state.table.copy()
+    pos = state.positions.copy()
+    n = state.n_particles
+    keep = ((table["n_views"].to_numpy(float) >= locator.solve.min_views)
+            & np.all(np.isfinite(pos), axis=1))
+    owner = state.owner
+    whole = ctx.detections["whole"].to_numpy(bool)
+    diameter = ctx.detections["diameter_px"].to_numpy(float)
+    radius = np.full(n, np.nan)
+    for p in np.flatnonzero(keep):
+        mine = owner == p
+        radius[p] = 0.5 * np.median(diameter[mine & whole] if (mine & whole).sum() >= 3
+                                    else diameter[mine])
+    keep &= np.isfinite(radius)
+    lf = ctx.lf
+    vi = np.searchsorted(lf.v, ctx.views[:, 1])
+    ui = np.searchsorted(lf.u, ctx.views[:, 0])
+    usable = lf.valid_fraction[vi, ui] > 0.5
+    views_uv, view_rc = ctx.views[usable], np.c_[vi, ui][usable]
+    rc = np.c_[radius, np.full(n, 0.9)]
+    max_shift = 0.1 * ctx.volume_depth_mm
+    for _sweep in range(sweeps):
+        pred = _predict_all(ctx.dlfc, np.where(keep[:, None], pos, np.nan), views_uv)
+        r = np.where(keep, radius, np.nan)
+        overlap = overlap_fraction(pred, r)
+        nearby = overlap_fraction(pred, r, gap_px=4.0) > 0
+        for a in np.flatnonzero(keep & (overlap.max(axis=1, initial=0.0)
+                                        >= settings.refine_min_overlap)):
+            b = int(np.argmax(overlap[a]))
+            free = [a, b] if overlap[a, b] >= settings.refine_pair_overlap else [a]
+            held = np.setdiff1d(np.flatnonzero(nearby[free].any(axis=0) & keep), free)
+            theta = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, pos[free], rc[free],
+                               pos[held], rc[held])
+            if theta is None or not np.all(np.isfinite(theta)):
+                continue
+            if np.any(np.abs(theta[:, 2] - pos[free, 2]) > max_shift):
+                continue
+            pos[free] = theta[:, :3]
+            rc[free] = theta[:, 3:]
+    changed = keep & np.any(pos != state.positions, axis=1)
+    table.loc[changed, list(POS_COLUMNS)] = pos[changed]
+    return dataclasses.replace(state, positions=np.where(changed[:, None], pos, state.positions),
+                               table=table)
 
 
 def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSettings, *,
