@@ -133,9 +133,12 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
                        tt - st_free[q, keep, 1][:, None, None])
         near |= rho < free_rc[q, 0] + 2.0
     far_count = (~near).sum(axis=(1, 2))
-    background = np.nanpercentile(np.where(near, np.nan, values), 60, axis=(1, 2)) \
-        if (far_count >= 5).any() else np.full(len(values), np.nan)
-    use = (far_count >= 5) & np.isfinite(background) & (background > 0)
+    background = np.full(len(values), np.nan)
+    enough = far_count >= 5
+    if enough.any():
+        background[enough] = np.nanpercentile(np.where(near[enough], np.nan, values[enough]),
+                                               60, axis=(1, 2))
+    use = enough & np.isfinite(background) & (background > 0)
     if use.sum() < 6:
         return None
     y = (values[use] / background[use, None, None]).ravel()
@@ -177,7 +180,13 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     for _ in range(max_iter):
         jtj = jac.T @ jac
         grad = jac.T @ r
-        step = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -grad)
+        try:
+            step = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -grad)
+        except np.linalg.LinAlgError:
+            lam *= 4.0
+            if lam > 1e8:
+                break
+            continue
         trial = np.clip(theta + step.reshape(k, 5), lo, hi)
         r_new, jac_new = residual_and_jacobian(trial)
         cost_new = float(r_new @ r_new)
