@@ -271,7 +271,7 @@ class CheckSettings:
     refine_images : bool
         Refit the particles whose images overlap others' to the view pixels around them
         (:func:`~plenoptrack.locate.perspective.refine_particles`). Off by default: it
-        cuts the depth errors beyond 0.15 mm about threefold on the validation seeds of
+        cuts the depth errors beyond 0.15 mm two- to threefold on the validation seeds of
         the accuracy matrix, but can swap a pair under 0.25 mm apart, and costs seconds
         per frame.
     refine_min_overlap : float
