@@ -492,14 +492,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     n = state.n_particles
     keep = ((table["n_views"].to_numpy(float) >= locator.solve.min_views)
             & np.all(np.isfinite(pos), axis=1))
-    owner = state.owner
-    whole = ctx.detections["whole"].to_numpy(bool)
-    diameter = ctx.detections["diameter_px"].to_numpy(float)
-    radius = np.full(n, np.nan)
-    for p in np.flatnonzero(keep):
-        mine = owner == p
-        radius[p] = 0.5 * np.median(diameter[mine & whole] if (mine & whole).sum() >= 3
-                                    else diameter[mine])
+    radius = 0.5 * _member_diameter(ctx.detections, state.owner, n)
     keep &= np.isfinite(radius)
     lf = ctx.lf
     vi = np.searchsorted(lf.v, ctx.views[:, 1])
@@ -528,8 +521,23 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
             rc[free] = theta[:, 3:]
     changed = keep & np.any(pos != state.positions, axis=1)
     table.loc[changed, list(POS_COLUMNS)] = pos[changed]
-    return dataclasses.replace(state, positions=np.where(changed[:, None], pos, state.positions),
-                               table=table)
+    return dataclasses.replace(state, positions=pos, table=table)
+
+
+def _member_diameter(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
+    """(n,) median equivalent diameter (view pixels) of each particle's regions: of its
+    whole regions when it has at least 3, else of all; NaN for particles without any."""
+    mine = owner >= 0
+    d = pd.DataFrame({"owner": owner[mine],
+                      "diameter": detections["diameter_px"].to_numpy(float)[mine],
+                      "whole": detections["whole"].to_numpy(bool)[mine]})
+    every = d.groupby("owner")["diameter"].median()
+    grouped = d[d["whole"]].groupby("owner")["diameter"]
+    whole = grouped.median()[grouped.size() >= 3]
+    out = np.full(n, np.nan)
+    out[every.index.to_numpy()] = every.to_numpy()
+    out[whole.index.to_numpy()] = whole.to_numpy()
+    return out
 
 
 def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSettings, *,
