@@ -5,7 +5,9 @@ import pytest
 
 from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
-from plenoptrack.locate.refine import disc_image, fit_images, overlap_fraction
+from plenoptrack.locate.refine import (_masked_row_percentile, _normal_equations,
+                                       _patch_masks, disc_image, fit_images,
+                                       overlap_fraction)
 from plenoptrack.simulate import make_scene, render_frame
 
 
@@ -51,6 +53,80 @@ def test_disc_image_derivatives_match_finite_differences():
     assert np.allclose(d_r, (disc_image(rho, 2.0 + h, 0.9)[0] - f) / h, atol=1e-5)
     assert np.allclose(d_c, (disc_image(rho, 2.0, 0.9 + h)[0] - f) / h, atol=1e-5)
     assert f[0] < 0.11 and f[-1] > 0.999   # dark inside, background outside
+
+
+@pytest.mark.parametrize("k", [1, 2])
+def test_normal_equations_match_a_finite_difference_jacobian(k):
+    """The compiled cost, J^T J and J^T r against the model built from disc_image and
+    differentiated numerically with respect to (x, y, z, r, c) through a linear DLFC."""
+    dlfc = LinearCalibration()
+    views_uv, _ = _views()
+    rng = np.random.default_rng(k)
+    n = 15
+    origin = np.c_[rng.integers(40, 45, len(views_uv)), rng.integers(30, 35, len(views_uv))]
+    origin = origin.astype(float)
+    y = rng.uniform(0.2, 1.1, (len(views_uv), n, n))
+    held = rng.uniform(0.8, 1.0, y.shape)
+    fit = rng.uniform(size=y.shape) < 0.8
+    theta = np.array([[0.6, 0.3, 1.5, 2.5, 0.9], [0.8, 0.2, -1.0, 1.8, 0.7]])[:k]
+    tt, ss = np.mgrid[0:n, 0:n].astype(float)
+    ss = origin[:, 0, None, None] + ss
+    tt = origin[:, 1, None, None] + tt
+
+    def model(th):
+        out = held.copy()
+        for x, yy, z, r, c in th:
+            s, t = dlfc.predict(x, yy, z, views_uv[:, 0], views_uv[:, 1])
+            out *= disc_image(np.hypot(ss - s[:, None, None], tt - t[:, None, None]), r, c)[0]
+        return out[fit] - y[fit]
+
+    h = 1e-6
+    jac = np.stack([(model(theta + h * np.eye(5 * k)[i].reshape(k, 5)) - model(theta)) / h
+                    for i in range(5 * k)], axis=1)
+    st, dst = dlfc.predict_with_jacobian(theta[:, None, 0], theta[:, None, 1],
+                                         theta[:, None, 2], views_uv[None, :, 0],
+                                         views_uv[None, :, 1])
+    cost, jtj, jtr = _normal_equations(origin, y, held, fit, np.ascontiguousarray(st),
+                                       np.ascontiguousarray(dst), theta[:, 3:].copy(), 0.6)
+    res = model(theta)
+    assert cost == pytest.approx(res @ res, rel=1e-6)
+    assert np.allclose(jtr, jac.T @ res, rtol=1e-3, atol=1e-3 * np.abs(jtr).max())
+    assert np.allclose(jtj, jac.T @ jac, rtol=1e-3, atol=1e-3 * np.abs(jtj).max())
+
+
+def test_patch_masks_against_disc_image():
+    rng = np.random.default_rng(5)
+    n, views = 13, 4
+    origin = rng.uniform(0, 5, (views, 2)).round()
+    st_held = origin[None] + rng.uniform(0, 13, (3, views, 2))
+    st_held[2] += 40.0                      # a held image far outside every patch
+    rc_held = np.array([[2.0, 0.9], [1.5, 0.6], [2.0, 1.0]])
+    st_free = origin[None] + rng.uniform(3, 10, (1, views, 2))
+    fixed, near, fit = _patch_masks(origin, n, st_held, rc_held, st_free, np.array([2.5]),
+                                    3.0, 0.6)
+    tt, ss = np.mgrid[0:n, 0:n].astype(float)
+    for v in range(views):
+        s, t = origin[v, 0] + ss, origin[v, 1] + tt
+        rho = [np.hypot(s - st_held[q, v, 0], t - st_held[q, v, 1]) for q in range(3)]
+        expected = np.prod([disc_image(rho[q], *rc_held[q])[0] for q in range(3)], axis=0)
+        assert np.allclose(fixed[v], expected, atol=1e-6)
+        rho_free = np.hypot(s - st_free[0, v, 0], t - st_free[0, v, 1])
+        assert np.array_equal(fit[v], rho_free <= 5.5)
+        assert np.array_equal(near[v], (rho_free < 4.5) | np.any(
+            [rho[q] < rc_held[q, 0] + 2 for q in range(3)], axis=0))
+
+
+def test_masked_row_percentile_matches_numpy():
+    rng = np.random.default_rng(2)
+    values = rng.normal(size=(6, 5, 5))
+    exclude = rng.uniform(size=values.shape) < 0.5
+    exclude[4] = True                      # nothing left
+    exclude[5] = True
+    exclude[5, 0, :4] = False              # fewer than min_count
+    got = _masked_row_percentile(values, exclude, 60.0, min_count=5)
+    for k in range(4):
+        assert got[k] == pytest.approx(np.percentile(values[k][~exclude[k]], 60))
+    assert np.isnan(got[4]) and np.isnan(got[5])
 
 
 def test_a_crossing_pair_is_recovered_from_biased_starts():

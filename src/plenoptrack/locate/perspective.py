@@ -506,10 +506,15 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
         r = np.where(keep, radius, np.nan)
         overlap = overlap_fraction(pred, r)
         nearby = overlap_fraction(pred, r, gap_px=4.0) > 0
+        fitted_pairs = set()
         for a in np.flatnonzero(keep & (overlap.max(axis=1, initial=0.0)
                                         >= settings.refine_min_overlap)):
             b = int(np.argmax(overlap[a]))
             free = [a, b] if overlap[a, b] >= settings.refine_pair_overlap else [a]
+            if len(free) == 2:
+                if (b, a) in fitted_pairs:   # refitted together with b a moment ago
+                    continue
+                fitted_pairs.add((a, b))
             held = np.setdiff1d(np.flatnonzero(nearby[free].any(axis=0) & keep), free)
             theta = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, pos[free], rc[free],
                                pos[held], rc[held])

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 
+import numba
 import numpy as np
 from scipy.special import erfc
 
@@ -64,7 +65,8 @@ def disc_image(rho: np.ndarray, radius, contrast, edge: float = EDGE_PX):
 
 def _patches(data, view_rc, centre, half):
     """Square patches of side ``2 half + 1`` around ``centre`` (V, 2) ``(s, t)`` in every
-    view; returns ``(keep (V,) bool, s (K, n, n), t (K, n, n), values (K, n, n))``."""
+    view; returns ``(keep (V,) bool, origin (K, 2) float, values (K, n, n) float)``, where
+    ``origin`` is the ``(s, t)`` of each kept patch's pixel ``[0, 0]``."""
     n_t, n_s = data.shape[2:]
     s0 = np.rint(centre[:, 0]).astype(np.int64) - half
     t0 = np.rint(centre[:, 1]).astype(np.int64) - half
@@ -74,12 +76,11 @@ def _patches(data, view_rc, centre, half):
     tt = (t0[keep, None] + off)[:, :, None]
     vr, ur = view_rc[keep, 0], view_rc[keep, 1]
     values = data[vr[:, None, None], ur[:, None, None], tt, ss].astype(np.float64)
-    ss, tt = np.broadcast_arrays(ss.astype(np.float64), tt.astype(np.float64))
-    return keep, ss, tt, values
+    return keep, np.stack([s0[keep], t0[keep]], axis=1).astype(np.float64), values
 
 
 def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixed_rc, *,
-               margin_px: float = 3.0, max_iter: int = 30):
+               margin_px: float = 3.0, max_iter: int = 30, xyz_tol: float = 1e-4):
     """Fit ``k`` free particles to the view pixels around them, neighbours held fixed.
 
     Parameters
@@ -102,6 +103,9 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
         Patch margin beyond the free images, view pixels.
     max_iter : int
         Levenberg-Marquardt iterations.
+    xyz_tol : float
+        The fit has converged when an accepted step moves every particle by less than
+        this (mm, each coordinate) and its radius and contrast by less than 0.001.
 
     Returns
     -------
@@ -116,70 +120,38 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     centre = st_free.mean(axis=0)
     reach = np.max(np.hypot(*(st_free - centre[None]).transpose(2, 0, 1)))
     half = int(math.ceil(reach + free_rc[:, 0].max() + margin_px))
-    keep, ss, tt, values = _patches(data, view_rc, centre, half)
+    keep, origin, values = _patches(data, view_rc, centre, half)
     if keep.sum() < 6:
         return None
     uk, vk = u[keep], v[keep]
-    # Fixed neighbours' images and the background mask.
-    fixed = np.ones_like(values)
-    near = np.zeros(values.shape, dtype=bool)
-    for q in range(len(fixed_xyz)):
-        s_q, t_q = dlfc.predict(fixed_xyz[q, 0], fixed_xyz[q, 1], fixed_xyz[q, 2], uk, vk)
-        rho = np.hypot(ss - s_q[:, None, None], tt - t_q[:, None, None])
-        fixed *= disc_image(rho, fixed_rc[q, 0], fixed_rc[q, 1])[0]
-        near |= rho < fixed_rc[q, 0] + 2.0
-    for q in range(k):
-        rho = np.hypot(ss - st_free[q, keep, 0][:, None, None],
-                       tt - st_free[q, keep, 1][:, None, None])
-        near |= rho < free_rc[q, 0] + 2.0
-    far_count = (~near).sum(axis=(1, 2))
-    background = np.full(len(values), np.nan)
-    enough = far_count >= 5
-    if enough.any():
-        background[enough] = np.nanpercentile(np.where(near[enough], np.nan, values[enough]),
-                                               60, axis=(1, 2))
-    use = enough & np.isfinite(background) & (background > 0)
+    st_held = dlfc.predict(fixed_xyz[:, None, 0], fixed_xyz[:, None, 1], fixed_xyz[:, None, 2],
+                           uk[None, :], vk[None, :])
+    fixed, near, fit = _patch_masks(origin, values.shape[1],
+                                    np.ascontiguousarray(np.stack(st_held, axis=-1)),
+                                    np.ascontiguousarray(fixed_rc, dtype=np.float64),
+                                    np.ascontiguousarray(st_free[:, keep]),
+                                    np.ascontiguousarray(free_rc[:, 0], dtype=np.float64),
+                                    margin_px, EDGE_PX)
+    background = _masked_row_percentile(values, near, 60.0, min_count=5)
+    use = np.isfinite(background) & (background > 0)
     if use.sum() < 6:
         return None
-    y = (values[use] / background[use, None, None]).ravel()
-    ss, tt, fixed = ss[use], tt[use], fixed[use]
+    y = values[use] / background[use, None, None]
+    origin, fixed, fit = origin[use], fixed[use], fit[use]
     uk, vk = uk[use], vk[use]
     theta = np.concatenate([free_xyz, free_rc], axis=1).astype(float)
 
-    def residual_and_jacobian(th):
-        model = fixed.copy()
-        factors, parts = [], []
-        for q in range(k):
-            st, jac = dlfc.predict_with_jacobian(th[q, 0], th[q, 1], th[q, 2], uk, vk)
-            ds = ss - st[:, 0, None, None]
-            dt = tt - st[:, 1, None, None]
-            rho = np.maximum(np.hypot(ds, dt), 1e-9)
-            f, df_drho, df_dr, df_dc = disc_image(rho, th[q, 3], th[q, 4])
-            # d rho / d mu = -(p - mu) / rho; d mu / d xyz = jac (K, 2, 3)
-            drho_dxyz = -(ds[..., None] * jac[:, None, None, 0, :]
-                          + dt[..., None] * jac[:, None, None, 1, :]) / rho[..., None]
-            parts.append((df_drho[..., None] * drho_dxyz, df_dr, df_dc))
-            factors.append(f)
-            model = model * f
-        cols = []
-        for q in range(k):
-            others = fixed.copy()
-            for p in range(k):
-                if p != q:
-                    others = others * factors[p]
-            d_xyz, df_dr, df_dc = parts[q]
-            cols += [others[..., None] * d_xyz, (others * df_dr)[..., None],
-                     (others * df_dc)[..., None]]
-        jac_all = np.concatenate(cols, axis=-1).reshape(-1, 5 * k)
-        return model.ravel() - y, jac_all
+    def normal_equations(th):
+        st, jac = dlfc.predict_with_jacobian(th[:, None, 0], th[:, None, 1], th[:, None, 2],
+                                             uk[None, :], vk[None, :])
+        return _normal_equations(origin, y, fixed, fit, np.ascontiguousarray(st),
+                                 np.ascontiguousarray(jac), np.ascontiguousarray(th[:, 3:]),
+                                 EDGE_PX)
 
     lam = 1e-3
-    r, jac = residual_and_jacobian(theta)
-    cost = float(r @ r)
+    cost, jtj, grad = normal_equations(theta)
     lo, hi = np.tile(_BOUNDS[0], (k, 1)), np.tile(_BOUNDS[1], (k, 1))
     for _ in range(max_iter):
-        jtj = jac.T @ jac
-        grad = jac.T @ r
         try:
             step = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -grad)
         except np.linalg.LinAlgError:
@@ -188,11 +160,12 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
                 break
             continue
         trial = np.clip(theta + step.reshape(k, 5), lo, hi)
-        r_new, jac_new = residual_and_jacobian(trial)
-        cost_new = float(r_new @ r_new)
+        cost_new, jtj_new, grad_new = normal_equations(trial)
         if cost_new < cost:
-            converged = cost - cost_new < 1e-9 * cost
-            theta, r, jac, cost = trial, r_new, jac_new, cost_new
+            moved = np.abs(trial - theta)
+            converged = (cost - cost_new < 1e-9 * cost
+                         or (moved[:, :3].max() < xyz_tol and moved[:, 3:].max() < 1e-3))
+            theta, jtj, grad, cost = trial, jtj_new, grad_new, cost_new
             lam = max(lam / 3.0, 1e-9)
             if converged:
                 break
@@ -201,6 +174,148 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
             if lam > 1e8:
                 break
     return theta
+
+
+def _masked_row_percentile(values, exclude, q, *, min_count):
+    """Percentile ``q`` (linear interpolation, as :func:`numpy.percentile`) of each row's
+    ``values[k]`` outside ``exclude[k]``; NaN for rows with fewer than ``min_count``."""
+    flat = np.where(exclude, np.inf, values).reshape(len(values), -1)
+    count = (~exclude).reshape(len(values), -1).sum(axis=1)
+    ordered = np.sort(flat, axis=1)
+    pos = q / 100.0 * np.maximum(count - 1, 0)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, np.maximum(count - 1, 0))
+    rows = np.arange(len(values))
+    a, b = ordered[rows, lo], ordered[rows, hi]
+    with np.errstate(invalid="ignore"):   # rows with nothing left hold inf - inf
+        out = a + (pos - lo) * np.where(hi > lo, b - a, 0.0)
+    return np.where(count >= min_count, out, np.nan)
+
+
+@numba.njit(cache=True, nogil=True)
+def _half_erfc(x, gauss):  # pragma: no cover - compiled
+    """``erfc(x) / 2`` given ``gauss = exp(-x**2)``, absolute error below 1e-7
+    (Abramowitz and Stegun 7.1.26), without a second transcendental call."""
+    t = 1.0 / (1.0 + 0.3275911 * abs(x))
+    h = 0.5 * t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (
+        -1.453152027 + t * 1.061405429)))) * gauss
+    return h if x >= 0.0 else 1.0 - h
+
+
+@numba.njit(cache=True, nogil=True)
+def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin, edge):  # pragma: no cover - compiled
+    """The held neighbours' image ``fixed`` (K, n, n), the pixels ``near`` (within 2 px
+    of any particle's image, excluded from the background) and the pixels ``fit``
+    (within ``margin`` px of a free image) of patches with pixel ``[0, 0]`` at ``origin``
+    (K, 2). ``st_held`` (m, K, 2) and ``rc_held`` (m, 2) are the held particles' image
+    centres, radii and contrasts; ``st_free`` (k, K, 2) and ``r_free`` (k,) the free
+    particles' centres and radii."""
+    n_views = origin.shape[0]
+    fixed = np.ones((n_views, n, n))
+    near = np.zeros((n_views, n, n), dtype=np.bool_)
+    fit = np.zeros((n_views, n, n), dtype=np.bool_)
+    inv = 1.0 / (math.sqrt(2.0) * edge)
+    half = 0.5 * (n - 1)
+    reaches = np.empty(st_held.shape[0], dtype=np.bool_)
+    for view in range(n_views):
+        # a held image wholly outside the patch (by 6 edge widths) leaves it unchanged
+        for q in range(st_held.shape[0]):
+            gap = max(abs(st_held[q, view, 0] - origin[view, 0] - half),
+                      abs(st_held[q, view, 1] - origin[view, 1] - half)) - half
+            reaches[q] = gap < rc_held[q, 0] + 6.0 * edge * math.sqrt(2.0) + 2.0
+        for i in range(n):
+            t = origin[view, 1] + i
+            for j in range(n):
+                s = origin[view, 0] + j
+                for q in range(st_held.shape[0]):
+                    if not reaches[q]:
+                        continue
+                    rho = math.hypot(s - st_held[q, view, 0], t - st_held[q, view, 1])
+                    near[view, i, j] |= rho < rc_held[q, 0] + 2.0
+                    x = (rho - rc_held[q, 0]) * inv
+                    if x < 6.0:
+                        fixed[view, i, j] *= 1.0 - rc_held[q, 1] * _half_erfc(x, math.exp(-x * x))
+                for q in range(st_free.shape[0]):
+                    rho = math.hypot(s - st_free[q, view, 0], t - st_free[q, view, 1])
+                    near[view, i, j] |= rho < r_free[q] + 2.0
+                    fit[view, i, j] |= rho <= r_free[q] + margin
+    return fixed, near, fit
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no cover - compiled
+    """Cost ``sum r**2``, ``J^T J`` and ``J^T r`` of the patch model, ``r = model - y``.
+
+    ``origin`` (K, 2) is each patch's ``(s, t)`` of pixel ``[0, 0]``; ``y``, ``fixed`` and
+    ``fit`` (K, n, n) are the normalised pixels, the held neighbours' image and the pixels
+    fitted; ``st`` (k, K, 2), ``jac`` (k, K, 2, 3) and ``rc`` (k, 2) are each free
+    particle's predicted centres, their derivatives and its radius and contrast. The
+    parameters are ordered ``(x, y, z, r, c)`` per particle. The Jacobian rows of one view
+    are collected and then reduced as dot products, which the compiler vectorises.
+    """
+    k = st.shape[0]
+    n_par = 5 * k
+    n_pix = y.shape[1] * y.shape[2]
+    jtj = np.zeros((n_par, n_par))
+    jtr = np.zeros(n_par)
+    cost = 0.0
+    rows = np.empty((n_par, n_pix))
+    res = np.empty(n_pix)
+    f = np.empty(k)
+    slope = np.empty(k)
+    disc = np.empty(k)
+    drho = np.empty((k, 3))
+    inv = 1.0 / (math.sqrt(2.0) * edge)
+    norm = 1.0 / (math.sqrt(2.0 * math.pi) * edge)
+    for view in range(y.shape[0]):
+        m = 0
+        for i in range(y.shape[1]):
+            t = origin[view, 1] + i
+            for j in range(y.shape[2]):
+                if not fit[view, i, j]:
+                    continue
+                s = origin[view, 0] + j
+                for q in range(k):
+                    ds = s - st[q, view, 0]
+                    dt = t - st[q, view, 1]
+                    rho = max(math.sqrt(ds * ds + dt * dt), 1e-9)
+                    x = (rho - rc[q, 0]) * inv
+                    gauss = math.exp(-x * x)
+                    disc[q] = _half_erfc(x, gauss)
+                    slope[q] = rc[q, 1] * gauss * norm   # df / d rho
+                    f[q] = 1.0 - rc[q, 1] * disc[q]
+                    for a in range(3):
+                        drho[q, a] = -(ds * jac[q, view, 0, a] + dt * jac[q, view, 1, a]) / rho
+                model = fixed[view, i, j]
+                for q in range(k):
+                    model *= f[q]
+                res[m] = model - y[view, i, j]
+                for q in range(k):
+                    others = fixed[view, i, j]
+                    for p in range(k):
+                        if p != q:
+                            others *= f[p]
+                    for a in range(3):
+                        rows[5 * q + a, m] = others * slope[q] * drho[q, a]
+                    rows[5 * q + 3, m] = -others * slope[q]
+                    rows[5 * q + 4, m] = -others * disc[q]
+                m += 1
+        for p in range(m):
+            cost += res[p] * res[p]
+        for a in range(n_par):
+            acc = 0.0
+            for p in range(m):
+                acc += rows[a, p] * res[p]
+            jtr[a] += acc
+            for b in range(a, n_par):
+                acc = 0.0
+                for p in range(m):
+                    acc += rows[a, p] * rows[b, p]
+                jtj[a, b] += acc
+    for a in range(n_par):
+        for b in range(a):
+            jtj[a, b] = jtj[b, a]
+    return cost, jtj, jtr
 
 
 def overlap_fraction(pred: np.ndarray, radius: np.ndarray, gap_px: float = 1.0) -> np.ndarray:
