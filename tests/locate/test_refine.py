@@ -185,12 +185,14 @@ def test_refinement_keeps_recall_and_reduces_depth_error(small_calibrated):
     """Denser small scenes: refitting overlapped particles loses none and lowers the
     depth RMS error of the particles it moves."""
     optics, calib = small_calibrated
-    on = PerspectiveLocator.from_dict({"check": {"refine_images": True}})
+    on = PerspectiveLocator()
+    assert on.check.refine_images   # on by default
+    off = PerspectiveLocator.from_dict({"check": {"refine_images": False}})
     base_err, ref_err, n_base, n_ref = [], [], 0, 0
     for seed in (11, 12):
         scene = make_scene(calib.camera, n_particles=40, seed=seed)
         raw = render_frame(optics, scene.truth, seed=np.random.default_rng([seed, 3, 0]))
-        for locator, errs in ((PerspectiveLocator(), base_err), (on, ref_err)):
+        for locator, errs in ((off, base_err), (on, ref_err)):
             found = locate_frame(raw, calib, locator=locator).particles
             pairs = match_particles(found, scene.truth, tolerance_mm=1.0)
             dz = (found.loc[pairs["measured_index"], "z"].to_numpy()

@@ -285,7 +285,7 @@ class CheckSettings:
     min_aperture_spread: float = 0.4
     max_explained: float = 0.5
     max_explained_strong: float = 0.85
-    refine_images: bool = False
+    refine_images: bool = True
     refine_min_overlap: float = 0.1
     refine_pair_overlap: float = 0.5
 
