@@ -2,6 +2,8 @@
 
 POS_COLUMNS = ("x", "y", "z")
 """Object-space position columns, mm."""
+SIGMA_COLUMNS = ("sigma_x", "sigma_y", "sigma_z")
+"""Standard uncertainty of each position column, mm."""
 T_COLUMN = "frame"
 """Frame index column."""
 ID_COLUMN = "particle"

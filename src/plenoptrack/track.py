@@ -40,7 +40,7 @@ import numpy as np
 import pandas as pd
 from scipy.spatial import cKDTree
 
-from ._columns import ID_COLUMN, POS_COLUMNS, T_COLUMN
+from ._columns import ID_COLUMN, POS_COLUMNS, SIGMA_COLUMNS, T_COLUMN
 from .errors import InputFileError, NoParticlesWarning, SettingsError
 from .io import METADATA_KEY
 
@@ -49,8 +49,6 @@ __all__ = ["TrackSettings", "TrackVelocityPredict", "link_particles", "smooth_tr
            "SMOOTH_COLUMNS", "VELOCITY_COLUMNS", "ACCELERATION_COLUMNS", "depth_scatter_ratio",
            "estimate_drift", "tracking_record"]
 
-SIGMA_COLUMNS = ("sigma_x", "sigma_y", "sigma_z")
-"""Standard uncertainties of ``x, y, z`` in a particles table, mm."""
 SMOOTH_COLUMNS = ("x_smooth", "y_smooth", "z_smooth")
 """Track-smoothed position, mm."""
 SMOOTH_SIGMA_COLUMNS = ("sigma_x_smooth", "sigma_y_smooth", "sigma_z_smooth")

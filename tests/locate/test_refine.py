@@ -86,10 +86,14 @@ def test_normal_equations_match_a_finite_difference_jacobian(k):
     st, dst = dlfc.predict_with_jacobian(theta[:, None, 0], theta[:, None, 1],
                                          theta[:, None, 2], views_uv[None, :, 0],
                                          views_uv[None, :, 1])
-    cost, jtj, jtr = _normal_equations(origin, y, held, fit, np.ascontiguousarray(st),
-                                       np.ascontiguousarray(dst), theta[:, 3:].copy(), 0.6)
+    cost, jtj, jtr, meat = _normal_equations(origin, y, held, fit, np.ascontiguousarray(st),
+                                             np.ascontiguousarray(dst), theta[:, 3:].copy(),
+                                             0.6)
     res = model(theta)
     assert cost == pytest.approx(res @ res, rel=1e-6)
+    view_of = np.broadcast_to(np.arange(len(views_uv))[:, None, None], y.shape)[fit]
+    scores = np.array([jac[view_of == v].T @ res[view_of == v] for v in range(len(views_uv))])
+    assert np.allclose(meat, scores.T @ scores, rtol=1e-3, atol=1e-3 * np.abs(meat).max())
     assert np.allclose(jtr, jac.T @ res, rtol=1e-3, atol=1e-3 * np.abs(jtr).max())
     assert np.allclose(jtj, jac.T @ jac, rtol=1e-3, atol=1e-3 * np.abs(jtj).max())
 
@@ -138,7 +142,7 @@ def test_a_crossing_pair_is_recovered_from_biased_starts():
     data = _render(dlfc, truth, rc, views_uv, view_rc, noise=0.01)
     start = truth + np.array([[0.03, -0.02, -1.2], [-0.03, 0.02, 1.0]])  # pulled together
     theta = fit_images(dlfc, views_uv, view_rc, data, start, np.array([[1.6, 0.8]] * 2),
-                       np.zeros((0, 3)), np.zeros((0, 2)))
+                       np.zeros((0, 3)), np.zeros((0, 2))).params
     assert np.abs(theta[:, :3] - truth).max() < 0.02
     assert np.allclose(theta[:, 3:], rc, atol=0.1)
 
@@ -150,12 +154,38 @@ def test_a_particle_is_refitted_beside_a_held_neighbour():
     rc = np.array([[1.8, 0.9], [2.2, 0.95]])
     data = _render(dlfc, truth, rc, views_uv, view_rc, noise=0.01, seed=1)
     theta = fit_images(dlfc, views_uv, view_rc, data, truth[:1] + [0.02, 0.0, 0.6],
-                       np.array([[1.5, 0.8]]), truth[1:], rc[1:])
+                       np.array([[1.5, 0.8]]), truth[1:], rc[1:]).params
     assert np.abs(theta[0, :3] - truth[0]).max() < 0.02
     # without the neighbour in the model, its image pulls the fit
     alone = fit_images(dlfc, views_uv, view_rc, data, truth[:1] + [0.02, 0.0, 0.6],
-                       np.array([[1.5, 0.8]]), np.zeros((0, 3)), np.zeros((0, 2)))
+                       np.array([[1.5, 0.8]]), np.zeros((0, 3)), np.zeros((0, 2))).params
     assert np.abs(alone[0, :3] - truth[0]).max() > np.abs(theta[0, :3] - truth[0]).max()
+
+
+def test_fit_sigma_covers_errors_correlated_within_a_view():
+    """Each view's image is displaced at random (an error shared by all of a view's
+    pixels, as a neighbour's blur or a resampling bias would be): the view-robust
+    standard errors cover the position errors about as a standard error should."""
+    dlfc = LinearCalibration()
+    views_uv, view_rc = _views()
+    truth = np.array([0.0, 0.0, 1.0])
+    tt, ss = np.mgrid[0:90, 0:110].astype(float)
+    ratios = []
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        data = np.ones((9, 9, 90, 110))
+        for (u, v), (vi, ui) in zip(views_uv, view_rc):
+            s, t = dlfc.predict(*truth, u, v)
+            s, t = s + rng.normal(0, 0.15), t + rng.normal(0, 0.15)
+            data[vi, ui] = disc_image(np.hypot(ss - s, tt - t), 2.0, 0.9)[0]
+        data += rng.normal(0, 0.01, data.shape)
+        fitted = fit_images(dlfc, views_uv, view_rc, data, truth[None] + [0.01, -0.01, 0.3],
+                            np.array([[1.7, 0.8]]), np.zeros((0, 3)), np.zeros((0, 2)))
+        error = fitted.params[0, :3] - truth
+        ratios.append(error / fitted.sigma[0])
+    ratios = np.abs(np.concatenate(ratios))
+    assert 0.55 <= np.mean(ratios <= 1) <= 0.82, np.mean(ratios <= 1)
+    assert np.mean(ratios <= 2) >= 0.88, np.mean(ratios <= 2)
 
 
 def test_a_patch_outside_every_view_gives_none():

@@ -52,7 +52,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pandas as pd
 
-from .._columns import POS_COLUMNS, T_COLUMN
+from .._columns import POS_COLUMNS, SIGMA_COLUMNS, T_COLUMN
 from ..errors import NoParticlesWarning
 from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
@@ -480,8 +480,11 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     with its strongest neighbour when they overlap in at least
     ``check.refine_pair_overlap`` of the views. Image radii start from the particles'
     whole regions. A fit that moves a particle by more than a tenth of the volume depth
-    is discarded. ``sweeps`` passes over the particles. Positions change; the
-    uncertainties stay those of the centroid solve.
+    is discarded. ``sweeps`` passes over the particles. A refitted particle's position
+    and its statistical uncertainty are the image fit's (the standard errors robust to
+    correlated pixel errors within a view, :class:`~plenoptrack.locate.refine.ImageFit`),
+    to which :func:`measure_particles` applies the same view-correlation scale and DLFC
+    model error as to a centroid solve.
     """
     from ._assign import _predict_all
     from .refine import fit_images, overlap_fraction
@@ -500,6 +503,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     usable = lf.valid_fraction[vi, ui] > 0.5
     views_uv, view_rc = ctx.views[usable], np.c_[vi, ui][usable]
     rc = np.c_[radius, np.full(n, 0.9)]
+    sigma = table[list(SIGMA_COLUMNS)].to_numpy(float, copy=True)
     max_shift = 0.1 * ctx.volume_depth_mm
     for _sweep in range(sweeps):
         pred = _predict_all(ctx.dlfc, np.where(keep[:, None], pos, np.nan), views_uv)
@@ -516,16 +520,19 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
                     continue
                 fitted_pairs.add((a, b))
             held = np.setdiff1d(np.flatnonzero(nearby[free].any(axis=0) & keep), free)
-            theta = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, pos[free], rc[free],
-                               pos[held], rc[held])
-            if theta is None or not np.all(np.isfinite(theta)):
+            fitted = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, pos[free], rc[free],
+                                pos[held], rc[held])
+            if fitted is None or not np.all(np.isfinite(fitted.params)):
                 continue
+            theta = fitted.params
             if np.any(np.abs(theta[:, 2] - pos[free, 2]) > max_shift):
                 continue
             pos[free] = theta[:, :3]
             rc[free] = theta[:, 3:]
+            sigma[free] = np.where(np.isfinite(fitted.sigma), fitted.sigma, sigma[free])
     changed = keep & np.any(pos != state.positions, axis=1)
     table.loc[changed, list(POS_COLUMNS)] = pos[changed]
+    table.loc[changed, list(SIGMA_COLUMNS)] = sigma[changed]
     return dataclasses.replace(state, positions=pos, table=table)
 
 

@@ -19,6 +19,7 @@ overlaps it in most views is fitted jointly with that neighbour.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numba
@@ -31,6 +32,32 @@ EDGE_PX = 0.6
 _SQRT2 = math.sqrt(2.0)
 _BOUNDS = np.array([[-np.inf, -np.inf, -np.inf, 0.5, 0.05],
                     [np.inf, np.inf, np.inf, 20.0, 1.3]])
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageFit:
+    """Result of :func:`fit_images`.
+
+    Attributes
+    ----------
+    params : (k, 5) float ndarray
+        Fitted ``(x, y, z, r, c)`` of each free particle: position (mm), image radius
+        (view pixels) and contrast.
+    sigma : (k, 3) float ndarray
+        Standard errors of ``(x, y, z)``, mm, robust to correlated pixel errors within a
+        view (:func:`_view_robust_sigma`); errors shared between neighbouring views are
+        not in it.
+    n_pixels, n_views : int
+        Pixels and views fitted.
+    cost : float
+        Sum of squared residuals of the normalised pixels.
+    """
+
+    params: np.ndarray
+    sigma: np.ndarray
+    n_pixels: int
+    n_views: int
+    cost: float
 
 
 def disc_image(rho: np.ndarray, radius, contrast, edge: float = EDGE_PX):
@@ -109,8 +136,8 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
 
     Returns
     -------
-    (k, 5) float ndarray or None
-        Fitted ``(x, y, z, r, c)`` of each free particle; None when fewer than 6 views
+    ImageFit or None
+        The fitted parameters and their standard errors; None when fewer than 6 views
         have a usable patch.
     """
     k = len(free_xyz)
@@ -149,7 +176,7 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
                                  EDGE_PX)
 
     lam = 1e-3
-    cost, jtj, grad = normal_equations(theta)
+    cost, jtj, grad, meat = normal_equations(theta)
     lo, hi = np.tile(_BOUNDS[0], (k, 1)), np.tile(_BOUNDS[1], (k, 1))
     for _ in range(max_iter):
         try:
@@ -160,12 +187,12 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
                 break
             continue
         trial = np.clip(theta + step.reshape(k, 5), lo, hi)
-        cost_new, jtj_new, grad_new = normal_equations(trial)
+        cost_new, jtj_new, grad_new, meat_new = normal_equations(trial)
         if cost_new < cost:
             moved = np.abs(trial - theta)
             converged = (cost - cost_new < 1e-9 * cost
                          or (moved[:, :3].max() < xyz_tol and moved[:, 3:].max() < 1e-3))
-            theta, jtj, grad, cost = trial, jtj_new, grad_new, cost_new
+            theta, jtj, grad, cost, meat = trial, jtj_new, grad_new, cost_new, meat_new
             lam = max(lam / 3.0, 1e-9)
             if converged:
                 break
@@ -173,7 +200,26 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
             lam *= 4.0
             if lam > 1e8:
                 break
-    return theta
+    return ImageFit(theta, _view_robust_sigma(jtj, meat, len(y))[:, :3], int(fit.sum()),
+                    len(y), cost)
+
+
+def _view_robust_sigma(jtj, meat, n_views):
+    """(k, 5) standard errors of the parameters, robust to any correlation of the pixel
+    errors within a view (views as independent clusters)::
+
+        cov = V / (V - p) (J^T J)^-1 [sum_v J_v^T r_v r_v^T J_v] (J^T J)^-1
+
+    NaN where ``J^T J`` is singular or there are no more views than parameters."""
+    n_par = len(jtj)
+    if n_views <= n_par:
+        return np.full((n_par // 5, 5), np.nan)
+    try:
+        inv = np.linalg.inv(jtj)
+    except np.linalg.LinAlgError:
+        return np.full((n_par // 5, 5), np.nan)
+    cov = n_views / (n_views - n_par) * inv @ meat @ inv
+    return np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(-1, 5)
 
 
 def _masked_row_percentile(values, exclude, q, *, min_count):
@@ -244,7 +290,9 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin, edge):  #
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no cover - compiled
-    """Cost ``sum r**2``, ``J^T J`` and ``J^T r`` of the patch model, ``r = model - y``.
+    """Cost ``sum r**2``, ``J^T J``, ``J^T r`` and ``sum_v J_v^T r_v r_v^T J_v`` (the sum
+    over views of the outer products of each view's score) of the patch model,
+    ``r = model - y``.
 
     ``origin`` (K, 2) is each patch's ``(s, t)`` of pixel ``[0, 0]``; ``y``, ``fixed`` and
     ``fit`` (K, n, n) are the normalised pixels, the held neighbours' image and the pixels
@@ -258,6 +306,8 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
     n_pix = y.shape[1] * y.shape[2]
     jtj = np.zeros((n_par, n_par))
     jtr = np.zeros(n_par)
+    meat = np.zeros((n_par, n_par))
+    score = np.empty(n_par)
     cost = 0.0
     rows = np.empty((n_par, n_pix))
     res = np.empty(n_pix)
@@ -307,15 +357,19 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
             for p in range(m):
                 acc += rows[a, p] * res[p]
             jtr[a] += acc
+            score[a] = acc
             for b in range(a, n_par):
                 acc = 0.0
                 for p in range(m):
                     acc += rows[a, p] * rows[b, p]
                 jtj[a, b] += acc
+        for a in range(n_par):
+            for b in range(n_par):
+                meat[a, b] += score[a] * score[b]
     for a in range(n_par):
         for b in range(a):
             jtj[a, b] = jtj[b, a]
-    return cost, jtj, jtr
+    return cost, jtj, jtr, meat
 
 
 def overlap_fraction(pred: np.ndarray, radius: np.ndarray, gap_px: float = 1.0) -> np.ndarray:
