@@ -76,6 +76,10 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
                     (_F1, _F1, _I1, _F1, _I1, _F1, _F1, _f8, _f8, _i8)),
     "first_untaken": ("plenoptrack.locate._assign", "_first_untaken", (_I1, _I1, _i8)),
     "absorb": ("plenoptrack.locate._assign", "_absorb", (_I1, _I1, _I1, _I1)),
+    "refine_masks": ("plenoptrack.locate.refine", "_patch_masks",
+                     (_F2, _i8, _F3, _F2, _F3, _F1, _f8, _f8)),
+    "refine_normal": ("plenoptrack.locate.refine", "_normal_equations",
+                      (_F2, _F3, _F3, _a(_b1, 3), _F3, _a(_f8, 4), _F2, _f8)),
 }
 """Every kernel signature that calibrating and locating a frame compile, by short name.
 Pinned by ``tests/test_precompile.py`` against the signatures a real run compiles."""
@@ -86,7 +90,8 @@ STEPS: dict[str, tuple[str, ...]] = {
                   "robust_thresholds", "normal", "lm", "moments", "residual"),
     "locate": ("decode", "segment", "dlfc_eval", "kmeans_lloyd", "kmeans_topup",
                "kmeans_evaluate", "robust_thresholds", "normal", "lm", "moments", "residual",
-               "nearby_bucket", "nearby_scan", "first_untaken", "absorb"),
+               "nearby_bucket", "nearby_scan", "first_untaken", "absorb", "refine_masks",
+               "refine_normal"),
 }
 """The kernels each step needs (``calibrate``: lenslet grid and DLFC fit from a white image
 and dot cards; ``locate``: decoding and the perspective-shift locator)."""
@@ -105,6 +110,7 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate._order.median", "plenoptrack.locate._order.stable_argsort",
     "plenoptrack.locate.triangulate._coefficients_one",
     "plenoptrack.locate.triangulate._normal_one", "plenoptrack.locate.triangulate._solve3",
+    "plenoptrack.locate.refine._half_erfc",
 })
 """Jitted functions called only from other kernels: compiled into their callers' cache
 entries, never needed on their own."""
