@@ -56,6 +56,8 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
     "segment": ("plenoptrack.locate.segment", "_segment_stack",
                 (_a(_f4, 3), _B1, _a(_b1, 2), _b1, _i8, _i8, _f8, _f8, _b1, _F3, _I1)),
     "dlfc_eval": ("plenoptrack.locate.dlfc", "_eval_kernel", (_F2, _I1r, _I1r, _F2r, _b1)),
+    "dlfc_eval_serial": ("plenoptrack.locate.dlfc", "_eval_serial",
+                         (_F2, _I1r, _I1r, _F2r, _b1)),
     "dlfc_design": ("plenoptrack.locate.dlfc", "_design_kernel", (_F2, _I1r, _I1r)),
     "kmeans_lloyd": ("plenoptrack.locate.cluster", "_lloyd", (_F2, _F2, _i8)),
     "kmeans_topup": ("plenoptrack.locate.cluster", "_kmeanspp_topup", (_F2, _F2, _i8, _F1)),
@@ -88,7 +90,7 @@ STEPS: dict[str, tuple[str, ...]] = {
     "calibrate": ("grid", "decode", "segment", "dlfc_eval", "dlfc_design",
                   # the dots' position errors through the fitted DLFC (its model error)
                   "robust_thresholds", "normal", "lm", "moments", "residual"),
-    "locate": ("decode", "segment", "dlfc_eval", "kmeans_lloyd", "kmeans_topup",
+    "locate": ("decode", "segment", "dlfc_eval", "dlfc_eval_serial", "kmeans_lloyd", "kmeans_topup",
                "kmeans_evaluate", "robust_thresholds", "normal", "lm", "moments", "residual",
                "nearby_bucket", "nearby_scan", "first_untaken", "absorb", "refine_masks",
                "refine_normal"),
@@ -110,7 +112,7 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate._order.median", "plenoptrack.locate._order.stable_argsort",
     "plenoptrack.locate.triangulate._coefficients_one",
     "plenoptrack.locate.triangulate._normal_one", "plenoptrack.locate.triangulate._solve3",
-    "plenoptrack.locate.refine._half_erfc",
+    "plenoptrack.locate.refine._half_erfc", "plenoptrack.locate.dlfc._eval_block",
 })
 """Jitted functions called only from other kernels: compiled into their callers' cache
 entries, never needed on their own."""

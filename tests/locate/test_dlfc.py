@@ -177,6 +177,19 @@ def test_predict_broadcasts(dlfc4):
     assert s[2, 5] == pytest.approx(float(s0))
 
 
+def test_few_points_on_one_thread_match_many_in_parallel(dlfc4):
+    """Small inputs take the serial kernel, large ones the parallel one: same numbers."""
+    rng = np.random.default_rng(4)
+    x, y, z = rng.uniform(-3, 3, (3, 2000))
+    u, v = rng.uniform(-5, 5, (2, 2000))
+    many_st, many_jac = dlfc4.predict_with_jacobian(x, y, z, u, v)
+    for part in (slice(0, 1), slice(7, 140), slice(500, 1012)):
+        few_st, few_jac = dlfc4.predict_with_jacobian(x[part], y[part], z[part], u[part],
+                                                      v[part])
+        assert np.array_equal(few_st, many_st[part])
+        assert np.array_equal(few_jac, many_jac[part])
+
+
 def test_jacobian_matches_finite_differences(dlfc4):
     rng = np.random.default_rng(0)
     p = rng.uniform(-20, 20, (50, 3))

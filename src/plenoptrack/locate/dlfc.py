@@ -170,56 +170,84 @@ def _readonly(arr: np.ndarray) -> np.ndarray:
 _BLOCK = 128  # points per block: the block's monomials stay in cache
 
 
-@numba.njit(parallel=True, cache=True)
-def _eval_kernel(q, parent, var, coef, with_jac):  # pragma: no cover - compiled
-    """Evaluate both polynomials (and d/dq0..q2) at normalised points ``q`` (5, N)."""
-    n = q.shape[1]
+_SERIAL_POINTS = 4 * _BLOCK
+"""Inputs up to this many points are evaluated on one thread: waking the thread pool
+costs more than the work (and much more on a machine whose cores are busy)."""
+
+
+@numba.njit(cache=True)
+def _eval_block(q, i0, parent, var, coef, with_jac, out, jac):  # pragma: no cover - compiled
+    """Evaluate both polynomials (and d/dq0..q2) at points ``i0 .. i0 + _BLOCK`` of ``q``
+    (5, N) into ``out`` (2, N) and ``jac`` (2, 3, N)."""
     n_terms = parent.shape[0]
-    out = np.empty((2, n))
-    jac = np.empty((2, 3, n if with_jac else 0))
-    n_blocks = (n + _BLOCK - 1) // _BLOCK
-    for b in numba.prange(n_blocks):
-        i0 = b * _BLOCK
-        m = min(_BLOCK, n - i0)
-        mono = np.empty((n_terms, _BLOCK))
-        acc = np.empty((2, _BLOCK))
+    m = min(_BLOCK, q.shape[1] - i0)
+    mono = np.empty((n_terms, _BLOCK))
+    acc = np.empty((2, _BLOCK))
+    for i in range(m):
+        mono[0, i] = 1.0
+        acc[0, i] = coef[0, 0]
+        acc[1, i] = coef[1, 0]
+    if with_jac:
+        dmono = np.zeros((3, n_terms, _BLOCK))
+        dacc = np.zeros((2, 3, _BLOCK))
+    else:
+        dmono = np.zeros((3, 0, _BLOCK))
+        dacc = np.zeros((2, 3, 0))
+    for k in range(1, n_terms):
+        p = parent[k]
+        j = var[k]
+        c0 = coef[0, k]
+        c1 = coef[1, k]
         for i in range(m):
-            mono[0, i] = 1.0
-            acc[0, i] = coef[0, 0]
-            acc[1, i] = coef[1, 0]
-        if with_jac:
-            dmono = np.zeros((3, n_terms, _BLOCK))
-            dacc = np.zeros((2, 3, _BLOCK))
-        else:
-            dmono = np.zeros((3, 0, _BLOCK))
-            dacc = np.zeros((2, 3, 0))
-        for k in range(1, n_terms):
-            p = parent[k]
-            j = var[k]
-            c0 = coef[0, k]
-            c1 = coef[1, k]
-            for i in range(m):
-                val = mono[p, i] * q[j, i0 + i]
-                mono[k, i] = val
-                acc[0, i] += c0 * val
-                acc[1, i] += c1 * val
-            if with_jac:
-                for d in range(3):
-                    same = 1.0 if d == j else 0.0
-                    for i in range(m):
-                        dv = dmono[d, p, i] * q[j, i0 + i] + same * mono[p, i]
-                        dmono[d, k, i] = dv
-                        dacc[0, d, i] += c0 * dv
-                        dacc[1, d, i] += c1 * dv
-        for i in range(m):
-            out[0, i0 + i] = acc[0, i]
-            out[1, i0 + i] = acc[1, i]
+            val = mono[p, i] * q[j, i0 + i]
+            mono[k, i] = val
+            acc[0, i] += c0 * val
+            acc[1, i] += c1 * val
         if with_jac:
             for d in range(3):
+                same = 1.0 if d == j else 0.0
                 for i in range(m):
-                    jac[0, d, i0 + i] = dacc[0, d, i]
-                    jac[1, d, i0 + i] = dacc[1, d, i]
+                    dv = dmono[d, p, i] * q[j, i0 + i] + same * mono[p, i]
+                    dmono[d, k, i] = dv
+                    dacc[0, d, i] += c0 * dv
+                    dacc[1, d, i] += c1 * dv
+    for i in range(m):
+        out[0, i0 + i] = acc[0, i]
+        out[1, i0 + i] = acc[1, i]
+    if with_jac:
+        for d in range(3):
+            for i in range(m):
+                jac[0, d, i0 + i] = dacc[0, d, i]
+                jac[1, d, i0 + i] = dacc[1, d, i]
+
+
+@numba.njit(parallel=True, cache=True)
+def _eval_kernel(q, parent, var, coef, with_jac):  # pragma: no cover - compiled
+    """Evaluate both polynomials (and d/dq0..q2) at normalised points ``q`` (5, N),
+    blocks of points in parallel."""
+    n = q.shape[1]
+    out = np.empty((2, n))
+    jac = np.empty((2, 3, n if with_jac else 0))
+    for b in numba.prange((n + _BLOCK - 1) // _BLOCK):
+        _eval_block(q, b * _BLOCK, parent, var, coef, with_jac, out, jac)
     return out, jac
+
+
+@numba.njit(cache=True)
+def _eval_serial(q, parent, var, coef, with_jac):  # pragma: no cover - compiled
+    """:func:`_eval_kernel` on one thread, for few points."""
+    n = q.shape[1]
+    out = np.empty((2, n))
+    jac = np.empty((2, 3, n if with_jac else 0))
+    for b in range((n + _BLOCK - 1) // _BLOCK):
+        _eval_block(q, b * _BLOCK, parent, var, coef, with_jac, out, jac)
+    return out, jac
+
+
+def _evaluate(q, parent, var, coef, with_jac):
+    """The polynomials (and their derivatives) at ``q`` (5, N), on one thread for small N."""
+    kernel = _eval_serial if q.shape[1] <= _SERIAL_POINTS else _eval_kernel
+    return kernel(q, parent, var, coef, with_jac)
 
 
 @numba.njit(parallel=True, cache=True)
@@ -443,7 +471,7 @@ class DLFC:
             In-view column and row, view pixels, of the broadcast shape.
         """
         q, shape = self._normalised(x, y, z, u, v)
-        out, _ = _eval_kernel(q, self._parent, self._var, self.coefficients, False)
+        out, _ = _evaluate(q, self._parent, self._var, self.coefficients, False)
         return out[0].reshape(shape), out[1].reshape(shape)
 
     def predict_with_jacobian(self, x, y, z, u, v) -> tuple[np.ndarray, np.ndarray]:
@@ -457,7 +485,7 @@ class DLFC:
             ``d(s, t) / d(x, y, z)``, view pixels per mm.
         """
         q, shape = self._normalised(x, y, z, u, v)
-        out, jac = _eval_kernel(q, self._parent, self._var, self.coefficients, True)
+        out, jac = _evaluate(q, self._parent, self._var, self.coefficients, True)
         jac = jac / self.scale[:3, None]
         st = out.T.reshape(*shape, 2)
         return st, np.moveaxis(jac, -1, 0).reshape(*shape, 2, 3)
