@@ -98,7 +98,8 @@ class LocateResult:
     stage_seconds : dict
         Wall-clock time of each stage of the call, s: ``decode``, ``segment``,
         ``cluster`` (every clustering pass), ``triangulate`` (solves, duplicate merging
-        and centroid addition) and ``checks`` (final consistency checks and the table).
+        and centroid addition), ``checks`` (final consistency checks and the table) and
+        ``refine`` (the image-model refinement; 0 when it is off).
     """
 
     particles: pd.DataFrame
@@ -284,8 +285,10 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         return _finish_empty(detections, frame, clock.seconds)
     with clock("checks"):
         state = check_particles(ctx, state, locator)
-        if locator.check.refine_images:
+    if locator.check.refine_images:
+        with clock("refine"):
             state = refine_particles(ctx, state, locator)
+    with clock("checks"):
         particles, detections = measure_particles(ctx, state, locator.solve, frame=frame)
     if len(particles) == 0:
         return _finish_empty(detections, frame, clock.seconds)
@@ -707,7 +710,7 @@ class _StageClock:
 
     def __init__(self) -> None:
         self.seconds = {"decode": 0.0, "segment": 0.0, "cluster": 0.0, "triangulate": 0.0,
-                        "checks": 0.0}
+                        "checks": 0.0, "refine": 0.0}
 
     @contextlib.contextmanager
     def __call__(self, stage: str):

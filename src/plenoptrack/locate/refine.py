@@ -12,8 +12,9 @@ particle's ``(x, y, z)``::
 
 each patch divided by its local background (the 60th percentile of its pixels more than
 2 pixels outside every predicted image). The particle's ``(x, y, z, r, c)`` are fitted by
-Levenberg-Marquardt with analytic derivatives (:meth:`~plenoptrack.locate.dlfc.DLFC.predict_with_jacobian`), its
-neighbours held at their current positions; a particle whose strongest neighbour
+Levenberg-Marquardt with analytic derivatives
+(:meth:`~plenoptrack.locate.dlfc.DLFC.predict_with_jacobian`), its neighbours held at
+their current positions; a particle whose strongest neighbour
 overlaps it in most views is fitted jointly with that neighbour.
 """
 
@@ -51,6 +52,9 @@ class ImageFit:
         Pixels and views fitted.
     cost : float
         Sum of squared residuals of the normalised pixels.
+    noise : float
+        Robust standard deviation (1.4826 MAD) of the normalised background pixels of
+        the patches: the pixel noise the fit would leave if its model were exact.
     """
 
     params: np.ndarray
@@ -58,6 +62,16 @@ class ImageFit:
     n_pixels: int
     n_views: int
     cost: float
+    noise: float
+
+    @property
+    def misfit(self) -> float:
+        """RMS residual of the fitted pixels over :attr:`noise`: about 1 when the model
+        (discs, neighbours where they are held) explains the pixels down to their
+        noise, larger where it does not (a missed neighbour, a non-circular image)."""
+        if not self.noise > 0:
+            return math.inf
+        return math.sqrt(self.cost / max(self.n_pixels, 1)) / self.noise
 
 
 def disc_image(rho: np.ndarray, radius, contrast, edge: float = EDGE_PX):
@@ -164,6 +178,8 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     if use.sum() < 6:
         return None
     y = values[use] / background[use, None, None]
+    far = y[~near[use]]
+    noise = float(1.4826 * np.median(np.abs(far - np.median(far)))) if far.size else math.nan
     origin, fixed, fit = origin[use], fixed[use], fit[use]
     uk, vk = uk[use], vk[use]
     theta = np.concatenate([free_xyz, free_rc], axis=1).astype(float)
@@ -201,7 +217,7 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
             if lam > 1e8:
                 break
     return ImageFit(theta, _view_robust_sigma(jtj, meat, len(y))[:, :3], int(fit.sum()),
-                    len(y), cost)
+                    len(y), cost, noise)
 
 
 def _view_robust_sigma(jtj, meat, n_views):
@@ -249,7 +265,8 @@ def _half_erfc(x, gauss):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin, edge):  # pragma: no cover - compiled
+def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
+                 edge):  # pragma: no cover - compiled
     """The held neighbours' image ``fixed`` (K, n, n), the pixels ``near`` (within 2 px
     of any particle's image, excluded from the background) and the pixels ``fit``
     (within ``margin`` px of a free image) of patches with pixel ``[0, 0]`` at ``origin``
