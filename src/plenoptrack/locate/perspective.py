@@ -483,7 +483,9 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     with its strongest neighbour when they overlap in at least
     ``check.refine_pair_overlap`` of the views. Image radii start from the particles'
     whole regions. A fit that moves a particle by more than a tenth of the volume depth
-    is discarded. ``sweeps`` passes over the particles. A refitted particle's position
+    is discarded; a particle whose last fit leaves more than
+    ``check.refine_max_model_error`` of the background unexplained (RMS, beyond the
+    pixel noise) gets its centroid solution back. ``sweeps`` passes over the particles. A refitted particle's position
     and its statistical uncertainty are the image fit's (the standard errors robust to
     correlated pixel errors within a view, :class:`~plenoptrack.locate.refine.ImageFit`),
     to which :func:`measure_particles` applies the same view-correlation scale and DLFC
@@ -507,6 +509,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     views_uv, view_rc = ctx.views[usable], np.c_[vi, ui][usable]
     rc = np.c_[radius, np.full(n, 0.9)]
     sigma = table[list(SIGMA_COLUMNS)].to_numpy(float, copy=True)
+    model_error = np.full(n, np.nan)   # of each particle's last fit
     max_shift = 0.1 * ctx.volume_depth_mm
     for _sweep in range(sweeps):
         pred = _predict_all(ctx.dlfc, np.where(keep[:, None], pos, np.nan), views_uv)
@@ -533,6 +536,13 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
             pos[free] = theta[:, :3]
             rc[free] = theta[:, 3:]
             sigma[free] = np.where(np.isfinite(fitted.sigma), fitted.sigma, sigma[free])
+            model_error[free] = fitted.model_error
+    # A particle whose last fit its model could not explain keeps its centroid solution.
+    # Earlier fits are left to run their course: a neighbour's refit is what lets the
+    # last fit explain the pixels.
+    unexplained = model_error > settings.refine_max_model_error
+    pos[unexplained] = state.positions[unexplained]
+    sigma[unexplained] = table[list(SIGMA_COLUMNS)].to_numpy(float)[unexplained]
     changed = keep & np.any(pos != state.positions, axis=1)
     table.loc[changed, list(POS_COLUMNS)] = pos[changed]
     table.loc[changed, list(SIGMA_COLUMNS)] = sigma[changed]

@@ -65,13 +65,15 @@ class ImageFit:
     noise: float
 
     @property
-    def misfit(self) -> float:
-        """RMS residual of the fitted pixels over :attr:`noise`: about 1 when the model
-        (discs, neighbours where they are held) explains the pixels down to their
-        noise, larger where it does not (a missed neighbour, a non-circular image)."""
-        if not self.noise > 0:
+    def model_error(self) -> float:
+        """RMS residual of the fitted pixels beyond their noise,
+        ``sqrt(max(cost / n_pixels - noise**2, 0))``, in units of the local background:
+        how far the model (discs, neighbours where they are held) is from explaining the
+        pixels. Large where it cannot: a missed or misplaced neighbour, an image that is
+        not a disc. Infinite when the noise could not be measured."""
+        if not np.isfinite(self.noise):
             return math.inf
-        return math.sqrt(self.cost / max(self.n_pixels, 1)) / self.noise
+        return math.sqrt(max(self.cost / max(self.n_pixels, 1) - self.noise ** 2, 0.0))
 
 
 def disc_image(rho: np.ndarray, radius, contrast, edge: float = EDGE_PX):

@@ -282,6 +282,13 @@ class CheckSettings:
         least this fraction of the views.
     refine_pair_overlap : float
         ... and jointly with that neighbour when they overlap in at least this fraction.
+    refine_max_model_error : float
+        A particle's refit is kept only when its last fit explains the pixels around it
+        to within this RMS fraction of the local background, beyond the pixel noise
+        (:attr:`~plenoptrack.locate.refine.ImageFit.model_error`); otherwise its
+        centroid solution stands. Where the model is wrong (a neighbour missed or
+        misplaced in a crowd, an elongated image) the refit is worse than the centroid
+        solve. Chosen on the development seeds of the accuracy matrix.
     """
 
     max_residual_ratio: float = 4.0
@@ -291,6 +298,7 @@ class CheckSettings:
     refine_images: bool = False
     refine_min_overlap: float = 0.1
     refine_pair_overlap: float = 0.5
+    refine_max_model_error: float = 0.08
 
     def __post_init__(self) -> None:
         _require(self.max_residual_ratio > 1, "max_residual_ratio", "above 1",
@@ -304,6 +312,8 @@ class CheckSettings:
                  self.refine_min_overlap)
         _require(0 < self.refine_pair_overlap <= 1, "refine_pair_overlap", "in (0, 1]",
                  self.refine_pair_overlap)
+        _require(self.refine_max_model_error > 0, "refine_max_model_error", "above 0",
+                 self.refine_max_model_error)
 
 
 _SECTIONS = {"segment": SegmentSettings, "cluster": ClusterSettings, "solve": SolveSettings,
