@@ -74,7 +74,9 @@ def test_small_scenes_recall_and_precision(small):
     # sigma covers the error: the plain least-squares sigma covered 30-45 % at 1 sigma
     within = np.concatenate(ratios)
     one, two = np.mean(within <= 1, axis=0), np.mean(within <= 2, axis=0)
-    assert np.all((one >= 0.5) & (one <= 0.9)), one
+    # at most 0.95: on this ideal camera the refined particles' lateral errors (about
+    # 2 um RMS) are below the DLFC's model error (3 um), which every sigma includes
+    assert np.all((one >= 0.5) & (one <= 0.95)), one
     assert np.all(two >= 0.8), two
 
 

@@ -215,9 +215,9 @@ def test_refinement_keeps_recall_and_reduces_depth_error(small_calibrated):
     """Denser small scenes: refitting overlapped particles loses none and lowers the
     depth RMS error of the particles it moves."""
     optics, calib = small_calibrated
-    on = PerspectiveLocator.from_dict({"check": {"refine_images": True}})
-    off = PerspectiveLocator()
-    assert not off.check.refine_images   # off by default
+    on = PerspectiveLocator()
+    assert on.check.refine_images   # on by default
+    off = PerspectiveLocator.from_dict({"check": {"refine_images": False}})
     base_err, ref_err, n_base, n_ref = [], [], 0, 0
     for seed in (11, 12):
         scene = make_scene(calib.camera, n_particles=40, seed=seed)
