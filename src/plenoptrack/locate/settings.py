@@ -274,7 +274,7 @@ class CheckSettings:
         sigmas become the image fit's. On by default: on the validation seeds of the
         accuracy matrix it lowers the depth error standard deviation and the fraction of
         depth errors beyond 0.15 mm in every cell measured (realistic optics, base cell:
-        20.5 % to 11.5 %), at 2.5-5 times the CPU time of locating a small frame (docs:
+        20.5 % to 11.5 %), at 1.3-5 times the CPU time of locating a small frame (docs:
         locating). ``false`` for speed.
     refine_min_overlap : float
         A particle is refitted when another's predicted image overlaps its own in at
