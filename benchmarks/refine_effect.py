@@ -7,7 +7,7 @@ without ``check.refine_images``.
 
 For each cell (the cells of ``benchmarks/accuracy_matrix.py``: ``base``, ``sparse``
 0.003 particles per microlens, ``crowded`` 0.03, ``ellipsoid``, ``m075`` magnification
--0.75, ``mixed`` sizes 0.2-2 mm at 0.003 per microlens) and seed, it calibrates as the
+-0.75, ``mixed`` sizes 0.2-2 mm at 0.003 per microlens, ``large`` 1 mm spheres) and seed, it calibrates as the
 matrix does (simulated white image and dot cards), simulates ``--frames`` independent
 random scenes and locates each frame twice, refinement off and on. Matching and metrics
 are the matrix's (:func:`accuracy_matrix.match`, :func:`accuracy_matrix.metrics`);
@@ -40,6 +40,7 @@ CELLS = {
     "ellipsoid": lambda: am._cell("shape", shape="ellipsoid"),
     "m075": lambda: am._cell("magnification", magnification=-0.75),
     "mixed": lambda: am._cell("size", size=(0.2, 2.0), density=0.003),
+    "large": lambda: am._cell("size", size=1.0),
 }
 
 
