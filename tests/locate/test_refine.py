@@ -153,13 +153,19 @@ def test_a_particle_is_refitted_beside_a_held_neighbour():
     truth = np.array([[0.0, 0.0, 1.0], [0.25, 0.05, -2.0]])
     rc = np.array([[1.8, 0.9], [2.2, 0.95]])
     data = _render(dlfc, truth, rc, views_uv, view_rc, noise=0.01, seed=1)
-    theta = fit_images(dlfc, views_uv, view_rc, data, truth[:1] + [0.02, 0.0, 0.6],
-                       np.array([[1.5, 0.8]]), truth[1:], rc[1:]).params
+    fitted = fit_images(dlfc, views_uv, view_rc, data, truth[:1] + [0.02, 0.0, 0.6],
+                        np.array([[1.5, 0.8]]), truth[1:], rc[1:])
+    theta = fitted.params
     assert np.abs(theta[0, :3] - truth[0]).max() < 0.02
     # without the neighbour in the model, its image pulls the fit
-    alone = fit_images(dlfc, views_uv, view_rc, data, truth[:1] + [0.02, 0.0, 0.6],
-                       np.array([[1.5, 0.8]]), np.zeros((0, 3)), np.zeros((0, 2))).params
+    missed = fit_images(dlfc, views_uv, view_rc, data, truth[:1] + [0.02, 0.0, 0.6],
+                        np.array([[1.5, 0.8]]), np.zeros((0, 3)), np.zeros((0, 2)))
+    alone = missed.params
     assert np.abs(alone[0, :3] - truth[0]).max() > np.abs(theta[0, :3] - truth[0]).max()
+    # ... and the fit says so: the model explains the pixels to their noise (0.01) only
+    # with the neighbour in it
+    assert fitted.noise == pytest.approx(0.01, rel=0.2)
+    assert fitted.model_error < 0.01 < 0.08 < missed.model_error
 
 
 def test_fit_sigma_covers_errors_correlated_within_a_view():

@@ -21,8 +21,8 @@
 5. :func:`check_particles` -- drop particles that fail the consistency checks (too few
    or clustered views, residuals far above the typical one, built from merged images),
    refit those whose centroids are partly pulled by overlapping images, and solve again;
-   optionally (``check.refine_images``) refit particles whose images overlap others' to
-   the view pixels themselves (:func:`refine_particles`,
+   then (``check.refine_images``, on by default) refit particles whose images overlap
+   others' to the view pixels themselves (:func:`refine_particles`,
    :mod:`~plenoptrack.locate.refine`);
 6. :func:`measure_particles` -- uncertainties (least-squares errors scaled for
    view-correlated centroid errors, plus the DLFC's model error;
@@ -485,11 +485,12 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     whole regions. A fit that moves a particle by more than a tenth of the volume depth
     is discarded; a particle whose last fit leaves more than
     ``check.refine_max_model_error`` of the background unexplained (RMS, beyond the
-    pixel noise) gets its centroid solution back. ``sweeps`` passes over the particles. A refitted particle's position
-    and its statistical uncertainty are the image fit's (the standard errors robust to
-    correlated pixel errors within a view, :class:`~plenoptrack.locate.refine.ImageFit`),
-    to which :func:`measure_particles` applies the same view-correlation scale and DLFC
-    model error as to a centroid solve.
+    pixel noise) gets its centroid solution back. ``sweeps`` passes over the particles.
+    A refitted particle's position and its statistical uncertainty are the image fit's
+    (standard errors robust to correlated pixel errors within a view,
+    :class:`~plenoptrack.locate.refine.ImageFit`), to which :func:`measure_particles`
+    applies the same view-correlation scale and DLFC model error as to a centroid
+    solve.
     """
     from ._assign import _predict_all
     from .refine import fit_images, overlap_fraction
