@@ -227,6 +227,36 @@ def test_a_ctrl_c_swallowed_by_a_c_callback_stops_the_next_commit(tmp_path, monk
     assert seen and all(type(info.exc_value) is ValueError for info in seen)  # the old hook
 
 
+def test_compiler_finalizer_errors_are_silent_and_others_are_not(monkeypatch):
+    """A Ctrl-C during compilation leaves llvmlite objects whose finalizers fail when the
+    garbage collector meets them: the command line's hook drops those, and only those."""
+    import gc
+    import sys
+
+    from llvmlite.binding import ffi
+
+    from plenoptrack.cli import _unraisable
+
+    seen = []
+    monkeypatch.setattr(sys, "unraisablehook", _unraisable(seen.append))
+
+    class HalfBuilt(ffi.ObjectRef):   # what an interrupted compile leaves: no handle set
+        def __init__(self):
+            pass
+
+    HalfBuilt()
+    gc.collect()
+    assert seen == []
+
+    class Other:
+        def __del__(self):
+            raise AttributeError("a real fault elsewhere")
+
+    Other()
+    gc.collect()
+    assert [type(info.exc_value) for info in seen] == [AttributeError]
+
+
 def test_colour_tiff_is_refused_and_a_stack_of_three_frames_read(tmp_path):
     grey = np.arange(4 * 5, dtype=np.uint16).reshape(4, 5)
     tifffile.imwrite(tmp_path / "rgb.tif", np.stack([grey] * 3, axis=-1), photometric="rgb")

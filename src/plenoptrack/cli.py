@@ -1062,13 +1062,18 @@ def demo(
 
 
 def _unraisable(hook):
-    """An unraisable-exception hook that turns a swallowed Ctrl-C into a pending interrupt."""
+    """An unraisable-exception hook that turns a swallowed Ctrl-C into a pending interrupt,
+    and keeps quiet about the compiler's half-built objects that such a Ctrl-C leaves to
+    the garbage collector (their finalizers fail: an ``Exception ignored in ...
+    ObjectRef.__del__`` traceback that says nothing to the user)."""
 
     def unraisable(info) -> None:
         if isinstance(info.exc_value, KeyboardInterrupt):
             from .io import note_lost_interrupt
 
             note_lost_interrupt()  # no traceback; the next commit of an output raises it
+            return
+        if getattr(info.object, "__module__", "").startswith("llvmlite."):
             return
         hook(info)
 
