@@ -509,7 +509,8 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     usable = lf.valid_fraction[vi, ui] > 0.5
     views_uv, view_rc = ctx.views[usable], np.c_[vi, ui][usable]
     rc = np.c_[radius, np.full(n, 0.9)]
-    sigma = table[list(SIGMA_COLUMNS)].to_numpy(float, copy=True)
+    centroid_sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
+    sigma = centroid_sigma.copy()
     model_error = np.full(n, np.nan)   # of each particle's last fit
     max_shift = 0.1 * ctx.volume_depth_mm
     for _sweep in range(sweeps):
@@ -543,7 +544,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     # last fit explain the pixels.
     unexplained = model_error > settings.refine_max_model_error
     pos[unexplained] = state.positions[unexplained]
-    sigma[unexplained] = table[list(SIGMA_COLUMNS)].to_numpy(float)[unexplained]
+    sigma[unexplained] = centroid_sigma[unexplained]
     changed = keep & np.any(pos != state.positions, axis=1)
     table.loc[changed, list(POS_COLUMNS)] = pos[changed]
     table.loc[changed, list(SIGMA_COLUMNS)] = sigma[changed]

@@ -26,6 +26,7 @@ import math
 import numba
 import numpy as np
 from scipy.special import erfc
+from scipy.stats import median_abs_deviation
 
 EDGE_PX = 0.6
 """Width (standard deviation, view pixels) of the blurred edge of a particle image."""
@@ -158,8 +159,8 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     """
     k = len(free_xyz)
     u, v = views_uv[:, 0], views_uv[:, 1]
-    st_free, _ = dlfc.predict_with_jacobian(free_xyz[:, None, 0], free_xyz[:, None, 1],
-                                            free_xyz[:, None, 2], u[None, :], v[None, :])
+    st_free = np.stack(dlfc.predict(free_xyz[:, None, 0], free_xyz[:, None, 1],
+                                    free_xyz[:, None, 2], u[None, :], v[None, :]), axis=-1)
     centre = st_free.mean(axis=0)
     reach = np.max(np.hypot(*(st_free - centre[None]).transpose(2, 0, 1)))
     half = int(math.ceil(reach + free_rc[:, 0].max() + margin_px))
@@ -181,7 +182,7 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
         return None
     y = values[use] / background[use, None, None]
     far = y[~near[use]]
-    noise = float(1.4826 * np.median(np.abs(far - np.median(far)))) if far.size else math.nan
+    noise = float(median_abs_deviation(far, scale="normal")) if far.size else math.nan
     origin, fixed, fit = origin[use], fixed[use], fit[use]
     uk, vk = uk[use], vk[use]
     theta = np.concatenate([free_xyz, free_rc], axis=1).astype(float)
