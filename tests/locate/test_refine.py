@@ -5,6 +5,7 @@ import pytest
 
 from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
+from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.locate.refine import (_masked_row_percentile, _normal_equations,
                                        _patch_masks, disc_image, fit_images,
                                        overlap_fraction)
@@ -194,6 +195,21 @@ def test_fit_sigma_covers_errors_correlated_within_a_view():
     assert np.mean(ratios <= 2) >= 0.88, np.mean(ratios <= 2)
 
 
+def test_a_fit_that_wanders_beyond_the_depth_bound_gives_none():
+    """The start is 0.6 mm from the truth in depth: a bound of 0.3 mm stops the fit (the
+    caller discards such fits), a bound of 1 mm lets it converge on the truth."""
+    dlfc = LinearCalibration()
+    views_uv, view_rc = _views()
+    truth = np.array([[0.0, 0.0, 1.0]])
+    rc = np.array([[1.8, 0.9]])
+    data = _render(dlfc, truth, rc, views_uv, view_rc, noise=0.01, seed=4)
+    args = (dlfc, views_uv, view_rc, data, truth + [0.02, 0.0, 0.6], np.array([[1.5, 0.8]]),
+            np.zeros((0, 3)), np.zeros((0, 2)))
+    assert fit_images(*args, max_depth_shift=0.3) is None
+    fitted = fit_images(*args, max_depth_shift=1.0)
+    assert np.abs(fitted.params[0, :3] - truth[0]).max() < 0.02
+
+
 def test_a_patch_outside_every_view_gives_none():
     dlfc = LinearCalibration()
     views_uv, view_rc = _views()
@@ -225,15 +241,25 @@ def test_refinement_keeps_recall_and_reduces_depth_error(small_calibrated):
     assert on.check.refine_images   # on by default
     off = PerspectiveLocator.from_dict({"check": {"refine_images": False}})
     base_err, ref_err, n_base, n_ref = [], [], 0, 0
+    refined = int(TriangulationFlag.REFINED)
     for seed in (11, 12):
         scene = make_scene(calib.camera, n_particles=40, seed=seed)
         raw = render_frame(optics, scene.truth, seed=np.random.default_rng([seed, 3, 0]))
+        tables = {}
         for locator, errs in ((off, base_err), (on, ref_err)):
-            found = locate_frame(raw, calib, locator=locator).particles
+            found = tables[locator is on] = locate_frame(raw, calib, locator=locator).particles
             pairs = match_particles(found, scene.truth, tolerance_mm=1.0)
             dz = (found.loc[pairs["measured_index"], "z"].to_numpy()
                   - scene.truth.loc[pairs["truth_index"], "z"].to_numpy())
             errs.append(dz)
+        # the REFINED flag marks exactly the particles the refinement moved
+        plain, fitted = tables[False], tables[True]
+        assert len(plain) == len(fitted)
+        flagged = (fitted["flags"].to_numpy() & refined) > 0
+        moved = np.any(fitted[["x", "y", "z"]].to_numpy() != plain[["x", "y", "z"]].to_numpy(),
+                       axis=1)
+        assert flagged.any() and np.array_equal(flagged, moved)
+        assert not ((plain["flags"].to_numpy() & refined) > 0).any()
         n_base += len(base_err[-1])
         n_ref += len(ref_err[-1])
     assert n_ref >= n_base - 1

@@ -64,7 +64,7 @@ from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings)
-from .triangulate import triangulate_clusters
+from .triangulate import TriangulationFlag, triangulate_clusters
 from .uncertainty import reduced_chi2, total_sigma
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
@@ -529,12 +529,10 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
                 fitted_pairs.add((a, b))
             held = np.setdiff1d(np.flatnonzero(nearby[free].any(axis=0) & keep), free)
             fitted = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, pos[free], rc[free],
-                                pos[held], rc[held])
+                                pos[held], rc[held], max_depth_shift=max_shift)
             if fitted is None or not np.all(np.isfinite(fitted.params)):
                 continue
             theta = fitted.params
-            if np.any(np.abs(theta[:, 2] - pos[free, 2]) > max_shift):
-                continue
             pos[free] = theta[:, :3]
             rc[free] = theta[:, 3:]
             sigma[free] = np.where(np.isfinite(fitted.sigma), fitted.sigma, sigma[free])
@@ -548,6 +546,10 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     changed = keep & np.any(pos != state.positions, axis=1)
     table.loc[changed, list(POS_COLUMNS)] = pos[changed]
     table.loc[changed, list(SIGMA_COLUMNS)] = sigma[changed]
+    flags = table["flags"].fillna(0).to_numpy(np.int64)
+    flags[changed] |= int(TriangulationFlag.REFINED)
+    flags[keep & unexplained] |= int(TriangulationFlag.UNEXPLAINED)
+    table["flags"] = flags
     return dataclasses.replace(state, positions=pos, table=table)
 
 
@@ -573,7 +575,8 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
 
     Particles with at least ``solve.min_views`` centroids and a finite position are kept
     and renumbered 0..n-1; their uncertainties are the least-squares ones scaled for
-    view-correlated errors plus the DLFC's model error
+    view-correlated errors (with ``solve.excess_scatter``, scatter beyond the frame's
+    typical scatter counted as shared by all views) plus the DLFC's model error
     (:func:`~plenoptrack.locate.uncertainty.total_sigma`); size and shape come from their
     member regions (:func:`~plenoptrack.locate._regions._region_shape`) divided by the
     DLFC's local magnification at their position.
@@ -596,11 +599,16 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     particles = table.loc[keep, ["x", "y", "z", "sigma_x", "sigma_y", "sigma_z", "n_views",
                                  "confidence", "residual_px", "flags"]].copy()
     sigma = ["sigma_x", "sigma_y", "sigma_z"]
+    n_views = particles["n_views"].to_numpy(float)
+    chi2 = reduced_chi2(particles["residual_px"].to_numpy(float), n_views)
+    # a refined particle's sigma is its image fit's, not its centroids'
+    refined = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.REFINED)) > 0
     particles[sigma] = total_sigma(particles[sigma].to_numpy(float), ctx.dlfc,
                                    error_scale=solve.error_scale,
-                                   include_model_error=solve.model_error)
-    particles["chi2"] = reduced_chi2(particles["residual_px"].to_numpy(float),
-                                     particles["n_views"].to_numpy(float))
+                                   include_model_error=solve.model_error,
+                                   chi2=np.where(refined, np.nan, chi2)
+                                   if solve.excess_scatter else None, n_views=n_views)
+    particles["chi2"] = chi2
     particles.insert(0, T_COLUMN, frame)
     particles["diameter"] = shape.loc[keep, "diameter_px"].to_numpy() / mag
     particles["major_axis"] = shape.loc[keep, "major_px"].to_numpy() / mag

@@ -124,7 +124,8 @@ def _patches(data, view_rc, centre, half):
 
 
 def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixed_rc, *,
-               margin_px: float = 3.0, max_iter: int = 30, xyz_tol: float = 1e-4):
+               margin_px: float = 3.0, max_iter: int = 30, xyz_tol: float = 1e-4,
+               max_depth_shift: float = math.inf):
     """Fit ``k`` free particles to the view pixels around them, neighbours held fixed.
 
     Parameters
@@ -150,12 +151,16 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     xyz_tol : float
         The fit has converged when an accepted step moves every particle by less than
         this (mm, each coordinate) and its radius and contrast by less than 0.001.
+    max_depth_shift : float
+        Give up, returning None, as soon as an accepted step has moved a particle's depth
+        by more than this from its start (mm): a fit the caller would discard anyway
+        stops paying for its remaining iterations.
 
     Returns
     -------
     ImageFit or None
         The fitted parameters and their standard errors; None when fewer than 6 views
-        have a usable patch.
+        have a usable patch, or the fit wandered beyond ``max_depth_shift``.
     """
     k = len(free_xyz)
     u, v = views_uv[:, 0], views_uv[:, 1]
@@ -212,6 +217,8 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
             converged = (cost - cost_new < 1e-9 * cost
                          or (moved[:, :3].max() < xyz_tol and moved[:, 3:].max() < 1e-3))
             theta, jtj, grad, cost, meat = trial, jtj_new, grad_new, cost_new, meat_new
+            if np.any(np.abs(theta[:, 2] - free_xyz[:, 2]) > max_depth_shift):
+                return None
             lam = max(lam / 3.0, 1e-9)
             if converged:
                 break

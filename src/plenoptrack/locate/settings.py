@@ -199,6 +199,10 @@ class SolveSettings:
     model_error : bool
         Add the DLFC's model error (RMS position error of its calibration dots) to the
         uncertainty in quadrature.
+    excess_scatter : bool
+        Count a particle's centroid scatter beyond the frame's typical scatter (reduced
+        chi-square above 1: an overlapping or merged image) as shared by all its views
+        instead of averaging it over them (:mod:`~plenoptrack.locate.uncertainty`).
     """
 
     reject_k: float = 3.0
@@ -206,6 +210,7 @@ class SolveSettings:
     solver: str = "lm"
     error_scale: float = 2.3
     model_error: bool = True
+    excess_scatter: bool = True
 
     def __post_init__(self) -> None:
         _require(self.reject_k > 0, "reject_k", "positive", self.reject_k)

@@ -58,6 +58,8 @@ class TriangulationFlag(enum.IntFlag):
     OUTLIERS_REMOVED = 4
     AT_VOLUME_EDGE = 8
     SINGULAR = 16
+    REFINED = 32
+    UNEXPLAINED = 64
 
 
 FLAG_DESCRIPTIONS = {
@@ -69,6 +71,14 @@ FLAG_DESCRIPTIONS = {
                                       "was fitted on (the polynomial extrapolates)",
     TriangulationFlag.SINGULAR: "J^T J is (nearly) singular or there are no residual degrees "
                                 "of freedom: sigma is NaN",
+    TriangulationFlag.REFINED: "position and sigma come from the image-model refinement "
+                               "(the particle's image was fitted to the view pixels), not "
+                               "from the centroid solve",
+    TriangulationFlag.UNEXPLAINED: "the image-model refinement could not explain the pixels "
+                                   "around the particle (model error above "
+                                   "check.refine_max_model_error): an unseen or merged "
+                                   "neighbour is likely; position and sigma are the "
+                                   "centroid solve's",
 }
 """What each :class:`TriangulationFlag` bit means."""
 
