@@ -86,3 +86,17 @@ def test_excess_scatter_shared_by_views_is_covered():
     # clean particles: chi2 above 1 only by chance, so a little generous (0.79 here)
     clean = np.mean(np.concatenate(clean_errors) <= np.concatenate(clean_sigma))
     assert 0.65 <= clean <= 0.9
+
+
+def test_excess_form_reduces_to_the_plain_one_and_never_below_it():
+    stat = np.full((4, 3), 0.01)
+    chi2 = np.array([0.5, 1.0, np.nan, 3.0])
+    n = np.array([40.0, 40.0, 40.0, 4.0])        # the last: fewer views than k^2
+    plain = total_sigma(stat, _DLFC(), error_scale=2.3)
+    got = total_sigma(stat, _DLFC(), error_scale=2.3, chi2=chi2, n_views=n)
+    np.testing.assert_allclose(got, plain)
+    # chi2 = 2 with 40 views: k^2 / 2 + 40 / 2 times the variance of sigma_stat
+    one = total_sigma(stat[:1], _DLFC(), error_scale=2.3, chi2=np.array([2.0]),
+                      n_views=np.array([40.0]))
+    expected = np.sqrt(0.01 ** 2 * (2.3 ** 2 / 2 + 20) + np.array([0.003, 0.004, 0.02]) ** 2)
+    np.testing.assert_allclose(one[0], expected)
