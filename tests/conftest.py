@@ -1,6 +1,12 @@
 """Shared fixtures: small simulated cameras with fixed seeds."""
 
+import os
+
 import pytest
+
+# Commands run by the tests compile this processor's kernels as they always did: no seed
+# cache and no background warm-up (tests/test_kernel_mode.py covers those).
+os.environ.setdefault("PLENOPTRACK_KERNELS", "host")
 
 from plenoptrack import preset
 

@@ -10,12 +10,9 @@ data they will run on exist: ``plenoptrack demo`` compiles them in a child proce
 second core while it simulates its scene, and the main process then loads them from the
 cache.
 
-A cache is not shipped with the package. numba keys each cache entry on the processor
-model and features of the machine that compiled it (a cache built with
-``NUMBA_CPU_NAME=generic`` would be portable, at the cost of code for the oldest x86-64
-processors), on the exact numba version, and on the source file: its modification time
-and size before numba 0.68 (reset by installation), a hash of its contents from 0.68 on.
-Compiling on the user's machine, once, is what plenoptrack does today.
+The package also ships the demo's kernels compiled for the generic x86-64 processor
+(:mod:`plenoptrack._kernel_mode`); a command-line run that loads them finds every index
+present and starts no child here. This module serves runs that compile for this processor.
 
 Set ``PLENOPTRACK_PRECOMPILE=0`` to switch the child process off.
 """

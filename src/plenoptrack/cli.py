@@ -1087,6 +1087,8 @@ def main() -> None:
     # Ctrl-C while numba compiles a kernel can land in a C callback, which prints and drops
     # the KeyboardInterrupt: record it instead, so that no output is committed after it.
     sys.unraisablehook = _unraisable(sys.unraisablehook)
+    if not _choose_kernels(sys.argv[1:]):
+        sys.exit(2)
     try:
         app()
     except SystemExit as exc:
@@ -1100,6 +1102,29 @@ def main() -> None:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         _error_line(_interrupt_message())
         _exit_interrupted()
+
+
+# Commands that run compiled kernels: they choose the kernel mode before numba is imported.
+_KERNEL_COMMANDS = frozenset({"simulate", "calibrate-grid", "calibrate", "views", "refocus",
+                              "locate", "batch", "study", "demo"})
+
+
+def _choose_kernels(argv: list[str]) -> bool:
+    """Set up the numba kernels for a command (see :mod:`plenoptrack._kernel_mode`).
+
+    Returns False after printing one line when ``PLENOPTRACK_KERNELS`` is not a known mode.
+    """
+    from . import _kernel_mode
+
+    setting = os.environ.get(_kernel_mode.ENV, "auto").strip().lower() or "auto"
+    if setting not in _kernel_mode.MODES:
+        _error_line(f"{_kernel_mode.ENV}={os.environ[_kernel_mode.ENV]!r} is not a kernel mode: "
+                    f"set it to one of {', '.join(_kernel_mode.MODES)} or unset it")
+        return False
+    command = next((a for a in argv if not a.startswith("-")), None)
+    if command in _KERNEL_COMMANDS and not {"--help", "-h"} & set(argv):
+        _kernel_mode.prepare()
+    return True
 
 
 def _exit_interrupted() -> None:
