@@ -17,7 +17,7 @@ A command-line run chooses a *kernel mode* before numba is imported (:func:`prep
 ``generic``
     The shipped build: ``NUMBA_CPU_NAME=generic`` and ``NUMBA_CACHE_DIR`` pointing at a copy of
     the seed cache in the package's ``__pycache__/numba-generic``. Nothing the demo runs is
-    compiled, at the cost of code 10-30 % slower in the simulator's tight loops.
+    compiled, at the cost of simulator frames that take 25-40 % longer.
 
 With ``PLENOPTRACK_KERNELS=auto`` (the default) a run uses ``generic`` until the host
 kernels have been compiled once, and the first such run starts a *warm-up*: a detached
