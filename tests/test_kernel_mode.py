@@ -117,3 +117,21 @@ def test_unknown_kernel_mode_is_one_line(tmp_path):
     lines = done.stderr.strip().splitlines()
     assert len(lines) == 1 and "PLENOPTRACK_KERNELS" in lines[0] and "auto" in lines[0]
     assert not (tmp_path / "demo").exists()
+
+
+def test_seeding_replaces_an_older_version_once(tmp_path):
+    """A new seed cache replaces the files of an older one (an upgrade); once seeded, the
+    files numba has added to since are left alone."""
+    manifest = km.read_manifest()
+    km.seed_generic_cache(tmp_path)
+    copied = sorted(p for p in tmp_path.rglob("*") if p.suffix in (".nbi", ".nbc"))
+    assert len(copied) == len(manifest["files"])
+    index = next(p for p in copied if p.suffix == ".nbi")
+    seed = km.SEED_DIR / next(f for f in manifest["files"] if f.endswith("/" + index.name))
+    index.write_bytes(b"added to by numba since")
+    km.seed_generic_cache(tmp_path)
+    assert index.read_bytes() == b"added to by numba since"
+    for done in tmp_path.glob("seeded-*"):  # as an older version left it
+        done.unlink()
+    km.seed_generic_cache(tmp_path)
+    assert index.read_bytes() == seed.read_bytes()

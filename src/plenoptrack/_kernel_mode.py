@@ -162,9 +162,10 @@ def seed_generic_cache(cache_dir: Path, seed_dir: Path = SEED_DIR,
                        package_dir: Path = PACKAGE_DIR) -> None:
     """Copy the seed cache into ``cache_dir`` laid out as numba's ``NUMBA_CACHE_DIR`` expects.
 
-    Files already there are kept (numba may have added entries to an index since). Each
-    file is written under a temporary name and renamed, so that a concurrent run never
-    reads half a file. Does nothing when ``cache_dir`` holds this seed cache already.
+    Does nothing when ``cache_dir`` holds this seed cache already (numba may have added
+    entries to its indexes since); otherwise every file is replaced, so that an upgrade
+    never keeps an index of the previous version's sources. Each file is written under a
+    temporary name and renamed, so that a concurrent run never reads half a file.
     """
     manifest = read_manifest(seed_dir)
     if manifest is None:
@@ -175,8 +176,6 @@ def seed_generic_cache(cache_dir: Path, seed_dir: Path = SEED_DIR,
     for rel in manifest["files"]:
         rel_path = Path(rel)
         target = cache_dir / _cache_subdir(package_dir / rel_path.parent) / rel_path.name
-        if target.exists():
-            continue
         target.parent.mkdir(parents=True, exist_ok=True)
         tmp = target.with_name(f"{target.name}.tmp.{os.getpid()}")
         shutil.copyfile(seed_dir / rel_path, tmp)
