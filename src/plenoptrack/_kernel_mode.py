@@ -232,12 +232,13 @@ def prepare(environ=None, *, warm: bool = True, generic_dir: Path | None = None)
         setting = "auto"  # the CLI reports a bad value as a usage error itself
     manifest = read_manifest()
     generic_dir = _cache_root() / "numba-generic" if generic_dir is None else generic_dir
-    mode = choose_mode(
-        setting,
+    known = dict(
         numba_env_set=bool(environ.get("NUMBA_CPU_NAME") or environ.get("NUMBA_CACHE_DIR")),
         seeds_ok=seeds_usable(manifest),
-        host_warm=_host_warm(manifest, _cache_root() / "host-kernels.json"),
-        writable=_writable(generic_dir))
+        host_warm=_host_warm(manifest, _cache_root() / "host-kernels.json"))
+    mode = choose_mode(setting, **known, writable=True)
+    if mode == "generic":  # only now touch the package folder
+        mode = choose_mode(setting, **known, writable=_writable(generic_dir))
     if mode == "generic":
         try:
             seed_generic_cache(generic_dir)
