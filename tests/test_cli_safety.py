@@ -388,11 +388,19 @@ def test_interrupt_as_the_outputs_are_committed_names_them(work, monkeypatch):
         real(src, dst)
         renamed.append(Path(dst).name)
         if Path(dst).name == "d.parquet":
-            os.kill(os.getpid(), signal.SIGINT)  # held back until both renames are done
+            # held back until both renames are done; raise_signal delivers to this thread,
+            # where os.kill may pick another thread of the process (numba's workers), whose
+            # handler can run after the renames have ended
+            signal.raise_signal(signal.SIGINT)
 
     monkeypatch.setattr(plenoptrack.io.os, "replace", replace_then_ctrl_c)
-    result = run("locate", work / "frames.tif", "--calib", work / "calib.json",
-                 "--out", work / "new.parquet", "--detections", work / "d.parquet")
+    # a shell starts background jobs with SIGINT ignored: give the test the usual handler
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        result = run("locate", work / "frames.tif", "--calib", work / "calib.json",
+                     "--out", work / "new.parquet", "--detections", work / "d.parquet")
+    finally:
+        signal.signal(signal.SIGINT, previous)
     assert_error_line(result, "interrupted; nothing half-written was kept; complete before the "
                       f"interrupt: wrote {work / 'new.parquet'}, {work / 'd.parquet'}", code=130)
     assert [name for name in renamed if not name.startswith(".")] == ["new.parquet", "d.parquet"]
