@@ -5,9 +5,10 @@ plenoptrack's kernels are compiled by numba the first time they run and cached (
 features of the machine that compiled it, so a cache compiled on one machine is of no use
 on another, and a fresh installation would spend most of its first ``plenoptrack demo``
 compiling. The package therefore ships a *seed cache* (``_seed_cache/``): every kernel the
-demo runs, compiled for the generic x86-64 processor (``NUMBA_CPU_NAME=generic``, no
-processor-specific instructions), by :func:`build_seeds`, for one numba release and one
-Python minor version (both recorded in its ``manifest.json``).
+demo and the user guide's other commands run, compiled for the generic x86-64 processor
+(``NUMBA_CPU_NAME=generic``, no processor-specific instructions) by :func:`build_seeds`,
+for one numba release and one Python minor version (both recorded in its
+``manifest.json``).
 
 A command-line run chooses a *kernel mode* before numba is imported (:func:`prepare`):
 
@@ -323,11 +324,26 @@ def warm_up(after_pid: int | None = None) -> None:
         lock.unlink(missing_ok=True)
 
 
-def build_seeds(seed_dir: Path = SEED_DIR) -> dict:
-    """Rebuild the seed cache: run the demo with generic kernels and keep what it compiled.
+def _seed_commands(demo: Path) -> list[list[str]]:
+    """The commands whose kernels the seed cache holds: the demo, then the user guide's
+    other commands that run kernels (views, refocusing, the refocus locator, a fragment
+    scene) on the demo's data."""
+    raw, calib = str(demo / "sim" / "raw" / "frame_0000.tif"), str(demo / "calib.json")
+    return [["demo", "--out", str(demo)],
+            ["views", raw, "--calib", calib, "--out", "views.tif"],
+            ["refocus", raw, "--calib", calib, "--stack", "21", "--zmin", "-10", "--zmax", "10",
+             "--out", "stack.tif"],
+            ["locate", raw, "--calib", calib, "--method", "refocus", "--out", "refocus.parquet"],
+            ["simulate", "--preset", "small", "--seed", "3", "--particles", "10", "--frames", "2",
+             "--shape", "fragment", "--out", "sim-frag"]]
 
-    The demo runs in a child process with ``NUMBA_CPU_NAME=generic`` and an empty
-    ``NUMBA_CACHE_DIR``; every index and data file it writes for plenoptrack's modules is
+
+def build_seeds(seed_dir: Path = SEED_DIR) -> dict:
+    """Rebuild the seed cache: run the demo and the user guide's other kernel commands with
+    generic kernels, and keep what they compiled (:func:`_seed_commands`).
+
+    The commands run in child processes with ``NUMBA_CPU_NAME=generic`` and an empty
+    ``NUMBA_CACHE_DIR``; every index and data file they write for plenoptrack's modules is
     copied to ``seed_dir`` (replacing its contents) with a manifest of the numba and Python
     versions, the platform and the content hash of every source file involved.
 
@@ -340,10 +356,13 @@ def build_seeds(seed_dir: Path = SEED_DIR) -> dict:
         tmp = Path(tmp)
         env = dict(os.environ, NUMBA_CPU_NAME="generic", NUMBA_CACHE_DIR=str(tmp / "cache"))
         env[ENV] = "host"
-        done = subprocess.run([sys.executable, "-m", "plenoptrack", "demo", "--out",
-                               str(tmp / "demo")], env=env, capture_output=True, text=True)
-        if done.returncode:
-            raise RuntimeError(f"the demo failed while building the seed cache:\n{done.stderr}")
+        demo = tmp / "demo"
+        for args in _seed_commands(demo):
+            done = subprocess.run([sys.executable, "-m", "plenoptrack", *args], env=env,
+                                  cwd=tmp, capture_output=True, text=True)
+            if done.returncode:
+                raise RuntimeError(f"plenoptrack {' '.join(args)} failed while building the "
+                                   f"seed cache:\n{done.stderr}")
         folders = {_cache_subdir(d): d for d in [PACKAGE_DIR, *PACKAGE_DIR.rglob("*")]
                    if d.is_dir() and "__pycache__" not in d.parts}
         files, sources = [], {}
@@ -361,7 +380,8 @@ def build_seeds(seed_dir: Path = SEED_DIR) -> dict:
             sources[(rel_dir / source.name).as_posix()] = _file_sha256(source)
         manifest = {"numba": _numba_version(), "python": _python_tag(),
                     "machine": platform.machine(), "platform": sys.platform,
-                    "cpu": "generic", "built_by": "plenoptrack demo", "files": files,
+                    "cpu": "generic", "built_by": [" ".join(c) for c in _seed_commands(Path("demo"))],
+                    "files": files,
                     "sources": dict(sorted(sources.items()))}
         (staged / _MANIFEST).write_text(json.dumps(manifest, indent=1) + "\n")
         if seed_dir.exists():
