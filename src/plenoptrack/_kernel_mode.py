@@ -46,8 +46,8 @@ import time
 from importlib import metadata
 from pathlib import Path
 
-__all__ = ["MODES", "ENV", "choose_mode", "prepare", "seeds_usable", "seed_problems",
-           "seed_generic_cache", "start_warm_up", "warm_up", "build_seeds"]
+__all__ = ["MODES", "ENV", "read_setting", "choose_mode", "prepare", "seeds_usable",
+           "seed_problems", "seed_generic_cache", "start_warm_up", "warm_up", "build_seeds"]
 
 ENV = "PLENOPTRACK_KERNELS"
 """Environment variable that sets the kernel mode: ``auto`` (default), ``host`` or ``generic``."""
@@ -63,6 +63,20 @@ _LOCK_STALE_S = 15 * 60  # a warm-up lock older than this is from a process that
 
 def _cache_root() -> Path:
     return PACKAGE_DIR / "__pycache__"
+
+
+def _marker_path() -> Path:
+    return _cache_root() / "host-kernels.json"
+
+
+def _lock_path() -> Path:
+    return _cache_root() / "host-kernels.lock"
+
+
+def read_setting(environ) -> str:
+    """The ``PLENOPTRACK_KERNELS`` setting of ``environ``, normalised (default ``auto``);
+    may be outside :data:`MODES`, which the caller reports."""
+    return environ.get(ENV, "auto").strip().lower() or "auto"
 
 
 def _python_tag() -> str:
@@ -228,7 +242,7 @@ def prepare(environ=None, *, warm: bool = True, generic_dir: Path | None = None)
     environ = os.environ if environ is None else environ
     if "numba" in sys.modules:
         return "host"
-    setting = environ.get(ENV, "auto").strip().lower() or "auto"
+    setting = read_setting(environ)
     if setting not in MODES:
         setting = "auto"  # the CLI reports a bad value as a usage error itself
     manifest = read_manifest()
@@ -236,7 +250,7 @@ def prepare(environ=None, *, warm: bool = True, generic_dir: Path | None = None)
     known = dict(
         numba_env_set=bool(environ.get("NUMBA_CPU_NAME") or environ.get("NUMBA_CACHE_DIR")),
         seeds_ok=seeds_usable(manifest),
-        host_warm=_host_warm(manifest, _cache_root() / "host-kernels.json"))
+        host_warm=_host_warm(manifest, _marker_path()))
     mode = choose_mode(setting, **known, writable=True)
     if mode == "generic":  # only now touch the package folder
         mode = choose_mode(setting, **known, writable=_writable(generic_dir))
@@ -261,7 +275,7 @@ def start_warm_up(environ=None) -> subprocess.Popen | None:
         The warm-up process, or None when another one holds the lock.
     """
     environ = os.environ if environ is None else environ
-    lock = _cache_root() / "host-kernels.lock"
+    lock = _lock_path()
     try:
         if lock.exists() and time.time() - lock.stat().st_mtime < _LOCK_STALE_S:
             return None
@@ -303,7 +317,7 @@ def warm_up(after_pid: int | None = None) -> None:
     to a temporary folder that is removed. The marker is written only when the demo
     succeeded; the lock is always released.
     """
-    lock = _cache_root() / "host-kernels.lock"
+    lock = _lock_path()
     try:
         while after_pid is not None and _alive(after_pid):
             with contextlib.suppress(OSError):
@@ -315,7 +329,7 @@ def warm_up(after_pid: int | None = None) -> None:
 
         with tempfile.TemporaryDirectory(prefix="plenoptrack-warm-up-") as tmp:
             run_demo(Path(tmp) / "demo")
-        marker = _cache_root() / "host-kernels.json"
+        marker = _marker_path()
         tmp_marker = marker.with_name(f"{marker.name}.tmp.{os.getpid()}")
         tmp_marker.write_text(json.dumps({"seeds": _manifest_key(read_manifest() or {}),
                                           "numba": _numba_version()}))

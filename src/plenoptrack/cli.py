@@ -1116,7 +1116,7 @@ def _choose_kernels(argv: list[str]) -> bool:
     """
     from . import _kernel_mode
 
-    setting = os.environ.get(_kernel_mode.ENV, "auto").strip().lower() or "auto"
+    setting = _kernel_mode.read_setting(os.environ)
     if setting not in _kernel_mode.MODES:
         _error_line(f"{_kernel_mode.ENV}={os.environ[_kernel_mode.ENV]!r} is not a kernel mode: "
                     f"set it to one of {', '.join(_kernel_mode.MODES)} or unset it")
