@@ -318,8 +318,12 @@ def make_cell_scene(cell: Cell, seed: int, frames: int):
 
     camera, volume, n = _camera(cell), _volume(cell), n_particles(cell)
     key = zlib.crc32(cell.name.encode())
+    # Independent scenes: each frame's particles get ids of their own, so that nothing
+    # takes a particle of one frame for the same particle moved in the next (the
+    # simulator would blur it along that made-up path during the exposure).
     parts = [random_particles(n, volume=volume, diameter_mm=cell.size, shape=cell.shape,
-                              seed=np.random.default_rng([seed, key, f])).assign(frame=f)
+                              seed=np.random.default_rng([seed, key, f]))
+             .assign(frame=f, particle=lambda d, f=f: d["particle"] + f * n)
              for f in range(frames)]
     truth = pd.concat(parts, ignore_index=True)
     return Scene(camera=camera, volume=volume, truth=truth, seed=seed)

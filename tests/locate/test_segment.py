@@ -258,6 +258,35 @@ def test_merged_images_are_shared_out_between_their_cores():
                             area_range=(2, merged["area"] - 1))) == 1
 
 
+@pytest.mark.parametrize("transmission", [0.0, 0.05, 0.1, 0.2])
+def test_a_translucent_pair_is_split_like_an_opaque_one(transmission):
+    # A particle passing 10 % of the back-light never reaches a relative darkness of 0.93;
+    # its core is measured against the region's own peak darkness.
+    shape = (40, 60)
+    centres = np.array([[20.3, 24.6], [21.1, 32.2], [10.4, 48.7]])
+    opaque = _opaque_discs(shape, centres, radius=3.2, blur=0.8)
+    img = (transmission + (1.0 - transmission) * opaque).astype(np.float32)
+    rng = np.random.default_rng(3)
+    img = img * (1.0 + 0.01 * rng.standard_normal(shape)).astype(np.float32)
+    det = segment_view(img, core_contrast=0.93)
+    assert len(det) == 3
+    dist, idx = _match(det, centres)
+    assert sorted(idx) == [0, 1, 2]
+    assert dist.max() < 0.5, dist
+
+
+def test_a_lone_translucent_image_keeps_one_core_in_noise():
+    # The relative threshold must not break a flat translucent shadow into noise cores.
+    shape = (60, 60)
+    centres = np.array([[30.0, 30.0]])
+    rng = np.random.default_rng(4)
+    for seed in range(20):
+        img = 0.1 + 0.9 * _opaque_discs(shape, centres, radius=6.0, blur=0.8)
+        img = img * (1.0 + 0.01 * rng.standard_normal(shape))
+        det = segment_view(img.astype(np.float32), core_contrast=0.93)
+        assert len(det) == 1, seed
+
+
 def test_core_contrast_must_lie_between_contrast_and_one():
     with pytest.raises(ValueError, match="core_contrast must be between"):
         segment_view(np.ones((10, 10)), contrast=0.3, core_contrast=0.2)

@@ -174,20 +174,31 @@ def _label_pixel(labels, parent, n_lab, i, j, conn8):  # pragma: no cover - comp
 
 
 @numba.njit(cache=True)
-def _label_cores(reg, rel_dark, core_contrast, conn8):  # pragma: no cover - compiled
-    """Connected cores (pixels darker than ``core_contrast``) of the regions ``reg``.
+def _label_cores(reg, n_reg, rel_dark, core_contrast, conn8):  # pragma: no cover - compiled
+    """Connected cores of the regions ``reg``: pixels darker than ``core_contrast`` times
+    the region's peak relative darkness, capped at 1 (an opaque shadow).
 
+    Relative to the region's own peak so that a translucent particle, whose shadow never
+    reaches the darkness of an opaque one, still has a core.
     Returns the core index of every pixel (-1 outside cores; cores numbered in raster
     order of their first pixel) and the number of cores.
     """
     h, w = reg.shape
+    threshold = np.zeros(n_reg)
+    for i in range(h):
+        for j in range(w):
+            r = reg[i, j]
+            if r >= 0 and rel_dark[i, j] > threshold[r]:
+                threshold[r] = rel_dark[i, j]
+    for r in range(n_reg):
+        threshold[r] = core_contrast * min(threshold[r], 1.0)
     labels = np.zeros((h, w), dtype=np.int32)
     parent = np.empty(h * w // 2 + 2, dtype=np.int32)
     parent[0] = 0
     n_lab = 0
     for i in range(h):
         for j in range(w):
-            if reg[i, j] < 0 or not (rel_dark[i, j] > core_contrast):
+            if reg[i, j] < 0 or not (rel_dark[i, j] > threshold[reg[i, j]]):
                 continue
             n_lab = _label_pixel(labels, parent, n_lab, i, j, conn8)
     core = np.full((h, w), -1, dtype=np.int32)
@@ -216,7 +227,7 @@ def _split_by_cores(reg, n_reg, rel_dark, core_contrast, conn8):  # pragma: no c
     pixel (-1 outside regions) and the number of unit indices.
     """
     h, w = reg.shape
-    core, n_core = _label_cores(reg, rel_dark, core_contrast, conn8)
+    core, n_core = _label_cores(reg, n_reg, rel_dark, core_contrast, conn8)
     cores_in = np.zeros(n_reg, dtype=np.int64)
     core_region = np.full(n_core, -1, dtype=np.int64)
     for i in range(h):
@@ -535,9 +546,10 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
     connectivity : {1, 2}
         Pixel connectivity of a region: 1 = 4-neighbours, 2 = 8-neighbours.
     core_contrast : float, optional
-        Split merged images: a region holding two or more cores (connected pixels darker
-        than ``(1 - core_contrast)`` times the background, ``contrast < core_contrast <
-        1``) is the merged image of several particles and is replaced by one detection
+        Split merged images: a region holding two or more cores (connected pixels whose
+        relative darkness exceeds ``core_contrast`` times the region's peak relative
+        darkness, the peak capped at 1; ``contrast < core_contrast < 1``) is the merged
+        image of several particles and is replaced by one detection
         per core, made of the region's pixels nearest that core (path length within the
         region). Such parts keep the region's soft-edged centroid weights; the area range
         applies to the whole region and the eccentricity limit not at all. Adds the

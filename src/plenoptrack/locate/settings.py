@@ -66,8 +66,10 @@ class SegmentSettings:
     contrast : float
         A particle pixel is darker than its local background by at least this fraction.
     core_contrast : float or None
-        A second, higher threshold finds the dark cores of the particle images; a region
-        that holds two or more cores is the merged image of touching particles, and its
+        A second, higher threshold finds the dark cores of the particle images: pixels at
+        least this fraction as dark as the darkest pixel of their region (as an opaque
+        shadow, whichever is lighter), so that translucent particles have cores too. A
+        region that holds two or more cores is the merged image of touching particles, and its
         pixels are shared out between its cores (each pixel to the nearest core along
         paths within the region), one detection per core. None disables the split.
     area_range : (float, float)
