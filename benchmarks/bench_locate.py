@@ -17,9 +17,7 @@ their dark cores); cluster (every clustering pass); triangulate + addition (solv
 merging, centroid addition); checks (final consistency checks, last solve, table);
 refine (the image-model refinement of overlapped particles); total (the whole call). The
 same call with the refinement switched the other way (``check.refine_images``) is timed
-too (best of ``--repeat``) and printed as a ratio, and so is the default call with one numba
-thread (the refinement fits the views of a patch in parallel). Peak memory is the
-process's ``VmHWM``.
+too (best of ``--repeat``) and printed as a ratio. Peak memory is the process's ``VmHWM``.
 
 The baseline is the same call with the triangulation solved by one
 :func:`scipy.optimize.least_squares` call per particle (``solver="scipy"``), run once on
@@ -53,7 +51,6 @@ import tempfile
 import time
 from pathlib import Path
 
-import numba
 import numpy as np
 
 
@@ -286,18 +283,6 @@ def main() -> None:
           f"the default {t_total / t_flip:.2f}x that; recall {ev_flip.recall:.3f}, z error "
           f"{ev_flip.mean_error_z:+.4f} +- {ev_flip.std_error_z:.4f} mm, lateral RMS "
           f"{ev_flip.rms_error_lateral:.4f} mm")
-    if locator.check.refine_images and numba.get_num_threads() > 1:
-        threads = numba.get_num_threads()
-        numba.set_num_threads(1)
-        try:
-            t_one, one = _best(lambda: locate_frame(raw, calib, locator=locator), args.repeat)
-        finally:
-            numba.set_num_threads(threads)
-        r_one = one.stage_seconds["refine"]
-        print(f"  one numba thread (same image, best of {args.repeat}): refine {r_one:.3f} s, "
-              f"the default's {threads} threads {r_one / st['refine']:.2f}x faster; whole call "
-              f"{t_one:.3f} s, {t_one / t_total:.2f}x")
-
 
 if __name__ == "__main__":
     main()

@@ -274,7 +274,7 @@ def _half_erfc(x, gauss):  # pragma: no cover - compiled
     return h if x >= 0.0 else 1.0 - h
 
 
-@numba.njit(cache=True, nogil=True, parallel=True)
+@numba.njit(cache=True, nogil=True)
 def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
                  edge):  # pragma: no cover - compiled
     """The held neighbours' image ``fixed`` (K, n, n), the pixels ``near`` (within 2 px
@@ -289,8 +289,8 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
     fit = np.zeros((n_views, n, n), dtype=np.bool_)
     inv = 1.0 / (math.sqrt(2.0) * edge)
     half = 0.5 * (n - 1)
-    for view in numba.prange(n_views):
-        reaches = np.empty(st_held.shape[0], dtype=np.bool_)
+    reaches = np.empty(st_held.shape[0], dtype=np.bool_)
+    for view in range(n_views):
         # a held image wholly outside the patch (by 6 edge widths) leaves it unchanged
         for q in range(st_held.shape[0]):
             gap = max(abs(st_held[q, view, 0] - origin[view, 0] - half),
@@ -315,7 +315,7 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
     return fixed, near, fit
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True, parallel=True)
+@numba.njit(cache=True, nogil=True, fastmath=True)
 def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no cover - compiled
     """Cost ``sum r**2``, ``J^T J``, ``J^T r`` and ``sum_v J_v^T r_v r_v^T J_v`` (the sum
     over views of the outer products of each view's score) of the patch model,
@@ -325,27 +325,26 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
     ``fit`` (K, n, n) are the normalised pixels, the held neighbours' image and the pixels
     fitted; ``st`` (k, K, 2), ``jac`` (k, K, 2, 3) and ``rc`` (k, 2) are each free
     particle's predicted centres, their derivatives and its radius and contrast. The
-    parameters are ordered ``(x, y, z, r, c)`` per particle. Views are reduced in
-    parallel, each into its own slot, and the slots summed in view order (the result
-    does not depend on the number of threads); within a view the Jacobian rows are
-    collected and then reduced as dot products, which the compiler vectorises.
+    parameters are ordered ``(x, y, z, r, c)`` per particle. The Jacobian rows of one view
+    are collected and then reduced as dot products, which the compiler vectorises.
     """
     k = st.shape[0]
     n_par = 5 * k
-    n_views = y.shape[0]
     n_pix = y.shape[1] * y.shape[2]
-    view_cost = np.zeros(n_views)
-    view_jtj = np.zeros((n_views, n_par, n_par))
-    view_score = np.zeros((n_views, n_par))
+    jtj = np.zeros((n_par, n_par))
+    jtr = np.zeros(n_par)
+    meat = np.zeros((n_par, n_par))
+    score = np.empty(n_par)
+    cost = 0.0
+    rows = np.empty((n_par, n_pix))
+    res = np.empty(n_pix)
+    f = np.empty(k)
+    slope = np.empty(k)
+    disc = np.empty(k)
+    drho = np.empty((k, 3))
     inv = 1.0 / (math.sqrt(2.0) * edge)
     norm = 1.0 / (math.sqrt(2.0 * math.pi) * edge)
-    for view in numba.prange(n_views):
-        rows = np.empty((n_par, n_pix))
-        res = np.empty(n_pix)
-        f = np.empty(k)
-        slope = np.empty(k)
-        disc = np.empty(k)
-        drho = np.empty((k, 3))
+    for view in range(y.shape[0]):
         m = 0
         for i in range(y.shape[1]):
             t = origin[view, 1] + i
@@ -378,32 +377,22 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
                     rows[5 * q + 3, m] = -others * slope[q]
                     rows[5 * q + 4, m] = -others * disc[q]
                 m += 1
-        acc = 0.0
         for p in range(m):
-            acc += res[p] * res[p]
-        view_cost[view] = acc
+            cost += res[p] * res[p]
         for a in range(n_par):
             acc = 0.0
             for p in range(m):
                 acc += rows[a, p] * res[p]
-            view_score[view, a] = acc
+            jtr[a] += acc
+            score[a] = acc
             for b in range(a, n_par):
                 acc = 0.0
                 for p in range(m):
                     acc += rows[a, p] * rows[b, p]
-                view_jtj[view, a, b] = acc
-    cost = 0.0
-    jtj = np.zeros((n_par, n_par))
-    jtr = np.zeros(n_par)
-    meat = np.zeros((n_par, n_par))
-    for view in range(n_views):
-        cost += view_cost[view]
+                jtj[a, b] += acc
         for a in range(n_par):
-            jtr[a] += view_score[view, a]
             for b in range(n_par):
-                meat[a, b] += view_score[view, a] * view_score[view, b]
-            for b in range(a, n_par):
-                jtj[a, b] += view_jtj[view, a, b]
+                meat[a, b] += score[a] * score[b]
     for a in range(n_par):
         for b in range(a):
             jtj[a, b] = jtj[b, a]
