@@ -182,6 +182,7 @@ def test_deterministic_and_input_unchanged():
     (dict(contrast=1.5), "contrast must be between 0 and 1"),
     (dict(area_range=(5, 1)), "area_range must satisfy"),
     (dict(connectivity=3), "connectivity must be 1 or 2"),
+    (dict(min_core_ratio=1.0), r"min_core_ratio must be in \[0, 1\)"),
 ])
 def test_bad_parameters(kwargs, match):
     with pytest.raises(ValueError, match=match):
@@ -314,6 +315,62 @@ def test_a_lone_translucent_image_keeps_one_core_in_noise():
         img = img * (1.0 + 0.01 * rng.standard_normal(shape))
         det = segment_view(img.astype(np.float32), core_contrast=0.93)
         assert len(det) == 1, seed
+
+
+def _ellipse_coverage(shape, centre, semi_axes, angle):
+    """Fraction of each pixel inside an ellipse (row, col centre; semi-axes px; angle of
+    the long axis from +col towards +row, rad), 8 x 8 supersampled."""
+    rows, cols = np.mgrid[:shape[0], :shape[1]]
+    sub = (np.arange(8) + 0.5) / 8 - 0.5
+    a, b = semi_axes
+    covered = np.zeros(shape)
+    for dr in sub:
+        for dc in sub:
+            y, x = rows + dr - centre[0], cols + dc - centre[1]
+            along = x * np.cos(angle) + y * np.sin(angle)
+            across = -x * np.sin(angle) + y * np.cos(angle)
+            covered += (along / a) ** 2 + (across / b) ** 2 < 1
+    return covered / 64
+
+
+@pytest.mark.parametrize("head_transmission, stem_half_width", [(0.0, 1.8), (0.08, 1.5)])
+def test_a_thin_stem_is_not_split_from_its_head(head_transmission, stem_half_width):
+    # A pin: a head of radius 6 px with a thin opaque stem leaving it. Where the stem's
+    # ridge crosses the pixel grid it breaks into dark flecks of a pixel or two; counted as
+    # cores they would split the stem off as extra particles.
+    from scipy.ndimage import gaussian_filter
+
+    shape = (44, 64)
+    head = 1.0 - _coverage(shape, (20.0, 20.0), 6.0)
+    stem = 1.0 - _ellipse_coverage(shape, (20.4, 33.0), (8.0, stem_half_width), 0.2)
+    clean = gaussian_filter((head_transmission + (1 - head_transmission) * head) * stem, 0.9)
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        img = (clean * (1 + 0.01 * rng.standard_normal(shape))).astype(np.float32)
+        assert len(segment_view(img, core_contrast=0.93)) >= 2  # every fleck a core
+        det = segment_view(img, core_contrast=0.93, min_core_ratio=0.08)
+        assert len(det) == 1 and det["whole"].all()
+
+
+@pytest.mark.parametrize("transmission", [0.0, 0.1])
+def test_a_smaller_neighbour_keeps_its_core(transmission):
+    # Radius 2.5 px beside 4 px: the smaller core is about a fifth of the larger (blur takes
+    # a constant width off both), above min_core_ratio, so the pair is still split.
+    shape = (40, 60)
+    centres = np.array([[20.3, 24.6], [20.8, 31.6]])
+    big = _opaque_discs(shape, centres[:1], radius=4.0, blur=0.8)
+    small = _opaque_discs(shape, centres[1:], radius=2.5, blur=0.8)
+    clean = transmission + (1 - transmission) * big * small
+    rng = np.random.default_rng(2)
+    for _ in range(5):
+        img = (clean * (1 + 0.01 * rng.standard_normal(shape))).astype(np.float32)
+        det = segment_view(img, core_contrast=0.93, min_core_ratio=0.08)
+        assert len(det) == 2
+        dist, idx = _match(det, centres)
+        assert sorted(idx) == [0, 1]
+        assert dist.max() < 0.3, dist
+        # a larger ratio takes the smaller neighbour for a fleck
+        assert len(segment_view(img, core_contrast=0.93, min_core_ratio=0.3)) == 1
 
 
 def test_core_contrast_must_lie_between_contrast_and_one():

@@ -174,12 +174,16 @@ def _label_pixel(labels, parent, n_lab, i, j, conn8):  # pragma: no cover - comp
 
 
 @numba.njit(cache=True)
-def _label_cores(reg, n_reg, rel_dark, core_contrast, conn8):  # pragma: no cover - compiled
+def _label_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
+                 conn8):  # pragma: no cover - compiled
     """Connected cores of the regions ``reg``: pixels darker than ``core_contrast`` times
     the region's peak relative darkness, capped at 1 (an opaque shadow).
 
     Relative to the region's own peak so that a translucent particle, whose shadow never
-    reaches the darkness of an opaque one, still has a core.
+    reaches the darkness of an opaque one, still has a core. A core smaller than
+    ``min_core_ratio`` times the largest core of its region is not counted: its pixels
+    are a dark fleck on the same particle (noise on the plateau, the rim around a
+    highlight, a thin appendage), not the core of another particle.
     Returns the core index of every pixel (-1 outside cores; cores numbered in raster
     order of their first pixel) and the number of cores.
     """
@@ -201,13 +205,23 @@ def _label_cores(reg, n_reg, rel_dark, core_contrast, conn8):  # pragma: no cove
             if reg[i, j] < 0 or not (rel_dark[i, j] > threshold[reg[i, j]]):
                 continue
             n_lab = _label_pixel(labels, parent, n_lab, i, j, conn8)
+    size = np.zeros(n_lab + 1, dtype=np.int64)
+    largest = np.zeros(n_reg, dtype=np.int64)
+    for i in range(h):
+        for j in range(w):
+            if labels[i, j] > 0:
+                root = _find(parent, labels[i, j])
+                labels[i, j] = root
+                size[root] += 1
+                if size[root] > largest[reg[i, j]]:
+                    largest[reg[i, j]] = size[root]
     core = np.full((h, w), -1, dtype=np.int32)
     compact = np.full(n_lab + 1, -1, dtype=np.int64)
     n_core = 0
     for i in range(h):
         for j in range(w):
-            if labels[i, j] > 0:
-                root = _find(parent, labels[i, j])
+            root = labels[i, j]
+            if root > 0 and size[root] >= min_core_ratio * largest[reg[i, j]]:
                 if compact[root] < 0:
                     compact[root] = n_core
                     n_core += 1
@@ -216,7 +230,8 @@ def _label_cores(reg, n_reg, rel_dark, core_contrast, conn8):  # pragma: no cove
 
 
 @numba.njit(cache=True)
-def _split_by_cores(reg, n_reg, rel_dark, core_contrast, conn8):  # pragma: no cover
+def _split_by_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
+                    conn8):  # pragma: no cover - compiled
     """Unit of every pixel: its region, or the core it is nearest to in a merged region.
 
     A region holding two or more cores is the merged image of several particles. Its
@@ -227,7 +242,7 @@ def _split_by_cores(reg, n_reg, rel_dark, core_contrast, conn8):  # pragma: no c
     pixel (-1 outside regions) and the number of unit indices.
     """
     h, w = reg.shape
-    core, n_core = _label_cores(reg, n_reg, rel_dark, core_contrast, conn8)
+    core, n_core = _label_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio, conn8)
     cores_in = np.zeros(n_reg, dtype=np.int64)
     core_region = np.full(n_core, -1, dtype=np.int64)
     for i in range(h):
@@ -276,8 +291,8 @@ def _split_by_cores(reg, n_reg, rel_dark, core_contrast, conn8):  # pragma: no c
 
 
 @numba.njit(cache=True)
-def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, conn8,
-                 out):  # pragma: no cover - compiled
+def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_core_ratio,
+                 conn8, out):  # pragma: no cover - compiled
     """Segment one view; write per-region sums into ``out``; return the region count.
 
     With ``core_contrast > 0`` a region with several cores is written as one row per
@@ -360,7 +375,8 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, conn8,
             reg[i, j] = compact[root]
             reg_n[compact[root]] += 1.0
     if core_contrast > 0.0:
-        unit, n_units = _split_by_cores(reg, n_reg, rel_dark, core_contrast, conn8)
+        unit, n_units = _split_by_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
+                                        conn8)
     else:
         unit, n_units = reg, n_reg
     row_of = np.full(n_units, -1, dtype=np.int64)
@@ -461,19 +477,20 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, out):  # pragma: no cove
 
 
 @numba.njit(parallel=True, cache=True)
-def _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast, conn8,
-                   out, counts):  # pragma: no cover - compiled
+def _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast,
+                   min_core_ratio, conn8, out, counts):  # pragma: no cover - compiled
     for k in numba.prange(stack.shape[0]):
         if use[k]:
             counts[k] = _segment_one(stack[k], mask, zero_invalid, b, rb, contrast,
-                                     core_contrast, conn8, out[k])
+                                     core_contrast, min_core_ratio, conn8, out[k])
         else:
             counts[k] = 0
 
 
 # --------------------------------------------------------------------------------------
 # array level
-def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8, core_contrast=0.0):
+def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8, core_contrast=0.0,
+                  min_core_ratio=0.0):
     """Per-region sums of every view: ``(stats (M, _N_STATS), view index (M,))``.
 
     Regions are in view order, and in raster order of their first pixel within a view.
@@ -483,8 +500,8 @@ def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8, core_c
     n_views = stack.shape[0]
     counts = np.zeros(n_views, dtype=np.int64)
     out = np.empty((n_views, _INITIAL_CAPACITY, _N_STATS), dtype=np.float64)
-    _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast, conn8, out,
-                   counts)
+    _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast,
+                   min_core_ratio, conn8, out, counts)
     view_idx = np.repeat(np.arange(n_views), counts)
     rank = np.arange(len(view_idx)) - np.repeat(np.cumsum(counts) - counts, counts)
     full = counts > _INITIAL_CAPACITY
@@ -496,7 +513,7 @@ def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8, core_c
     again = np.flatnonzero(full)
     more = np.empty((len(again), int(counts[again].max()), _N_STATS), dtype=np.float64)
     _segment_stack(np.ascontiguousarray(stack[again]), np.ones(len(again), dtype=bool), mask,
-                   zero_invalid, b, rb, contrast, core_contrast, conn8, more,
+                   zero_invalid, b, rb, contrast, core_contrast, min_core_ratio, conn8, more,
                    counts[again].copy())
     slot = np.zeros(n_views, dtype=np.int64)
     slot[again] = np.arange(len(again))
@@ -559,7 +576,8 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
                   frame: int = 0, window: int = 31, contrast: float = 0.15,
                   area_range=(2, np.inf), max_eccentricity: float = 1.0,
                   exclude_edge: bool = True, zero_invalid: bool = False,
-                  connectivity: int = 2, core_contrast: float | None = None) -> pd.DataFrame:
+                  connectivity: int = 2, core_contrast: float | None = None,
+                  min_core_ratio: float = 0.0) -> pd.DataFrame:
     """Segment dark particles in every view of a 4-D light-field array.
 
     Parameters
@@ -603,6 +621,10 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
         region). Such parts keep the region's soft-edged centroid weights; the area range
         applies to the whole region and the eccentricity limit not at all. Adds the
         column ``whole`` (False for parts). Default: no splitting.
+    min_core_ratio : float
+        With ``core_contrast``: a core smaller (in pixels) than this fraction of the
+        largest core of its region is not counted as a particle of its own (in [0, 1);
+        0 counts every core).
 
     Returns
     -------
@@ -668,12 +690,15 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
                             f"got {core_contrast!r}")
     if connectivity not in (1, 2):
         raise SettingsError(f"connectivity must be 1 or 2; got {connectivity!r}")
+    if not 0.0 <= min_core_ratio < 1.0:
+        raise SettingsError(f"min_core_ratio must be in [0, 1); got {min_core_ratio!r}")
 
     stack = np.ascontiguousarray(data).reshape(n_v * n_u, n_t, n_s)
     stats, view_idx = _region_stats(stack, np.ascontiguousarray(use.ravel()), smask,
                                     bool(zero_invalid), b, rb, float(contrast),
                                     connectivity == 2,
-                                    0.0 if core_contrast is None else float(core_contrast))
+                                    0.0 if core_contrast is None else float(core_contrast),
+                                    float(min_core_ratio))
     props = _region_properties(stats)
     part = stats[:, _PART] > 0.0
     keep = (stats[:, _PARENT_N] >= a_lo) & (stats[:, _PARENT_N] <= a_hi)
@@ -698,7 +723,8 @@ def segment_view(image: np.ndarray, *, mask=None, u: float = 0.0, v: float = 0.0
                  frame: int = 0, window: int = 31, contrast: float = 0.15,
                  area_range=(2, np.inf), max_eccentricity: float = 1.0,
                  exclude_edge: bool = True, zero_invalid: bool = False,
-                 connectivity: int = 2, core_contrast: float | None = None) -> pd.DataFrame:
+                 connectivity: int = 2, core_contrast: float | None = None,
+                 min_core_ratio: float = 0.0) -> pd.DataFrame:
     """Segment dark particles in one perspective view.
 
     Parameters
@@ -709,7 +735,7 @@ def segment_view(image: np.ndarray, *, mask=None, u: float = 0.0, v: float = 0.0
         True where the view carries data (default: everywhere).
     u, v : float
         View coordinates written to the ``u`` and ``v`` columns.
-    frame, window, contrast, area_range, max_eccentricity, exclude_edge, zero_invalid, connectivity, core_contrast
+    frame, window, contrast, area_range, max_eccentricity, exclude_edge, zero_invalid, connectivity, core_contrast, min_core_ratio
         As in :func:`segment_array`.
 
     Returns
@@ -725,13 +751,14 @@ def segment_view(image: np.ndarray, *, mask=None, u: float = 0.0, v: float = 0.0
                          window=window, contrast=contrast, area_range=area_range,
                          max_eccentricity=max_eccentricity, exclude_edge=exclude_edge,
                          zero_invalid=zero_invalid, connectivity=connectivity,
-                         core_contrast=core_contrast)
+                         core_contrast=core_contrast, min_core_ratio=min_core_ratio)
 
 
 def segment_views(lf, *, frame: int = 0, views=None, window: int = 31,
                   contrast: float = 0.15, area_range=(2, np.inf),
                   max_eccentricity: float = 1.0, exclude_edge: bool = True,
-                  connectivity: int = 2, core_contrast: float | None = None) -> pd.DataFrame:
+                  connectivity: int = 2, core_contrast: float | None = None,
+                  min_core_ratio: float = 0.0) -> pd.DataFrame:
     """Segment dark particles in every valid view of a light field.
 
     Parameters
@@ -743,7 +770,7 @@ def segment_views(lf, *, frame: int = 0, views=None, window: int = 31,
         Frame index written to the ``frame`` column.
     views : (n_v, n_u) bool ndarray, optional
         Views to segment; default ``lf.view_mask``.
-    window, contrast, area_range, max_eccentricity, exclude_edge, connectivity, core_contrast
+    window, contrast, area_range, max_eccentricity, exclude_edge, connectivity, core_contrast, min_core_ratio
         As in :func:`segment_array`.
 
     Returns
@@ -760,4 +787,5 @@ def segment_views(lf, *, frame: int = 0, views=None, window: int = 31,
                          contrast=contrast, area_range=area_range,
                          max_eccentricity=max_eccentricity, exclude_edge=exclude_edge,
                          zero_invalid=bool(getattr(lf, "flat_fielded", False)),
-                         connectivity=connectivity, core_contrast=core_contrast)
+                         connectivity=connectivity, core_contrast=core_contrast,
+                         min_core_ratio=min_core_ratio)

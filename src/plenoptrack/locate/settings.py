@@ -72,6 +72,15 @@ class SegmentSettings:
         region that holds two or more cores is the merged image of touching particles, and its
         pixels are shared out between its cores (each pixel to the nearest core along
         paths within the region), one detection per core. None disables the split.
+    min_core_ratio : float
+        A core with fewer pixels than this fraction of the largest core in its region does
+        not count as another particle. The ridge of a thin appendage (a pin's stem) breaks
+        into flecks of one or two pixels where it crosses the pixel grid, and a fleck
+        beside a core of 13 or more pixels is not a particle. The core of a neighbour is
+        smaller than its partner's by more than its image: a blurred edge takes a
+        constant width off every core, so on 0.8 px blur a disc of radius 2.5 px beside
+        one of 4 px has a core a fifth as large. 0 counts every core. Chosen on the
+        development seeds of the accuracy matrix, where 0.15 and 0.25 cost recall.
     area_range : (float, float)
         Accepted region areas in a view, view pixels.
     max_eccentricity : float
@@ -95,6 +104,7 @@ class SegmentSettings:
     window: int = 31
     contrast: float = 0.15
     core_contrast: float | None = 0.93
+    min_core_ratio: float = 0.08
     area_range: tuple[float, float] = (2.0, math.inf)
     max_eccentricity: float = 1.0
     max_view_ratio: float | None = 2.0
@@ -109,6 +119,8 @@ class SegmentSettings:
         _require(self.core_contrast is None or self.contrast < self.core_contrast < 1,
                  "core_contrast", f"None or between contrast ({self.contrast}) and 1",
                  self.core_contrast)
+        _require(0 <= self.min_core_ratio < 1, "min_core_ratio", "in [0, 1)",
+                 self.min_core_ratio)
         lo, hi = _pair("area_range", self.area_range)
         _require(0 <= lo < hi, "area_range", "(low, high) with 0 <= low < high", self.area_range)
         object.__setattr__(self, "area_range", (lo, hi))
