@@ -148,6 +148,32 @@ def test_a_crossing_pair_is_recovered_from_biased_starts():
     assert np.allclose(theta[:, 3:], rc, atol=0.1)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_fit_stops_once_its_steps_are_below_tolerance(monkeypatch, seed):
+    """A step proposed below the tolerance ends the fit without being evaluated."""
+    import plenoptrack.locate.refine as refine
+
+    dlfc = LinearCalibration()
+    views_uv, view_rc = _views()
+    truth = np.array([[0.0, 0.0, 2.0]])
+    rc = np.array([[2.0, 0.95]])
+    data = _render(dlfc, truth, rc, views_uv, view_rc, noise=0.01, seed=seed)
+    calls = []
+    normal_equations = refine._normal_equations
+    monkeypatch.setattr(refine, "_normal_equations",
+                        lambda *a: calls.append(1) or normal_equations(*a))
+    args = (dlfc, views_uv, view_rc, data, truth + [0.02, -0.01, 0.5], np.array([[1.6, 0.8]]),
+            np.zeros((0, 3)), np.zeros((0, 2)))
+    fitted = fit_images(*args)
+    # the start and three accepted steps; evaluating the last, negligible step made 5
+    assert len(calls) <= 4
+    calls.clear()
+    tight = fit_images(*args, xyz_tol=1e-8)
+    assert len(calls) > 4
+    assert np.abs(fitted.params[0, :3] - tight.params[0, :3]).max() < 1e-3
+    assert np.abs(tight.params[0, :3] - truth[0]).max() < 0.005
+
+
 def test_a_particle_is_refitted_beside_a_held_neighbour():
     dlfc = LinearCalibration()
     views_uv, view_rc = _views()

@@ -211,6 +211,11 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
                 break
             continue
         trial = np.clip(theta + step.reshape(k, 5), lo, hi)
+        proposed = np.abs(trial - theta)
+        if proposed[:, :3].max() < xyz_tol and proposed[:, 3:].max() < 1e-3:
+            # At the minimum a rejected step only raises the damping until the steps
+            # are this small; stop there instead of paying for ever smaller trials.
+            break
         cost_new, jtj_new, grad_new, meat_new = normal_equations(trial)
         if cost_new < cost:
             moved = np.abs(trial - theta)
