@@ -17,7 +17,7 @@ import pytest
 
 from plenoptrack.errors import CalibrationError
 from plenoptrack.locate.dlfc import (DLFC, dot_position_errors, fit_dlfc, monomial_exponents,
-                                    n_monomials)
+                                    n_monomials, model_error_by_depth)
 
 
 @dataclass(frozen=True)
@@ -304,6 +304,52 @@ def test_dot_position_errors_follow_centroid_noise(model):
 def test_position_rms_survives_the_file_round_trip(dlfc4):
     back = DLFC.from_dict(json.loads(json.dumps(dlfc4.to_dict())))
     assert back.report.position_rms_mm == dlfc4.report.position_rms_mm
+    assert back.report.model_error_by_depth_mm == dlfc4.report.model_error_by_depth_mm
     old = dlfc4.to_dict()
     del old["fit"]["position_rms_mm"]            # a file from an older version
+    del old["fit"]["model_error_by_depth_mm"]
     assert DLFC.from_dict(old).report.position_rms_mm == ()
+    assert DLFC.from_dict(old).report.model_error_by_depth_mm == ()
+    bad = dlfc4.to_dict()
+    bad["fit"]["model_error_by_depth_mm"] = [[0.0, 0.1, 0.1]]
+    with pytest.raises(CalibrationError, match="corrupt fit report"):
+        DLFC.from_dict(bad)
+
+
+def _excess(errors):
+    d = errors[["dx", "dy", "dz"]].to_numpy()
+    noise = errors[["sigma_x", "sigma_y", "sigma_z"]].to_numpy()
+    return np.sqrt(np.maximum(np.mean(d ** 2, axis=0) - np.mean(noise ** 2, axis=0), 0.0))
+
+
+def test_model_error_by_depth_is_the_error_the_dots_noise_does_not_explain(model):
+    depths = np.linspace(-25, 25, 11)
+    noisy = dot_cards(model, noise_px=0.05, seed=3, step=10.0, depths=depths)
+    fitted = fit_dlfc(noisy, order=4)
+    errors = dot_position_errors(fitted, noisy)
+    rows = np.array(fitted.report.model_error_by_depth_mm)
+    np.testing.assert_allclose(rows[:, 0], depths)
+    for z, *e in rows:
+        np.testing.assert_allclose(e, _excess(errors[errors["z"] == z]))
+    # centroid noise alone: the dots' depth errors are that noise, and little is left
+    noise_only = rows[:, 3].mean()
+    assert noise_only < 0.3 * fitted.report.position_rms_mm[2]
+    # a traverse that misplaces the cards alternately by +-0.2 mm: an error of the
+    # calibration that no noise explains, and the polynomial cannot follow
+    misplaced = noisy.assign(z=noisy["z"] + 0.2 * np.where(np.round(noisy["z"] / 5) % 2, 1, -1))
+    wrong = np.array(fit_dlfc(misplaced, order=4).report.model_error_by_depth_mm)
+    assert wrong[:, 3].mean() > max(0.1, 3 * noise_only)
+
+
+def test_model_error_by_depth_bins_dots_that_are_not_on_cards():
+    rng = np.random.default_rng(0)
+    errors = pd.DataFrame({"z": rng.uniform(-10, 10, 400),
+                           "dx": 0.001 * rng.standard_normal(400),
+                           "dy": 0.001 * rng.standard_normal(400),
+                           "sigma_x": 0.0, "sigma_y": 0.0, "sigma_z": 0.0})
+    errors["dz"] = 0.01 * (1 + np.abs(errors["z"])) * rng.standard_normal(400)
+    rows = np.array(model_error_by_depth(errors))
+    assert len(rows) == 12 and np.all(np.diff(rows[:, 0]) > 0)
+    # the per-bin error follows the depth dependence: the ends are several times the middle
+    middle = rows[np.argmin(np.abs(rows[:, 0])), 3]
+    assert rows[0, 3] > 3 * middle and rows[-1, 3] > 3 * middle

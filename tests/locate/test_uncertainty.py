@@ -31,6 +31,30 @@ def test_model_error_of_a_dlfc_without_it_is_zero():
     np.testing.assert_array_equal(model_error_mm(_DLFC()), [0.003, 0.004, 0.02])
 
 
+class _DepthReport:
+    position_rms_mm = (0.003, 0.004, 0.02)
+    model_error_by_depth_mm = ((-5.0, 0.002, 0.002, 0.04), (0.0, 0.001, 0.003, 0.01),
+                                (5.0, 0.004, 0.004, 0.03))
+
+
+class _DepthDLFC:
+    report = _DepthReport()
+
+
+def test_model_error_is_taken_at_each_particle_depth():
+    z = np.array([-8.0, -5.0, -2.5, 0.0, 1.0, 5.0, 9.0, np.nan])
+    got = model_error_mm(_DepthDLFC(), z)
+    assert got.shape == (8, 3)
+    np.testing.assert_allclose(got[:, 2], [0.04, 0.04, 0.025, 0.01, 0.014, 0.03, 0.03, 0.02])
+    np.testing.assert_allclose(got[2, :2], [0.0015, 0.0025])
+    np.testing.assert_allclose(got[-1], [0.003, 0.004, 0.02])   # no depth: the overall RMS
+    # a calibration without per-depth values gives the overall RMS at every depth
+    np.testing.assert_allclose(model_error_mm(_DLFC(), z[:3]), [[0.003, 0.004, 0.02]] * 3)
+    stat = np.full((2, 3), 0.01)
+    out = total_sigma(stat, _DepthDLFC(), error_scale=1.0, z=np.array([0.0, -5.0]))
+    np.testing.assert_allclose(out[:, 2], np.hypot(0.01, [0.01, 0.04]))
+
+
 def test_reduced_chi2_finds_the_particle_with_twice_the_noise():
     rng = np.random.default_rng(0)
     n = rng.integers(20, 120, 200)

@@ -56,7 +56,8 @@ from .._columns import LF_COLUMNS, POS_COLUMNS
 from ..errors import CalibrationError
 
 __all__ = [
-    "DLFC", "FitReport", "fit_dlfc", "dot_position_errors", "monomial_exponents", "n_monomials",
+    "DLFC", "FitReport", "fit_dlfc", "dot_position_errors", "model_error_by_depth",
+    "monomial_exponents", "n_monomials",
     "INPUT_VARIABLES", "OUTPUT_VARIABLES", "SUPPORTED_ORDERS", "DLFC_FORMAT", "DLFC_VERSION",
 ]
 
@@ -294,10 +295,23 @@ class FitReport:
     group_n_points : tuple of int
         Kept points in each group.
     position_rms_mm : tuple of float
-        The DLFC's own model error in object space: RMS over the calibration dots of
-        ``solved - known`` position (x, y, z), mm, each dot solved from its kept views
-        through the fitted DLFC (:func:`dot_position_errors`). Empty when not measured
-        (dots seen in fewer than 4 views, or a file written by an older version).
+        RMS over the calibration dots of ``solved - known`` position (x, y, z), mm, each
+        dot solved from its kept views through the fitted DLFC
+        (:func:`dot_position_errors`): the DLFC's model error plus the dots' own centroid
+        noise. Empty when not measured (dots seen in fewer than 4 views, or a file
+        written by an older version).
+    model_error_by_depth_mm : tuple of tuple of float
+        The DLFC's model error per calibration depth: rows ``(z, e_x, e_y, e_z)``, mm, one
+        per dot-card depth (or per depth bin when the dots do not lie on a few cards),
+        sorted by ``z``. ``e`` is the part of the dots' RMS position error that their own
+        centroid noise does not explain, ``sqrt(max(0, mean(d^2) - mean(sigma^2)))`` with
+        ``d`` the solved-minus-known error and ``sigma`` the least-squares standard error
+        of each dot from the scatter of its views (:func:`dot_position_errors`). The
+        dots' depth errors are mostly that noise, which a particle's own least-squares
+        error already carries; only the excess is an error of the calibration. A
+        particle's uncertainty uses the value at its depth
+        (:func:`~plenoptrack.locate.uncertainty.model_error_mm`). Empty when not
+        measured.
     """
 
     rms_s_px: float
@@ -311,6 +325,7 @@ class FitReport:
     group_rms_px: tuple = ()
     group_n_points: tuple = ()
     position_rms_mm: tuple = ()
+    model_error_by_depth_mm: tuple = ()
 
     def group_table(self) -> pd.DataFrame:
         """Per-group residuals as a DataFrame (columns: group key, rms_px, n_points)."""
@@ -326,6 +341,7 @@ class FitReport:
             "group_rms_px": list(self.group_rms_px),
             "group_n_points": list(self.group_n_points),
             "position_rms_mm": list(self.position_rms_mm),
+            "model_error_by_depth_mm": [list(row) for row in self.model_error_by_depth_mm],
         }
 
     @classmethod
@@ -340,10 +356,20 @@ class FitReport:
                 group_rms_px=tuple(float(r) for r in data.get("group_rms_px", ())),
                 group_n_points=tuple(int(n) for n in data.get("group_n_points", ())),
                 position_rms_mm=tuple(float(e) for e in data.get("position_rms_mm", ())),
+                model_error_by_depth_mm=_depth_rows(data.get("model_error_by_depth_mm", ())),
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(f"{source}: corrupt fit report ({exc!r}); "
                                    "re-run the DLFC calibration") from None
+
+
+def _depth_rows(rows) -> tuple:
+    """Validated ``(z, e_x, e_y, e_z)`` rows, sorted by z."""
+    out = tuple(tuple(float(e) for e in row) for row in rows)
+    if any(len(row) != 4 or not all(math.isfinite(e) for e in row) for row in out):
+        raise ValueError("model_error_by_depth_mm rows must be 4 finite numbers "
+                         "(z, e_x, e_y, e_z)")
+    return tuple(sorted(out))
 
 
 def _json_scalar(value):
@@ -699,8 +725,48 @@ def fit_dlfc(data, *, order: int = 4, group_by=None, reject_k: float | None = No
     if len(errors):
         rms = np.sqrt(np.mean(errors[["dx", "dy", "dz"]].to_numpy() ** 2, axis=0))
         dlfc = dataclasses.replace(dlfc, report=dataclasses.replace(
-            report, position_rms_mm=tuple(float(e) for e in rms)))
+            report, position_rms_mm=tuple(float(e) for e in rms),
+            model_error_by_depth_mm=model_error_by_depth(errors)))
     return dlfc
+
+
+_MIN_DOTS_PER_DEPTH = 5
+
+
+def model_error_by_depth(errors: pd.DataFrame, max_depths: int = 25) -> tuple:
+    """The DLFC's model error per calibration depth: the dots' error beyond their noise.
+
+    Parameters
+    ----------
+    errors : DataFrame
+        :func:`dot_position_errors`: known ``z``, errors ``dx, dy, dz`` and least-squares
+        standard errors ``sigma_x, sigma_y, sigma_z`` of each dot, mm.
+    max_depths : int
+        Dots on at most this many distinct depths are grouped by depth (one group per
+        dot card); otherwise into ``max_depths // 2`` bins of equal dot count.
+
+    Returns
+    -------
+    tuple of (z, e_x, e_y, e_z)
+        One row per group of at least 5 dots: ``z`` the group's mean depth and
+        ``e = sqrt(max(0, mean(d^2) - mean(sigma^2)))`` per axis, mm; sorted by ``z``.
+        Empty when no group has 5 dots.
+    """
+    z = errors["z"].to_numpy(float)
+    depths, group = np.unique(z, return_inverse=True)
+    if len(depths) > max_depths:
+        edges = np.quantile(z, np.linspace(0, 1, max_depths // 2 + 1)[1:-1])
+        group = np.searchsorted(edges, z, side="right")
+    err = errors[["dx", "dy", "dz"]].to_numpy(float)
+    noise = errors[["sigma_x", "sigma_y", "sigma_z"]].to_numpy(float)
+    rows = []
+    for g in np.unique(group):
+        mine = group == g
+        if mine.sum() >= _MIN_DOTS_PER_DEPTH:
+            excess = np.mean(err[mine] ** 2, axis=0) - np.nanmean(noise[mine] ** 2, axis=0)
+            e = np.sqrt(np.maximum(np.nan_to_num(excess, nan=0.0), 0.0))
+            rows.append((float(z[mine].mean()), *(float(v) for v in e)))
+    return tuple(sorted(rows))
 
 
 def dot_position_errors(dlfc: DLFC, points) -> pd.DataFrame:
@@ -721,7 +787,9 @@ def dot_position_errors(dlfc: DLFC, points) -> pd.DataFrame:
     -------
     DataFrame
         One row per dot: ``x, y, z`` (known, mm), ``dx, dy, dz`` (solved minus known,
-        mm) and ``n_views``.
+        mm), ``sigma_x, sigma_y, sigma_z`` (least-squares standard errors of the solve,
+        ``sqrt(s^2 diag (J^T J)^-1)`` from the scatter of the dot's views about the
+        fit, mm; NaN when singular) and ``n_views``.
 
     Notes
     -----
@@ -734,7 +802,7 @@ def dot_position_errors(dlfc: DLFC, points) -> pd.DataFrame:
     names = [*INPUT_VARIABLES, *OUTPUT_VARIABLES]
     table = (points if isinstance(points, pd.DataFrame)
              else pd.DataFrame(np.asarray(points, dtype=float), columns=names))
-    cols = ["x", "y", "z", "dx", "dy", "dz", "n_views"]
+    cols = ["x", "y", "z", "dx", "dy", "dz", "sigma_x", "sigma_y", "sigma_z", "n_views"]
     if len(table) == 0:
         return pd.DataFrame(columns=cols)
     known, dot = np.unique(table[["x", "y", "z"]].to_numpy(float), axis=0, return_inverse=True)
@@ -753,7 +821,8 @@ def dot_position_errors(dlfc: DLFC, points) -> pd.DataFrame:
     ok = np.all(np.isfinite(err), axis=1)
     return pd.DataFrame({"x": known[ok, 0], "y": known[ok, 1], "z": known[ok, 2],
                          "dx": err[ok, 0], "dy": err[ok, 1], "dz": err[ok, 2],
-                         "n_views": tri.n_views[ok]})
+                         "sigma_x": tri.sigma[ok, 0], "sigma_y": tri.sigma[ok, 1],
+                         "sigma_z": tri.sigma[ok, 2], "n_views": tri.n_views[ok]})
 
 
 def _robust_threshold(values: np.ndarray, k: float) -> float:

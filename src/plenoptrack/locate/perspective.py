@@ -608,7 +608,8 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                    error_scale=solve.error_scale,
                                    include_model_error=solve.model_error,
                                    chi2=np.where(refined, np.nan, chi2)
-                                   if solve.excess_scatter else None, n_views=n_views)
+                                   if solve.excess_scatter else None, n_views=n_views,
+                                   z=particles["z"].to_numpy(float))
     particles["chi2"] = chi2
     particles.insert(0, T_COLUMN, frame)
     particles["diameter"] = shape.loc[keep, "diameter_px"].to_numpy() / mag
