@@ -75,7 +75,9 @@ def test_small_scenes_recall_and_precision(small):
     within = np.concatenate(ratios)
     one, two = np.mean(within <= 1, axis=0), np.mean(within <= 2, axis=0)
     # at most 0.95: on this ideal camera the refined particles' lateral errors (about
-    # 2 um RMS) are below the DLFC's model error (3 um), which every sigma includes
+    # 2 um RMS) are no larger than the DLFC's model error (about 2 um), which every
+    # sigma includes (measured 0.81 / 0.85 / 0.74 within 1 sigma, 0.98 / 0.97 / 0.93
+    # within 2)
     assert np.all((one >= 0.5) & (one <= 0.95)), one
     assert np.all(two >= 0.8), two
 

@@ -180,10 +180,12 @@ def _label_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
     the region's peak relative darkness, capped at 1 (an opaque shadow).
 
     Relative to the region's own peak so that a translucent particle, whose shadow never
-    reaches the darkness of an opaque one, still has a core. A core smaller than
-    ``min_core_ratio`` times the largest core of its region is not counted: its pixels
-    are a dark fleck on the same particle (noise on the plateau, the rim around a
-    highlight, a thin appendage), not the core of another particle.
+    reaches the darkness of an opaque one, still has a core. A core of a single pixel
+    smaller than ``min_core_ratio`` times the largest core of its region is not counted:
+    it is a dark fleck on the same particle (noise on the plateau, the ridge of a thin
+    appendage breaking up on the pixel grid), not the core of another particle. Cores of
+    two or more pixels always count: in a crowded region the largest core is often the
+    fused core of several particles, and judging the others against it loses them.
     Returns the core index of every pixel (-1 outside cores; cores numbered in raster
     order of their first pixel) and the number of cores.
     """
@@ -221,7 +223,8 @@ def _label_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
     for i in range(h):
         for j in range(w):
             root = labels[i, j]
-            if root > 0 and size[root] >= min_core_ratio * largest[reg[i, j]]:
+            if root > 0 and (size[root] > 1
+                             or size[root] >= min_core_ratio * largest[reg[i, j]]):
                 if compact[root] < 0:
                     compact[root] = n_core
                     n_core += 1
@@ -622,9 +625,9 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
         applies to the whole region and the eccentricity limit not at all. Adds the
         column ``whole`` (False for parts). Default: no splitting.
     min_core_ratio : float
-        With ``core_contrast``: a core smaller (in pixels) than this fraction of the
-        largest core of its region is not counted as a particle of its own (in [0, 1);
-        0 counts every core).
+        With ``core_contrast``: a core of a single pixel beside a core more than
+        ``1 / min_core_ratio`` pixels large in the same region is not counted as a
+        particle of its own (in [0, 1); 0 counts every core).
 
     Returns
     -------
