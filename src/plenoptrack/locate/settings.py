@@ -78,9 +78,9 @@ class SegmentSettings:
         appendage (a pin's stem) breaks into such flecks where it crosses the pixel
         grid, and noise makes them on a dark plateau. Cores of two or more pixels always
         count (in a crowded region the largest core is often the fused core of several
-        particles, and judging the others against it lost them: recall 0.57 to 0.30 at
-        magnification -1 when every core was judged so). 0 counts every core. Chosen on
-        the development seeds of the accuracy matrix.
+        particles, and judging the others against it lost them: recall 0.44 to 0.19 at
+        magnification -1 on the development seeds when every core was judged so). 0
+        counts every core. Chosen on the development seeds of the accuracy matrix.
     area_range : (float, float)
         Accepted region areas in a view, view pixels.
     max_eccentricity : float
