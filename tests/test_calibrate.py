@@ -152,6 +152,15 @@ def test_calibrate_order4_residual(calibrated):
     assert (cards["rms_px"] <= 0.1).all()
     assert (cards["n_views"] == 145).all()
     assert cards["n_points"].sum() == report.fit.n_points + report.fit.n_rejected
+    # the model error per card is the fit report's row at the card's depth
+    rows = {z: (ex, ey, ez) for z, ex, ey, ez in report.fit.model_error_by_depth_mm}
+    assert len(rows) == 11
+    for card in cards.itertuples():
+        ex, ey, ez = rows[card.z_mm]
+        assert card.model_error_lateral_mm == pytest.approx(np.hypot(ex, ey))
+        assert card.model_error_z_mm == pytest.approx(ez)
+    # on this ideal camera the dots' errors are nearly all their own noise
+    assert cards["model_error_z_mm"].max() < report.fit.position_rms_mm[2]
     assert set(report.seconds) == {"grid", "dots", "fit", "total"}
 
 
@@ -394,6 +403,11 @@ def test_cli_calibrate(dataset, tmp_path):
         assert text in result.output
     calib = load_calibration(out, camera=dataset.camera)
     assert calib.dlfc.order == 3 and calib.dlfc.report.rms_px < 0.1
+    # a table gives each card's model error at its depth, lateral and depth in um
+    table = result.output.split("DLFC model error per dot card")[1]
+    first = next(line for line in table.splitlines() if "card_00.tif" in line).split()
+    _, ex, ey, ez = calib.dlfc.report.model_error_by_depth_mm[0]
+    assert f"{1e3 * np.hypot(ex, ey):.1f}" in first and f"{1e3 * ez:.1f}" in first
 
 
 @pytest.mark.parametrize("breakage, match", [

@@ -636,7 +636,11 @@ class CalibrationReport:
         One row per card: ``card`` (int), ``file`` (str), ``z_mm`` (mm), ``n_views``
         (views in which dots were found), ``n_points`` (dot measurements found),
         ``n_rejected`` (of those, dropped by the robust refit), ``rms_px`` (RMS residual
-        length of the kept points, view pixels), ``z_implied_mm`` (depth implied by the
+        length of the kept points, view pixels), ``model_error_lateral_mm`` and
+        ``model_error_z_mm`` (the DLFC's model error at the card's depth, lateral
+        ``hypot(e_x, e_y)`` and in depth, mm: the dots' position error beyond their own
+        centroid noise, :attr:`~plenoptrack.locate.dlfc.FitReport.model_error_by_depth_mm`;
+        NaN when not measured), ``z_implied_mm`` (depth implied by the
         card's parallax through the nominal camera, mm; see :func:`calibrate`),
         ``reindexed`` (bool: the card's dot ``(0, 0)`` was moved a whole dot to agree
         with the other cards) and ``origin_miss`` (distance of the card's nearest dot
@@ -817,6 +821,15 @@ def _card_table(cards: DotCardSet, points: pd.DataFrame, dlfc: DLFC) -> pd.DataF
     fit = dlfc.report
     kept = dict(zip(fit.group_keys, fit.group_n_points))
     rms = dict(zip(fit.group_keys, fit.group_rms_px))
+    model_rows = np.asarray(fit.model_error_by_depth_mm, dtype=float).reshape(-1, 4)
+
+    def model_error(z_mm: float) -> tuple[float, float]:
+        at = np.flatnonzero(np.abs(model_rows[:, 0] - z_mm) < 1e-6)
+        if not len(at):
+            return math.nan, math.nan
+        _, ex, ey, ez = model_rows[at[0]]
+        return math.hypot(ex, ey), float(ez)
+
     found = points.groupby("card").size()
     views = points.groupby("card")[["u", "v"]].apply(lambda g: len(g.drop_duplicates()))
     rows = []
@@ -825,6 +838,8 @@ def _card_table(cards: DotCardSet, points: pd.DataFrame, dlfc: DLFC) -> pd.DataF
         rows.append({"card": k, "file": card.path.name, "z_mm": card.z_mm,
                      "n_views": int(views.get(k, 0)), "n_points": n,
                      "n_rejected": n - int(kept.get(card.z_mm, 0)),
-                     "rms_px": float(rms.get(card.z_mm, np.nan))})
+                     "rms_px": float(rms.get(card.z_mm, np.nan)),
+                     "model_error_lateral_mm": model_error(card.z_mm)[0],
+                     "model_error_z_mm": model_error(card.z_mm)[1]})
     return pd.DataFrame(rows)
 

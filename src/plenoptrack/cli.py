@@ -412,6 +412,15 @@ def _print_calibration_report(calib, cards, report) -> None:
     per_card.add_row("all", "", *([""] if implied else []), "", f"{fit.n_points + fit.n_rejected}",
                      f"{fit.n_rejected}", f"{fit.rms_px:.4f}", style="bold")
     out.print(per_card)
+    measured = report.cards["model_error_z_mm"].notna()
+    if measured.any():
+        model = Table(title="DLFC model error per dot card (beyond the dots' own noise)")
+        for name in ("card", "z, mm", "lateral, um", "depth, um"):
+            model.add_column(name, justify="left" if name == "card" else "right")
+        for row in report.cards[measured].itertuples():
+            model.add_row(row.file, f"{row.z_mm:g}", f"{1e3 * row.model_error_lateral_mm:.1f}",
+                          f"{1e3 * row.model_error_z_mm:.1f}")
+        out.print(model)
 
 
 def _load_frame(raw: Path, frame: int, calib):
