@@ -227,6 +227,31 @@ def test_a_ctrl_c_swallowed_by_a_c_callback_stops_the_next_commit(tmp_path, monk
     assert seen and all(type(info.exc_value) is ValueError for info in seen)  # the old hook
 
 
+def test_a_ctrl_c_printed_by_compiled_code_is_recorded_without_a_traceback(monkeypatch, capsys):
+    """Cython code that cannot raise (scipy.stats._sobol while it initialises) prints a
+    KeyboardInterrupt through sys.excepthook and drops it: the command line's hook records
+    it instead of printing a traceback, and passes other exceptions on."""
+    import sys
+
+    import plenoptrack.io as pio
+    from plenoptrack.cli import _excepthook
+
+    monkeypatch.setattr(pio, "_lost_interrupts", [])
+    seen = []
+    hook = _excepthook(lambda *exc: seen.append(exc[0]))
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt:
+        hook(*sys.exc_info())
+    assert seen == [] and pio._lost_interrupts
+    assert capsys.readouterr().err == ""
+    try:
+        raise ValueError("not an interrupt")
+    except ValueError:
+        hook(*sys.exc_info())
+    assert seen == [ValueError]
+
+
 def test_compiler_finalizer_errors_are_silent_and_others_are_not(monkeypatch):
     """A Ctrl-C during compilation leaves llvmlite objects whose finalizers fail when the
     garbage collector meets them: the command line's hook drops those, and only those."""

@@ -1089,6 +1089,26 @@ def _unraisable(hook):
     return unraisable
 
 
+def _excepthook(hook):
+    """An exception hook that turns a Ctrl-C printed and dropped by compiled code into a
+    pending interrupt, without its traceback.
+
+    Cython functions that cannot raise (scipy's, while a module initialises) print the
+    exception through :data:`sys.excepthook` before passing it to the unraisable hook;
+    the command line's own handling of Ctrl-C never reaches this hook, so a
+    ``KeyboardInterrupt`` here is always such a dropped one."""
+
+    def excepthook(exc_type, exc_value, exc_tb) -> None:
+        if issubclass(exc_type, KeyboardInterrupt):
+            from .io import note_lost_interrupt
+
+            note_lost_interrupt()
+            return
+        hook(exc_type, exc_value, exc_tb)
+
+    return excepthook
+
+
 def main() -> None:
     """Console entry point: run a command; a Ctrl-C once it has finished changes nothing."""
     import signal
@@ -1096,6 +1116,7 @@ def main() -> None:
     # Ctrl-C while numba compiles a kernel can land in a C callback, which prints and drops
     # the KeyboardInterrupt: record it instead, so that no output is committed after it.
     sys.unraisablehook = _unraisable(sys.unraisablehook)
+    sys.excepthook = _excepthook(sys.excepthook)
     if not _choose_kernels(sys.argv[1:]):
         sys.exit(2)
     try:
