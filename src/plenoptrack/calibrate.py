@@ -835,11 +835,11 @@ def _card_table(cards: DotCardSet, points: pd.DataFrame, dlfc: DLFC) -> pd.DataF
     rows = []
     for k, card in enumerate(cards.cards):
         n = int(found.get(k, 0))
+        lateral, depth = model_error(card.z_mm)
         rows.append({"card": k, "file": card.path.name, "z_mm": card.z_mm,
                      "n_views": int(views.get(k, 0)), "n_points": n,
                      "n_rejected": n - int(kept.get(card.z_mm, 0)),
                      "rms_px": float(rms.get(card.z_mm, np.nan)),
-                     "model_error_lateral_mm": model_error(card.z_mm)[0],
-                     "model_error_z_mm": model_error(card.z_mm)[1]})
+                     "model_error_lateral_mm": lateral, "model_error_z_mm": depth})
     return pd.DataFrame(rows)
 

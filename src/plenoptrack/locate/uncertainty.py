@@ -120,12 +120,7 @@ def total_sigma(sigma_stat: np.ndarray, dlfc, *, error_scale: float,
         of the module notes; NaN where sigma_stat is NaN.
     """
     sigma_stat = np.asarray(sigma_stat, dtype=float)
-    if not include_model_error:
-        model = np.zeros((1, 3))
-    elif z is None:
-        model = model_error_mm(dlfc)[None, :]
-    else:
-        model = model_error_mm(dlfc, z)
+    model = model_error_mm(dlfc, z) if include_model_error else np.zeros(3)
     factor = np.full(len(sigma_stat), float(error_scale) ** 2)
     if chi2 is not None:
         chi2 = np.asarray(chi2, dtype=float)
