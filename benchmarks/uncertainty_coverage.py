@@ -132,13 +132,16 @@ def _variance_factor(pairs: pd.DataFrame, k: float) -> np.ndarray:
     from plenoptrack.locate.triangulate import TriangulationFlag
     from plenoptrack.locate.uncertainty import total_sigma
 
-    chi2 = n_views = None
-    if SolveSettings().excess_scatter and "chi2" in pairs:
+    settings = SolveSettings()
+    chi2 = travel = None
+    n_views = pairs["n_views"].to_numpy(float) if "n_views" in pairs else None
+    if settings.excess_scatter and "chi2" in pairs:
         refined = (pairs["flags"].to_numpy(np.int64) & int(TriangulationFlag.REFINED)) > 0
         chi2 = np.where(refined, np.nan, pairs["chi2"].to_numpy(float))
-        n_views = pairs["n_views"].to_numpy(float)
+    if settings.sampling_error and "travel_px" in pairs:
+        travel = pairs["travel_px"].to_numpy(float)
     unit = total_sigma(np.ones((len(pairs), 3)), None, error_scale=k, include_model_error=False,
-                       chi2=chi2, n_views=n_views)
+                       chi2=chi2, n_views=n_views, travel_px=travel)
     return unit[:, 0] ** 2
 
 

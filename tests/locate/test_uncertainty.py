@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from plenoptrack.locate.uncertainty import model_error_mm, reduced_chi2, total_sigma
+from plenoptrack.locate.uncertainty import (image_travel_px, model_error_mm, reduced_chi2,
+                                           sampling_groups, total_sigma)
 
 
 class _Report:
@@ -124,3 +125,92 @@ def test_excess_form_reduces_to_the_plain_one_and_never_below_it():
                       n_views=np.array([40.0]))
     expected = np.sqrt(0.01 ** 2 * (2.3 ** 2 / 2 + 20) + np.array([0.003, 0.004, 0.02]) ** 2)
     np.testing.assert_allclose(one[0], expected)
+
+
+class _LinearDLFC:
+    """``s = x + z u``, ``t = y + z v``: the image moves by ``z`` view pixels per view."""
+
+    def predict(self, x, y, z, u, v):
+        return x + z * u, y + z * v
+
+
+def _disc_views(radius=6):
+    g = np.arange(-radius, radius + 1)
+    uu, vv = np.meshgrid(g, g)
+    disc = uu ** 2 + vv ** 2 <= radius ** 2
+    return np.column_stack([uu[disc], vv[disc]]).astype(float)
+
+
+def test_image_travel_is_the_diameter_the_image_sweeps():
+    uv = _disc_views(6)
+    n = len(uv)
+    positions = np.array([[0.0, 0.0, 0.0], [1.0, 2.0, 0.25], [0.0, 0.0, -0.5], [5.0, 5.0, 1.0]])
+    owner = np.repeat(np.arange(3), n)                   # particle 3 has no centroids
+    travel = image_travel_px(_LinearDLFC(), positions, owner, np.tile(uv, (3, 1)))
+    # a disc of radius 6 views: |z| * 12 view pixels across (within the grid's coarseness)
+    np.testing.assert_allclose(travel[:3], [0.0, 3.0, 6.0], rtol=0.05, atol=1e-12)
+    assert np.isnan(travel[3])
+    # centroids owned by no particle (-1) are ignored
+    more = image_travel_px(_LinearDLFC(), positions, np.append(owner, [-1, -1]),
+                           np.vstack([np.tile(uv, (3, 1)), [[50.0, 0.0], [-50.0, 0.0]]]))
+    np.testing.assert_allclose(more, travel)
+    np.testing.assert_allclose(sampling_groups(np.array([0.0, 1.0, np.nan])), [1.0, 9.0, np.nan])
+
+
+def test_sampling_error_term_adds_the_views_that_share_it():
+    stat = np.full((3, 3), 0.01)
+    n = np.array([100.0, 100.0, 100.0])
+    travel = np.array([0.0, 4.5, np.nan])
+    got = total_sigma(stat, None, error_scale=2.0, include_model_error=False, n_views=n,
+                      travel_px=travel)
+    np.testing.assert_allclose(got[:, 0], 0.01 * np.sqrt([4.0 + 100.0, 4.0 + 1.0, 4.0]))
+    # the shared part is sized by the frame's typical scatter: chi2 = 0.25 -> 4 times
+    low = total_sigma(stat[:1], None, error_scale=2.0, include_model_error=False,
+                      n_views=n[:1], travel_px=np.array([4.5]), chi2=np.array([0.25]))
+    np.testing.assert_allclose(low[0, 0], 0.01 * np.sqrt(4.0 + 4.0))
+
+
+def test_sampling_error_covers_particles_near_the_focal_plane():
+    """Monte Carlo: each centroid is pulled towards the nearest view-pixel centre
+    (pixel-locking, 0.08 px) plus independent 0.03 px noise; positions are solved by
+    least squares. Near the focal plane (image travel below 1 view pixel) every view
+    sees the image at the same sub-pixel phase, so the pull is shared: the residuals do
+    not show it and the plain least-squares sigma leaves most of those particles beyond
+    3 sigma. With the sampling term they are covered; far from focus the pull averages
+    out and the term adds little."""
+    rng = np.random.default_rng(3)
+    uv = _disc_views(6)
+    n = len(uv)
+    design = np.zeros((2 * n, 3))
+    design[:n, 0] = design[n:, 1] = 1.0
+    design[:n, 2], design[n:, 2] = uv[:, 0], uv[:, 1]
+    cov = np.linalg.inv(design.T @ design)
+    errors, plain, sampled, travels = [], [], [], []
+    for _ in range(40):
+        xyz = np.column_stack([rng.uniform(0, 1, (50, 2)), rng.uniform(-0.4, 0.4, 50)])
+        st = xyz[:, None, :2] + xyz[:, None, 2:] * uv[None]                   # (P, n, 2)
+        obs = st - 0.08 * np.sin(2 * np.pi * st) + rng.normal(0, 0.03, st.shape)
+        rhs = np.concatenate([obs[..., 0], obs[..., 1]], axis=1)               # (P, 2n)
+        sol = rhs @ np.linalg.pinv(design).T
+        ssr = ((rhs - sol @ design.T) ** 2).sum(axis=1)
+        stat = np.sqrt(ssr[:, None] / (2 * n - 3) * np.diag(cov))
+        views = np.full(50, float(n))
+        chi2 = reduced_chi2(np.sqrt(ssr / n), views)
+        travel = image_travel_px(_LinearDLFC(), sol, np.repeat(np.arange(50), n),
+                                 np.tile(uv, (50, 1)))
+        kw = dict(error_scale=1.0, include_model_error=False, chi2=chi2, n_views=views)
+        plain.append(total_sigma(stat, None, **kw))
+        sampled.append(total_sigma(stat, None, travel_px=travel, **kw))
+        errors.append(np.abs(sol - xyz))
+        travels.append(travel)
+    errors, plain, sampled = map(np.concatenate, (errors, plain, sampled))
+    near = np.concatenate(travels) < 1.0
+    assert near.sum() > 200
+    assert np.mean(errors[near] > 3 * plain[near]) > 0.5          # 0.64-0.76 per axis
+    assert np.mean(errors[near] > 3 * sampled[near]) < 0.03        # 0.000-0.007
+    assert 0.4 <= np.mean(errors[near] <= sampled[near]) <= 0.9    # 0.54-0.63
+    # far from focus the pull averages out and the term fades
+    far = np.concatenate(travels) > 4.0
+    assert far.sum() > 200
+    assert np.median(sampled[far] / plain[far]) < 1.3                # 1.12
+    assert np.mean(errors[far] > 3 * sampled[far]) < 0.01

@@ -65,7 +65,7 @@ from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings)
 from .triangulate import TriangulationFlag, triangulate_clusters
-from .uncertainty import reduced_chi2, total_sigma
+from .uncertainty import image_travel_px, reduced_chi2, total_sigma
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
@@ -73,13 +73,15 @@ __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResu
            "measure_particles"]
 
 PARTICLE_COLUMNS = (T_COLUMN, *POS_COLUMNS, "sigma_x", "sigma_y", "sigma_z", "n_views",
-                    "confidence", "residual_px", "chi2", "diameter", "major_axis", "minor_axis",
-                    "orientation", "flags")
+                    "confidence", "residual_px", "chi2", "travel_px", "diameter", "major_axis",
+                    "minor_axis", "orientation", "flags")
 """Columns of a particles table: ``frame``; ``x, y, z`` and their standard uncertainties
 ``sigma_*`` (mm); ``n_views`` (centroids used); ``confidence`` (eq. 3 of the paper);
 ``residual_px`` (RMS reprojection error, view pixels); ``chi2`` (fit quality: the reduced
 chi-square of the particle's centroids against the frame's typical centroid scatter, about
-1 for a clean fit, large when overlapping images pull some centroids); ``diameter`` (equivalent diameter),
+1 for a clean fit, large when overlapping images pull some centroids); ``travel_px`` (how
+far the particle's image moves across its views, view pixels: small near the focal plane,
+where depth is least determined); ``diameter`` (equivalent diameter),
 ``major_axis``, ``minor_axis`` (mm, in the x-y plane); ``orientation`` (rad, major axis
 from +x towards +y); ``flags`` (:class:`~plenoptrack.locate.triangulate.TriangulationFlag`)."""
 
@@ -602,6 +604,7 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     sigma = ["sigma_x", "sigma_y", "sigma_z"]
     n_views = particles["n_views"].to_numpy(float)
     chi2 = reduced_chi2(particles["residual_px"].to_numpy(float), n_views)
+    travel = image_travel_px(ctx.dlfc, positions, owner, ctx.views[ctx.view])[keep]
     # a refined particle's sigma is its image fit's, not its centroids'
     refined = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.REFINED)) > 0
     particles[sigma] = total_sigma(particles[sigma].to_numpy(float), ctx.dlfc,
@@ -609,8 +612,10 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                    include_model_error=solve.model_error,
                                    chi2=np.where(refined, np.nan, chi2)
                                    if solve.excess_scatter else None, n_views=n_views,
-                                   z=particles["z"].to_numpy(float))
+                                   z=particles["z"].to_numpy(float),
+                                   travel_px=travel if solve.sampling_error else None)
     particles["chi2"] = chi2
+    particles["travel_px"] = travel
     particles.insert(0, T_COLUMN, frame)
     particles["diameter"] = shape.loc[keep, "diameter_px"].to_numpy() / mag
     particles["major_axis"] = shape.loc[keep, "major_px"].to_numpy() / mag

@@ -217,6 +217,10 @@ class SolveSettings:
         Count a particle's centroid scatter beyond the frame's typical scatter (reduced
         chi-square above 1: an overlapping or merged image) as shared by all its views
         instead of averaging it over them (:mod:`~plenoptrack.locate.uncertainty`).
+    sampling_error : bool
+        Count the sampling error that views share when a particle's image moves by less
+        than a few view pixels across them (near the focal plane the views see it through
+        the same microlenses; :mod:`~plenoptrack.locate.uncertainty`).
     """
 
     reject_k: float = 3.0
@@ -225,6 +229,7 @@ class SolveSettings:
     error_scale: float = 2.3
     model_error: bool = True
     excess_scatter: bool = True
+    sampling_error: bool = True
 
     def __post_init__(self) -> None:
         _require(self.reject_k > 0, "reject_k", "positive", self.reject_k)
