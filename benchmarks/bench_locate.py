@@ -38,6 +38,12 @@ every outlier-rejection round); both must give the same particles and detections
 tables. Printed per count: seconds per frame and per particle (mean over the seeds),
 peak MB (largest over the seeds), the per-stage seconds of both, and the ratio baseline
 over plenoptrack.
+
+``--segment`` times the segmentation kernel alone (every view of the image's flat-fielded
+light field, the region sums the locator asks for) against ``segment.py`` of
+:data:`SEGMENT_BASELINE_REV` (read with ``git show`` and imported beside the current
+module), alternating, best of ``--repeat`` each, with ``--threads`` numba threads (default
+1); both must give identical region sums.
 """
 
 from __future__ import annotations
@@ -47,6 +53,7 @@ import contextlib
 import functools
 import importlib.util
 import sys
+import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -221,6 +228,65 @@ def scaling(args) -> None:
                                                                         strict=True)))
 
 
+SEGMENT_BASELINE_REV = "ab05a35c462d9afa5dba85e356132be9c85f0935"
+"""Revision whose segmentation is the baseline of ``--segment`` (before the kernel visited
+only the pixels in and around regions after labelling and reused one work space per
+thread)."""
+
+
+def _segment_baseline(rev: str = SEGMENT_BASELINE_REV):
+    """``plenoptrack/locate/segment.py`` of ``rev``, imported as a sibling of the current
+    module (its relative imports resolve to the current package)."""
+    root = Path(__file__).resolve().parents[1]
+    src = subprocess.run(["git", "show", f"{rev}:src/plenoptrack/locate/segment.py"], cwd=root,
+                         capture_output=True, text=True, check=True).stdout
+    path = Path(tempfile.mkdtemp(prefix="bench_segment_")) / "_segment_baseline.py"
+    path.write_text(src)
+    spec = importlib.util.spec_from_file_location("plenoptrack.locate._segment_baseline", path)
+    module = importlib.util.module_from_spec(spec)
+    module.__package__ = "plenoptrack.locate"
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def bench_segment(args) -> None:
+    """The segmentation kernel now and at :data:`SEGMENT_BASELINE_REV`, same inputs."""
+    import numba
+
+    import plenoptrack.locate.segment as segment
+    from plenoptrack.locate.perspective import locate_frame
+
+    calib, raw, _ = _prepare(args.preset, args.particles, args.seed, args.workdir, args.diameter)
+    numba.set_num_threads(args.threads)
+    captured = {}
+    current = segment._region_stats
+
+    def spy(*a, **k):
+        captured.setdefault("call", (a, k))
+        return current(*a, **k)
+
+    segment._region_stats = spy
+    try:
+        locate_frame(raw, calib)
+    finally:
+        segment._region_stats = current
+    a, k = captured["call"]
+    base = _segment_baseline()
+    now_out, base_out = current(*a, **k), base._region_stats(*a, **k)   # compile both
+    same = all(np.array_equal(x, y) for x, y in zip(now_out, base_out))
+    t_now, t_base = [], []
+    for _ in range(args.repeat):
+        t_now.append(_best(lambda: current(*a, **k), 1)[0])
+        t_base.append(_best(lambda: base._region_stats(*a, **k), 1)[0])
+    stack = a[0]
+    print(f"{args.preset}: segmentation of {int(a[1].sum())} views of {stack.shape[1]} x "
+          f"{stack.shape[2]} samples, {len(now_out[1])} regions, {args.threads} thread(s), "
+          f"best of {args.repeat}, alternating")
+    print(f"  now {min(t_now):.3f} s, baseline ({SEGMENT_BASELINE_REV}) {min(t_base):.3f} s, "
+          f"speed-up {min(t_base) / min(t_now):.2f}x; identical region sums: {same}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--preset", default="hall2019")
@@ -234,7 +300,13 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--diameter", type=float, default=None,
                     help="particle diameter, mm (default: the preset's; 0.5 with --scaling)")
+    ap.add_argument("--segment", action="store_true",
+                    help="time the segmentation kernel against SEGMENT_BASELINE_REV")
+    ap.add_argument("--threads", type=int, default=1, help="numba threads for --segment")
     args = ap.parse_args()
+    if args.segment:
+        bench_segment(args)
+        return
     if args.scaling:
         if args.diameter is None:
             args.diameter = 0.5

@@ -174,8 +174,15 @@ def _label_pixel(labels, parent, n_lab, i, j, conn8):  # pragma: no cover - comp
 
 
 @numba.njit(cache=True)
-def _label_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
-                 conn8):  # pragma: no cover - compiled
+def _reset(arr, pi, pj, value):  # pragma: no cover - compiled
+    """Set ``arr`` back to ``value`` at the pixels ``(pi, pj)``."""
+    for p in range(pi.shape[0]):
+        arr[pi[p], pj[p]] = value
+
+
+@numba.njit(cache=True)
+def _label_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio, conn8, pi, pj,
+                 labels, core):  # pragma: no cover - compiled
     """Connected cores of the regions ``reg``: pixels darker than ``core_contrast`` times
     the region's peak relative darkness, capped at 1 (an opaque shadow).
 
@@ -186,94 +193,100 @@ def _label_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
     appendage breaking up on the pixel grid), not the core of another particle. Cores of
     two or more pixels always count: in a crowded region the largest core is often the
     fused core of several particles, and judging the others against it loses them.
-    Returns the core index of every pixel (-1 outside cores; cores numbered in raster
-    order of their first pixel) and the number of cores.
+    ``pi, pj`` list the region pixels in raster order (every other pixel is outside the
+    regions). ``labels`` (all 0) and ``core`` (all -1) are work arrays of the view's shape;
+    ``labels`` is left as it was found. Writes the core index of every region pixel into
+    ``core`` (cores numbered in raster order of their first pixel) and returns the number
+    of cores.
     """
-    h, w = reg.shape
+    n_px = pi.shape[0]
     threshold = np.zeros(n_reg)
-    for i in range(h):
-        for j in range(w):
-            r = reg[i, j]
-            if r >= 0 and rel_dark[i, j] > threshold[r]:
-                threshold[r] = rel_dark[i, j]
+    for p in range(n_px):
+        i, j = pi[p], pj[p]
+        r = reg[i, j]
+        if rel_dark[i, j] > threshold[r]:
+            threshold[r] = rel_dark[i, j]
     for r in range(n_reg):
         threshold[r] = core_contrast * min(threshold[r], 1.0)
-    labels = np.zeros((h, w), dtype=np.int32)
-    parent = np.empty(h * w // 2 + 2, dtype=np.int32)
+    parent = np.empty(n_px + 2, dtype=np.int32)
     parent[0] = 0
     n_lab = 0
-    for i in range(h):
-        for j in range(w):
-            if reg[i, j] < 0 or not (rel_dark[i, j] > threshold[reg[i, j]]):
-                continue
+    for p in range(n_px):
+        i, j = pi[p], pj[p]
+        if rel_dark[i, j] > threshold[reg[i, j]]:
             n_lab = _label_pixel(labels, parent, n_lab, i, j, conn8)
     size = np.zeros(n_lab + 1, dtype=np.int64)
     largest = np.zeros(n_reg, dtype=np.int64)
-    for i in range(h):
-        for j in range(w):
-            if labels[i, j] > 0:
-                root = _find(parent, labels[i, j])
-                labels[i, j] = root
-                size[root] += 1
-                if size[root] > largest[reg[i, j]]:
-                    largest[reg[i, j]] = size[root]
-    core = np.full((h, w), -1, dtype=np.int32)
+    for p in range(n_px):
+        i, j = pi[p], pj[p]
+        if labels[i, j] > 0:
+            root = _find(parent, labels[i, j])
+            labels[i, j] = root
+            size[root] += 1
+            if size[root] > largest[reg[i, j]]:
+                largest[reg[i, j]] = size[root]
     compact = np.full(n_lab + 1, -1, dtype=np.int64)
     n_core = 0
-    for i in range(h):
-        for j in range(w):
-            root = labels[i, j]
-            if root > 0 and (size[root] > 1
-                             or size[root] >= min_core_ratio * largest[reg[i, j]]):
-                if compact[root] < 0:
-                    compact[root] = n_core
-                    n_core += 1
-                core[i, j] = compact[root]
-    return core, n_core
+    for p in range(n_px):
+        i, j = pi[p], pj[p]
+        root = labels[i, j]
+        labels[i, j] = 0
+        if root > 0 and (size[root] > 1
+                         or size[root] >= min_core_ratio * largest[reg[i, j]]):
+            if compact[root] < 0:
+                compact[root] = n_core
+                n_core += 1
+            core[i, j] = compact[root]
+    return n_core
 
 
 @numba.njit(cache=True)
-def _split_by_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
-                    conn8):  # pragma: no cover - compiled
+def _split_by_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio, conn8, pi, pj,
+                    unit, labels, core):  # pragma: no cover - compiled
     """Unit of every pixel: its region, or the core it is nearest to in a merged region.
 
     A region holding two or more cores is the merged image of several particles. Its
     pixels are shared out between its cores by a breadth-first flood from the cores
     through the region (nearest core by path length within the region), so that each
     part keeps the region's soft edge for its centroid. Units ``0 .. n_reg - 1`` are
-    regions; unit ``n_reg + c`` is the part of core ``c``. Returns the unit of every
-    pixel (-1 outside regions) and the number of unit indices.
+    regions; unit ``n_reg + c`` is the part of core ``c``. ``pi, pj``: the region pixels
+    in raster order. ``unit`` (all -1), ``labels`` (all 0) and ``core`` (all -1) are work
+    arrays of the view's shape; ``labels`` and ``core`` are left as they were found.
+    Writes the unit of every region pixel into ``unit`` and returns the number of unit
+    indices.
     """
     h, w = reg.shape
-    core, n_core = _label_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio, conn8)
+    n_px = pi.shape[0]
+    n_core = _label_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio, conn8, pi, pj,
+                          labels, core)
     cores_in = np.zeros(n_reg, dtype=np.int64)
     core_region = np.full(n_core, -1, dtype=np.int64)
-    for i in range(h):
-        for j in range(w):
-            c = core[i, j]
-            if c >= 0 and core_region[c] < 0:
-                core_region[c] = reg[i, j]
-                cores_in[reg[i, j]] += 1
-    unit = reg.copy()
+    for p in range(n_px):
+        i, j = pi[p], pj[p]
+        c = core[i, j]
+        if c >= 0 and core_region[c] < 0:
+            core_region[c] = reg[i, j]
+            cores_in[reg[i, j]] += 1
     n_split_px = 0
-    for i in range(h):
-        for j in range(w):
-            r = reg[i, j]
-            if r >= 0 and cores_in[r] >= 2:
-                n_split_px += 1
-                unit[i, j] = -2  # not yet reached
+    for p in range(n_px):
+        i, j = pi[p], pj[p]
+        unit[i, j] = reg[i, j]
+        if cores_in[reg[i, j]] >= 2:
+            n_split_px += 1
+            unit[i, j] = -2  # not yet reached
     if n_split_px == 0:
-        return unit, n_reg + n_core
+        _reset(core, pi, pj, -1)
+        return n_reg + n_core
     qi = np.empty(n_split_px, dtype=np.int64)
     qj = np.empty(n_split_px, dtype=np.int64)
     tail = 0
-    for i in range(h):
-        for j in range(w):
-            if unit[i, j] == -2 and core[i, j] >= 0:
-                unit[i, j] = n_reg + core[i, j]
-                qi[tail] = i
-                qj[tail] = j
-                tail += 1
+    for p in range(n_px):
+        i, j = pi[p], pj[p]
+        if unit[i, j] == -2 and core[i, j] >= 0:
+            unit[i, j] = n_reg + core[i, j]
+            qi[tail] = i
+            qj[tail] = j
+            tail += 1
     head = 0
     while head < tail:
         i = qi[head]
@@ -290,17 +303,22 @@ def _split_by_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
                     qi[tail] = ii
                     qj[tail] = jj
                     tail += 1
-    return unit, n_reg + n_core
+    _reset(core, pi, pj, -1)
+    return n_reg + n_core
 
 
 @numba.njit(cache=True)
 def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_core_ratio,
-                 conn8, out):  # pragma: no cover - compiled
+                 conn8, out, work):  # pragma: no cover - compiled
     """Segment one view; write per-region sums into ``out``; return the region count.
 
     With ``core_contrast > 0`` a region with several cores is written as one row per
     core (its part of the region, see :func:`_split_by_cores`) instead of one row.
+    ``work`` is the view-sized work space of :func:`_work_arrays`, left as it was found:
+    only the few per cent of pixels in and around regions are touched, so one work space
+    serves many views without clearing (or allocating) whole images for each.
     """
+    valid, weight, rel_dark, labels, reg, unit, core, near, pi, pj, parent = work
     h, w = img.shape
     cap = out.shape[0]
     nbi = (h + b - 1) // b
@@ -308,7 +326,6 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
     jblock = np.empty(w, dtype=np.int64)
     for j in range(w):
         jblock[j] = j // b
-    valid = np.empty((h, w), dtype=np.bool_)
     bsum = np.zeros((nbi, nbj), dtype=np.float64)
     bcnt = np.zeros((nbi, nbj), dtype=np.float64)
     for i in range(h):
@@ -343,12 +360,9 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
     bg = np.empty((nbi, nbj), dtype=np.float64)
     _block_mean(bsum, bcnt, rb, bg)
     _fill_nan(bg, bg1)
-    labels = np.zeros((h, w), dtype=np.int32)
-    weight = np.empty((h, w), dtype=np.float32)
-    rel_dark = np.empty((h, w), dtype=np.float32)
-    parent = np.empty(h * w // 2 + 2, dtype=np.int32)
     parent[0] = 0
     n_lab = 0
+    n_px = 0   # the foreground pixels in raster order: every later pass visits only them
     for i in range(h):
         _grid_row(bg, ilo, iw, i, row)
         for j in range(w):
@@ -360,79 +374,86 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
                 continue
             weight[i, j] = bgv * scale - img[i, j]
             n_lab = _label_pixel(labels, parent, n_lab, i, j, conn8)
+            pi[n_px] = i
+            pj[n_px] = j
+            n_px += 1
     if n_lab == 0:
         return 0
-    reg = np.full((h, w), -1, dtype=np.int32)
+    pi = pi[:n_px]
+    pj = pj[:n_px]
     reg_n = np.zeros(n_lab + 1, dtype=np.float64)
     compact = np.full(n_lab + 1, -1, dtype=np.int64)
     n_reg = 0
-    for i in range(h):
-        for j in range(w):
-            lab = labels[i, j]
-            if lab == 0:
-                continue
-            root = _find(parent, lab)
-            if compact[root] < 0:
-                compact[root] = n_reg
-                n_reg += 1
-            reg[i, j] = compact[root]
-            reg_n[compact[root]] += 1.0
+    for p in range(n_px):
+        i, j = pi[p], pj[p]
+        root = _find(parent, labels[i, j])
+        labels[i, j] = 0
+        if compact[root] < 0:
+            compact[root] = n_reg
+            n_reg += 1
+        reg[i, j] = compact[root]
+        reg_n[compact[root]] += 1.0
     if core_contrast > 0.0:
-        unit, n_units = _split_by_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio,
-                                        conn8)
+        n_units = _split_by_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio, conn8,
+                                  pi, pj, unit, labels, core)
     else:
-        unit, n_units = reg, n_reg
+        n_units = n_reg
+        for p in range(n_px):
+            unit[pi[p], pj[p]] = reg[pi[p], pj[p]]
     row_of = np.full(n_units, -1, dtype=np.int64)
     n_row = 0
-    for i in range(h):
-        for j in range(w):
-            un = unit[i, j]
-            if un < 0:
-                continue
-            k = row_of[un]
-            if k < 0:
-                k = n_row
-                row_of[un] = k
-                n_row += 1
-                if k < cap:
-                    for c in range(_N_STATS):
-                        out[k, c] = 0.0
-                    out[k, _S0] = j
-                    out[k, _T0] = i
-                    out[k, _PART] = 1.0 if un >= n_reg else 0.0
-                    out[k, _PARENT_N] = reg_n[reg[i, j]]
-            if k >= cap:
-                continue
-            wgt = weight[i, j]
-            ds = j - out[k, _S0]
-            dt = i - out[k, _T0]
-            out[k, _N] += 1.0
-            out[k, _SW] += wgt
-            out[k, _SWS] += wgt * ds
-            out[k, _SWT] += wgt * dt
-            out[k, _SS] += ds
-            out[k, _ST] += dt
-            out[k, _SSS] += ds * ds
-            out[k, _STT] += dt * dt
-            out[k, _SST] += ds * dt
-            out[k, _SD] += rel_dark[i, j]
-            if rel_dark[i, j] > out[k, _DARK]:
-                out[k, _DARK] = rel_dark[i, j]
-            if out[k, _EDGE] == 0.0:
-                edge = i == 0 or j == 0 or i == h - 1 or j == w - 1
-                if not edge:
-                    for di in range(-1, 2):
-                        for dj in range(-1, 2):
-                            if not valid[i + di, j + dj]:
-                                edge = True
-                if edge:
-                    out[k, _EDGE] = 1.0
-    _add_rim_shadow(reg, unit, row_of, valid, rel_dark, out)
+    for p in range(n_px):
+        i, j = pi[p], pj[p]
+        un = unit[i, j]
+        if un < 0:
+            continue
+        k = row_of[un]
+        if k < 0:
+            k = n_row
+            row_of[un] = k
+            n_row += 1
+            if k < cap:
+                for c in range(_N_STATS):
+                    out[k, c] = 0.0
+                out[k, _S0] = j
+                out[k, _T0] = i
+                out[k, _PART] = 1.0 if un >= n_reg else 0.0
+                out[k, _PARENT_N] = reg_n[reg[i, j]]
+        if k >= cap:
+            continue
+        wgt = weight[i, j]
+        ds = j - out[k, _S0]
+        dt = i - out[k, _T0]
+        out[k, _N] += 1.0
+        out[k, _SW] += wgt
+        out[k, _SWS] += wgt * ds
+        out[k, _SWT] += wgt * dt
+        out[k, _SS] += ds
+        out[k, _ST] += dt
+        out[k, _SSS] += ds * ds
+        out[k, _STT] += dt * dt
+        out[k, _SST] += ds * dt
+        out[k, _SD] += rel_dark[i, j]
+        if rel_dark[i, j] > out[k, _DARK]:
+            out[k, _DARK] = rel_dark[i, j]
+        if out[k, _EDGE] == 0.0:
+            edge = i == 0 or j == 0 or i == h - 1 or j == w - 1
+            if not edge:
+                for di in range(-1, 2):
+                    for dj in range(-1, 2):
+                        if not valid[i + di, j + dj]:
+                            edge = True
+            if edge:
+                out[k, _EDGE] = 1.0
+    _add_rim_shadow(reg, unit, row_of, valid, rel_dark, out, pi, pj, near)
+    _reset(reg, pi, pj, -1)
+    _reset(unit, pi, pj, -1)
     return n_row
 
 
 @numba.njit(cache=True)
-def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, out):  # pragma: no cover - compiled
+def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, out, pi, pj,
+                    near):  # pragma: no cover - compiled
     """Add to each unit's summed darkness that of the pixels just outside it.
 
     A blurred edge leaves part of a shadow below the segmentation threshold, in the
@@ -440,14 +461,27 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, out):  # pragma: no cove
     Every valid pixel outside all regions whose 8 neighbours touch exactly one region
     gives that region its relative darkness (of either sign, so that noise does not bias
     it), shared equally between the parts of the region it touches when the region was
-    split; pixels between two regions are left out.
+    split; pixels between two regions are left out. ``pi, pj``: the region pixels in
+    raster order; ``near`` (all False) is a work array of the view's shape, left as it
+    was found.
     """
     h, w = unit.shape
     cap = out.shape[0]
     touched = np.empty(8, dtype=np.int64)
+    # Mark the pixels within one pixel of a region first: regions are sparse, and only
+    # those pixels need their 8 neighbours read. Raster order (and so every sum) is kept.
+    row_near = np.zeros(h, dtype=np.bool_)
+    for p in range(pi.shape[0]):
+        i, j = pi[p], pj[p]
+        for ii in range(max(i - 1, 0), min(i + 2, h)):
+            row_near[ii] = True
+            for jj in range(max(j - 1, 0), min(j + 2, w)):
+                near[ii, jj] = True
     for i in range(h):
+        if not row_near[i]:
+            continue
         for j in range(w):
-            if reg[i, j] >= 0 or not valid[i, j]:
+            if not near[i, j] or reg[i, j] >= 0 or not valid[i, j]:
                 continue
             region = -1
             several = False
@@ -477,17 +511,42 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, out):  # pragma: no cove
                 k = row_of[touched[m]]
                 if 0 <= k < cap:
                     out[k, _SD] += share
+    for p in range(pi.shape[0]):
+        i, j = pi[p], pj[p]
+        for ii in range(max(i - 1, 0), min(i + 2, h)):
+            for jj in range(max(j - 1, 0), min(j + 2, w)):
+                near[ii, jj] = False
+
+
+@numba.njit(cache=True)
+def _work_arrays(h, w):  # pragma: no cover - compiled
+    """A clean work space for :func:`_segment_one` on views of ``h x w`` samples:
+    ``valid, weight, rel_dark`` (filled per view), ``labels`` (0), ``reg, unit, core``
+    (-1), ``near`` (False), the foreground pixel list ``pi, pj`` and the union-find
+    ``parent``."""
+    return (np.empty((h, w), dtype=np.bool_), np.empty((h, w), dtype=np.float32),
+            np.empty((h, w), dtype=np.float32), np.zeros((h, w), dtype=np.int32),
+            np.full((h, w), -1, dtype=np.int32), np.full((h, w), -1, dtype=np.int32),
+            np.full((h, w), -1, dtype=np.int32), np.zeros((h, w), dtype=np.bool_),
+            np.empty(h * w, dtype=np.int32), np.empty(h * w, dtype=np.int32),
+            np.empty(h * w // 2 + 2, dtype=np.int32))
 
 
 @numba.njit(parallel=True, cache=True)
 def _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast,
-                   min_core_ratio, conn8, out, counts):  # pragma: no cover - compiled
-    for k in numba.prange(stack.shape[0]):
-        if use[k]:
-            counts[k] = _segment_one(stack[k], mask, zero_invalid, b, rb, contrast,
-                                     core_contrast, min_core_ratio, conn8, out[k])
-        else:
-            counts[k] = 0
+                   min_core_ratio, conn8, out, counts, n_chunks):  # pragma: no cover - compiled
+    """Segment the views ``stack[k]`` with ``use[k]``; region sums into ``out[k]``, region
+    counts into ``counts[k]``. The views are dealt out to ``n_chunks`` chunks (one per
+    thread), each with one work space (:func:`_work_arrays`) for all its views."""
+    n_views = stack.shape[0]
+    for c in numba.prange(n_chunks):
+        work = _work_arrays(stack.shape[1], stack.shape[2])
+        for k in range(c, n_views, n_chunks):
+            if use[k]:
+                counts[k] = _segment_one(stack[k], mask, zero_invalid, b, rb, contrast,
+                                         core_contrast, min_core_ratio, conn8, out[k], work)
+            else:
+                counts[k] = 0
 
 
 # --------------------------------------------------------------------------------------
@@ -504,7 +563,7 @@ def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8, core_c
     counts = np.zeros(n_views, dtype=np.int64)
     out = np.empty((n_views, _INITIAL_CAPACITY, _N_STATS), dtype=np.float64)
     _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast,
-                   min_core_ratio, conn8, out, counts)
+                   min_core_ratio, conn8, out, counts, _n_chunks(n_views))
     view_idx = np.repeat(np.arange(n_views), counts)
     rank = np.arange(len(view_idx)) - np.repeat(np.cumsum(counts) - counts, counts)
     full = counts > _INITIAL_CAPACITY
@@ -517,11 +576,16 @@ def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8, core_c
     more = np.empty((len(again), int(counts[again].max()), _N_STATS), dtype=np.float64)
     _segment_stack(np.ascontiguousarray(stack[again]), np.ones(len(again), dtype=bool), mask,
                    zero_invalid, b, rb, contrast, core_contrast, min_core_ratio, conn8, more,
-                   counts[again].copy())
+                   counts[again].copy(), _n_chunks(len(again)))
     slot = np.zeros(n_views, dtype=np.int64)
     slot[again] = np.arange(len(again))
     stats[~fits] = more[slot[view_idx[~fits]], rank[~fits]]
     return stats, view_idx
+
+
+def _n_chunks(n_views: int) -> int:
+    """Chunks of views for :func:`_segment_stack`: one per numba thread."""
+    return max(1, min(int(n_views), numba.get_num_threads()))
 
 
 def _background_blocks(window) -> tuple[int, int]:
