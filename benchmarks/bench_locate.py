@@ -39,11 +39,11 @@ tables. Printed per count: seconds per frame and per particle (mean over the see
 peak MB (largest over the seeds), the per-stage seconds of both, and the ratio baseline
 over plenoptrack.
 
-``--segment`` times the segmentation kernel alone (every view of the image's flat-fielded
-light field, the region sums the locator asks for) against ``segment.py`` of
-:data:`SEGMENT_BASELINE_REV` (read with ``git show`` and imported beside the current
-module), alternating, best of ``--repeat`` each, with ``--threads`` numba threads (default
-1); both must give identical region sums.
+``--kernels`` times single kernels (:data:`KERNELS_TIMED`: the segmentation of every view,
+the refinement's patch masks) on the calls one locate of the image makes, recorded and
+replayed, against the same functions of :data:`KERNEL_BASELINE_REV` (read with ``git
+show`` and imported beside the current modules), alternating, best of ``--repeat`` each,
+with ``--threads`` numba threads (default 1), and says whether the outputs are identical.
 """
 
 from __future__ import annotations
@@ -228,21 +228,34 @@ def scaling(args) -> None:
                                                                         strict=True)))
 
 
-SEGMENT_BASELINE_REV = "ab05a35c462d9afa5dba85e356132be9c85f0935"
-"""Revision whose segmentation is the baseline of ``--segment`` (before the kernel visited
-only the pixels in and around regions after labelling and reused one work space per
-thread)."""
+KERNEL_BASELINE_REV = "ab05a35c462d9afa5dba85e356132be9c85f0935"
+"""Revision whose segmentation and refinement patch masks are the baseline of
+``--kernels`` (before segmentation visited only the pixels in and around regions after
+labelling and reused one work space per thread, and before the patch masks computed the
+held neighbours' image only on the fitted pixels, with ``sqrt`` for ``hypot``)."""
+
+def _fitted_part(out):
+    """The patch masks the fit reads: ``near``, ``fit`` and the held image on ``fit``."""
+    fixed, near, fit = out
+    return np.where(fit, fixed, 1.0), near, fit
 
 
-def _segment_baseline(rev: str = SEGMENT_BASELINE_REV):
-    """``plenoptrack/locate/segment.py`` of ``rev``, imported as a sibling of the current
+KERNELS_TIMED = (("segmentation", "segment", "_region_stats", None),
+                 ("refinement patch masks", "refine", "_patch_masks", _fitted_part))
+"""``(label, module under plenoptrack.locate, function, what to compare)`` timed by
+``--kernels``; ``what to compare`` maps an output to the part the locator reads (None:
+all of it)."""
+
+
+def _baseline_module(name: str, rev: str = KERNEL_BASELINE_REV):
+    """``plenoptrack/locate/<name>.py`` of ``rev``, imported as a sibling of the current
     module (its relative imports resolve to the current package)."""
     root = Path(__file__).resolve().parents[1]
-    src = subprocess.run(["git", "show", f"{rev}:src/plenoptrack/locate/segment.py"], cwd=root,
+    src = subprocess.run(["git", "show", f"{rev}:src/plenoptrack/locate/{name}.py"], cwd=root,
                          capture_output=True, text=True, check=True).stdout
-    path = Path(tempfile.mkdtemp(prefix="bench_segment_")) / "_segment_baseline.py"
+    path = Path(tempfile.mkdtemp(prefix="bench_kernels_")) / f"_{name}_baseline.py"
     path.write_text(src)
-    spec = importlib.util.spec_from_file_location("plenoptrack.locate._segment_baseline", path)
+    spec = importlib.util.spec_from_file_location(f"plenoptrack.locate._{name}_baseline", path)
     module = importlib.util.module_from_spec(spec)
     module.__package__ = "plenoptrack.locate"
     sys.modules[spec.name] = module
@@ -250,41 +263,66 @@ def _segment_baseline(rev: str = SEGMENT_BASELINE_REV):
     return module
 
 
-def bench_segment(args) -> None:
-    """The segmentation kernel now and at :data:`SEGMENT_BASELINE_REV`, same inputs."""
+def _same(a, b) -> bool:
+    if isinstance(a, tuple):
+        return all(_same(x, y) for x, y in zip(a, b))
+    return np.array_equal(a, b)
+
+
+def _close(a, b) -> float:
+    """Largest absolute difference between two (nested tuples of) arrays."""
+    if isinstance(a, tuple):
+        return max(_close(x, y) for x, y in zip(a, b))
+    return float(np.max(np.abs(np.asarray(a, float) - np.asarray(b, float)), initial=0.0))
+
+
+def bench_kernels(args) -> None:
+    """Each kernel of :data:`KERNELS_TIMED` now and at :data:`KERNEL_BASELINE_REV`, on the
+    calls one locate of the image makes (recorded, then replayed)."""
+    import importlib
+
     import numba
 
-    import plenoptrack.locate.segment as segment
     from plenoptrack.locate.perspective import locate_frame
 
     calib, raw, _ = _prepare(args.preset, args.particles, args.seed, args.workdir, args.diameter)
     numba.set_num_threads(args.threads)
-    captured = {}
-    current = segment._region_stats
+    modules = {name: importlib.import_module(f"plenoptrack.locate.{name}")
+               for _, name, _, _ in KERNELS_TIMED}
+    calls = {label: [] for label, _, _, _ in KERNELS_TIMED}
+    originals = {}
+    for label, name, func, _ in KERNELS_TIMED:
+        current = getattr(modules[name], func)
+        originals[label] = current
 
-    def spy(*a, **k):
-        captured.setdefault("call", (a, k))
-        return current(*a, **k)
+        def spy(*a, _current=current, _calls=calls[label], **k):
+            _calls.append((a, k))
+            return _current(*a, **k)
 
-    segment._region_stats = spy
+        setattr(modules[name], func, spy)
     try:
         locate_frame(raw, calib)
     finally:
-        segment._region_stats = current
-    a, k = captured["call"]
-    base = _segment_baseline()
-    now_out, base_out = current(*a, **k), base._region_stats(*a, **k)   # compile both
-    same = all(np.array_equal(x, y) for x, y in zip(now_out, base_out))
-    t_now, t_base = [], []
-    for _ in range(args.repeat):
-        t_now.append(_best(lambda: current(*a, **k), 1)[0])
-        t_base.append(_best(lambda: base._region_stats(*a, **k), 1)[0])
-    stack = a[0]
-    print(f"{args.preset}: segmentation of {int(a[1].sum())} views of {stack.shape[1]} x "
-          f"{stack.shape[2]} samples, {len(now_out[1])} regions, {args.threads} thread(s), "
-          f"best of {args.repeat}, alternating")
-    print(f"  now {min(t_now):.3f} s, baseline ({SEGMENT_BASELINE_REV}) {min(t_base):.3f} s, "
-          f"speed-up {min(t_base) / min(t_now):.2f}x; identical region sums: {same}")
+        for label, name, func, _ in KERNELS_TIMED:
+            setattr(modules[name], func, originals[label])
+    print(f"{args.preset}: {args.particles} particles (seed {args.seed}), {args.threads} "
+          f"thread(s); the calls of one locate replayed, best of {args.repeat}, alternating; "
+          f"baseline {KERNEL_BASELINE_REV[:10]}")
+    for label, name, func, part in KERNELS_TIMED:
+        now = originals[label]
+        base = getattr(_baseline_module(name), func)
+        replay = calls[label]
+        part = part or (lambda out: out)
+        outs = [(part(now(*a, **k)), part(base(*a, **k))) for a, k in replay]  # compiles both
+        same = all(_same(x, y) for x, y in outs)
+        diff = max(_close(x, y) for x, y in outs)
+        t_now, t_base = [], []
+        for _ in range(args.repeat):
+            t_now.append(_best(lambda: [now(*a, **k) for a, k in replay], 1)[0])
+            t_base.append(_best(lambda: [base(*a, **k) for a, k in replay], 1)[0])
+        print(f"  {label:<24} {len(replay):4d} calls: now {min(t_now):.3f} s, baseline "
+              f"{min(t_base):.3f} s, speed-up {min(t_base) / min(t_now):.2f}x; "
+              + ("identical outputs" if same else f"outputs differ by at most {diff:.2g}"))
 
 
 def main() -> None:
@@ -300,12 +338,12 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1])
     ap.add_argument("--diameter", type=float, default=None,
                     help="particle diameter, mm (default: the preset's; 0.5 with --scaling)")
-    ap.add_argument("--segment", action="store_true",
-                    help="time the segmentation kernel against SEGMENT_BASELINE_REV")
-    ap.add_argument("--threads", type=int, default=1, help="numba threads for --segment")
+    ap.add_argument("--kernels", action="store_true",
+                    help="time the segmentation and patch-mask kernels against KERNEL_BASELINE_REV")
+    ap.add_argument("--threads", type=int, default=1, help="numba threads for --kernels")
     args = ap.parse_args()
-    if args.segment:
-        bench_segment(args)
+    if args.kernels:
+        bench_kernels(args)
         return
     if args.scaling:
         if args.diameter is None:

@@ -282,9 +282,10 @@ def _half_erfc(x, gauss):  # pragma: no cover - compiled
 @numba.njit(cache=True, nogil=True)
 def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
                  edge):  # pragma: no cover - compiled
-    """The held neighbours' image ``fixed`` (K, n, n), the pixels ``near`` (within 2 px
-    of any particle's image, excluded from the background) and the pixels ``fit``
-    (within ``margin`` px of a free image) of patches with pixel ``[0, 0]`` at ``origin``
+    """The held neighbours' image ``fixed`` (K, n, n; computed on the ``fit`` pixels only,
+    1 elsewhere), the pixels ``near`` (within 2 px of any particle's image, excluded from
+    the background) and the pixels ``fit`` (within ``margin`` px of a free image) of
+    patches with pixel ``[0, 0]`` at ``origin``
     (K, 2). ``st_held`` (m, K, 2) and ``rc_held`` (m, 2) are the held particles' image
     centres, radii and contrasts; ``st_free`` (k, K, 2) and ``r_free`` (k,) the free
     particles' centres and radii."""
@@ -305,18 +306,23 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
             t = origin[view, 1] + i
             for j in range(n):
                 s = origin[view, 0] + j
+                for q in range(st_free.shape[0]):
+                    ds = s - st_free[q, view, 0]
+                    dt = t - st_free[q, view, 1]
+                    rho = math.sqrt(ds * ds + dt * dt)
+                    near[view, i, j] |= rho < r_free[q] + 2.0
+                    fit[view, i, j] |= rho <= r_free[q] + margin
+                in_fit = fit[view, i, j]
                 for q in range(st_held.shape[0]):
                     if not reaches[q]:
                         continue
-                    rho = math.hypot(s - st_held[q, view, 0], t - st_held[q, view, 1])
+                    ds = s - st_held[q, view, 0]
+                    dt = t - st_held[q, view, 1]
+                    rho = math.sqrt(ds * ds + dt * dt)
                     near[view, i, j] |= rho < rc_held[q, 0] + 2.0
                     x = (rho - rc_held[q, 0]) * inv
-                    if x < 6.0:
+                    if in_fit and x < 6.0:   # the model reads the held image only there
                         fixed[view, i, j] *= 1.0 - rc_held[q, 1] * _half_erfc(x, math.exp(-x * x))
-                for q in range(st_free.shape[0]):
-                    rho = math.hypot(s - st_free[q, view, 0], t - st_free[q, view, 1])
-                    near[view, i, j] |= rho < r_free[q] + 2.0
-                    fit[view, i, j] |= rho <= r_free[q] + margin
     return fixed, near, fit
 
 
