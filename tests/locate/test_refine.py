@@ -114,9 +114,12 @@ def test_patch_masks_against_disc_image():
         s, t = origin[v, 0] + ss, origin[v, 1] + tt
         rho = [np.hypot(s - st_held[q, v, 0], t - st_held[q, v, 1]) for q in range(3)]
         expected = np.prod([disc_image(rho[q], *rc_held[q])[0] for q in range(3)], axis=0)
-        assert np.allclose(fixed[v], expected, atol=1e-6)
         rho_free = np.hypot(s - st_free[0, v, 0], t - st_free[0, v, 1])
         assert np.array_equal(fit[v], rho_free <= 5.5)
+        # the held image is what the model reads: on the fitted pixels; 1 elsewhere
+        assert fit[v].any() and (~fit[v]).any()
+        assert np.allclose(fixed[v][fit[v]], expected[fit[v]], atol=1e-6)
+        assert np.all(fixed[v][~fit[v]] == 1.0)
         assert np.array_equal(near[v], (rho_free < 4.5) | np.any(
             [rho[q] < rc_held[q, 0] + 2 for q in range(3)], axis=0))
 
