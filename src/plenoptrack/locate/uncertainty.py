@@ -64,8 +64,8 @@ times the frame's typical scatter (``1 / chi2`` in units of the particle's own):
 On the development seeds of the validation matrix, before this term, the particles whose
 image moved by less than 0.75 view pixels (ideal optics, base cell: |z| < 0.9 mm) had a
 robust depth spread of about 0.065 mm against a median sigma_z of 0.041 mm, and 3 of the
-15 lay beyond 3 sigma; pooled over the coverage cells, the term takes the fraction beyond 3 sigma
-in z from 0.042 to 0.023 (ideal) and from 0.028 to 0.021 (realistic), and makes the
+15 lay beyond 3 sigma; pooled over the coverage cells, the term takes the fraction beyond
+3 sigma in z from 0.042 to 0.023 (ideal) and from 0.028 to 0.021 (realistic), and makes the
 1-sigma coverage about the same at every travel.
 """
 
@@ -73,7 +73,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["total_sigma", "model_error_mm", "reduced_chi2", "image_travel_px", "sampling_groups"]
+__all__ = ["total_sigma", "model_error_mm", "reduced_chi2", "image_travel_px",
+           "sampling_groups"]
 
 SAMPLING_CELL_PX = 0.5
 """Views whose images of a particle lie within this distance of each other (view pixels)
@@ -152,18 +153,18 @@ def total_sigma(sigma_stat: np.ndarray, dlfc, *, error_scale: float,
     sigma_stat = np.asarray(sigma_stat, dtype=float)
     model = model_error_mm(dlfc, z) if include_model_error else np.zeros(3)
     factor = np.full(len(sigma_stat), float(error_scale) ** 2)
+    chi2 = None if chi2 is None else np.asarray(chi2, dtype=float)
+    n_views = None if n_views is None else np.asarray(n_views, dtype=float)
     if travel_px is not None:
-        shared = np.asarray(n_views, dtype=float) / sampling_groups(travel_px)
+        shared = n_views / sampling_groups(travel_px)
         if chi2 is not None:
             # the shared error is sized by the frame's typical scatter s0^2 = s^2 / chi2:
             # near focus the particle's own residuals do not show it
             with np.errstate(divide="ignore", invalid="ignore"):
-                typical = np.where(np.asarray(chi2, dtype=float) > 0, 1.0 / np.asarray(chi2, dtype=float), np.nan)
-            shared = shared * np.where(np.isfinite(typical), typical, 1.0)
+                typical = 1.0 / chi2
+            shared = shared * np.where(np.isfinite(typical) & (chi2 > 0), typical, 1.0)
         factor = factor + np.where(np.isfinite(shared), shared, 0.0)
     if chi2 is not None:
-        chi2 = np.asarray(chi2, dtype=float)
-        n_views = np.asarray(n_views, dtype=float)
         with np.errstate(divide="ignore", invalid="ignore"):
             inv = 1.0 / chi2
             excess = factor * inv + n_views * (1.0 - inv)
