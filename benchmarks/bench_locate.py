@@ -39,11 +39,12 @@ tables. Printed per count: seconds per frame and per particle (mean over the see
 peak MB (largest over the seeds), the per-stage seconds of both, and the ratio baseline
 over plenoptrack.
 
-``--kernels`` times single kernels (:data:`KERNELS_TIMED`: the segmentation of every view,
-the refinement's patch masks) on the calls one locate of the image makes, recorded and
-replayed, against the same functions of :data:`KERNEL_BASELINE_REV` (read with ``git
-show`` and imported beside the current modules), alternating, best of ``--repeat`` each,
-with ``--threads`` numba threads (default 1), and says whether the outputs are identical.
+``--kernels`` times single kernels (:data:`KERNELS_TIMED`: the decode's gather, the
+segmentation of every view, the refinement's patch masks) on the calls one locate of the
+image makes, recorded and replayed, against the same functions of
+:data:`KERNEL_BASELINE_REV` (read with ``git show`` and imported beside the current
+modules), alternating, best of ``--repeat`` each, with ``--threads`` numba threads
+(default 1), and says whether the outputs are identical.
 """
 
 from __future__ import annotations
@@ -229,10 +230,11 @@ def scaling(args) -> None:
 
 
 KERNEL_BASELINE_REV = "ab05a35c462d9afa5dba85e356132be9c85f0935"
-"""Revision whose segmentation and refinement patch masks are the baseline of
-``--kernels`` (before segmentation visited only the pixels in and around regions after
-labelling and reused one work space per thread, and before the patch masks computed the
-held neighbours' image only on the fitted pixels, with ``sqrt`` for ``hypot``)."""
+"""Revision whose kernels are the baseline of ``--kernels``: before the decode's gather
+interpolated rows then columns, segmentation visited only the pixels in and around
+regions after labelling and reused one work space per thread, and the patch masks
+computed the held neighbours' image only on the fitted pixels, with ``sqrt`` for
+``hypot``."""
 
 def _fitted_part(out):
     """The patch masks the fit reads: ``near``, ``fit`` and the held image on ``fit``."""
@@ -240,24 +242,28 @@ def _fitted_part(out):
     return np.where(fit, fixed, 1.0), near, fit
 
 
-KERNELS_TIMED = (("segmentation", "segment", "_region_stats", None),
-                 ("refinement patch masks", "refine", "_patch_masks", _fitted_part))
-"""``(label, module under plenoptrack.locate, function, what to compare)`` timed by
+KERNELS_TIMED = (("decode gather", "lightfield.decode", "_gather", None),
+                 ("segmentation", "locate.segment", "_region_stats", None),
+                 ("refinement patch masks", "locate.refine", "_patch_masks", _fitted_part))
+"""``(label, module under plenoptrack, function, what to compare)`` timed by
 ``--kernels``; ``what to compare`` maps an output to the part the locator reads (None:
-all of it)."""
+all of it). A function that fills an output argument (the decode's ``_gather``) is
+compared on that argument."""
 
 
 def _baseline_module(name: str, rev: str = KERNEL_BASELINE_REV):
-    """``plenoptrack/locate/<name>.py`` of ``rev``, imported as a sibling of the current
-    module (its relative imports resolve to the current package)."""
+    """Module ``plenoptrack.<name>`` (e.g. ``locate.segment``) of ``rev``, imported as a
+    sibling of the current module (its relative imports resolve to the current package)."""
     root = Path(__file__).resolve().parents[1]
-    src = subprocess.run(["git", "show", f"{rev}:src/plenoptrack/locate/{name}.py"], cwd=root,
+    package, _, leaf = f"plenoptrack.{name}".rpartition(".")
+    relpath = f"src/plenoptrack/{name.replace('.', '/')}.py"
+    src = subprocess.run(["git", "show", f"{rev}:{relpath}"], cwd=root,
                          capture_output=True, text=True, check=True).stdout
-    path = Path(tempfile.mkdtemp(prefix="bench_kernels_")) / f"_{name}_baseline.py"
+    path = Path(tempfile.mkdtemp(prefix="bench_kernels_")) / f"_{leaf}_baseline.py"
     path.write_text(src)
-    spec = importlib.util.spec_from_file_location(f"plenoptrack.locate._{name}_baseline", path)
+    spec = importlib.util.spec_from_file_location(f"{package}._{leaf}_baseline", path)
     module = importlib.util.module_from_spec(spec)
-    module.__package__ = "plenoptrack.locate"
+    module.__package__ = package
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
@@ -287,7 +293,7 @@ def bench_kernels(args) -> None:
 
     calib, raw, _ = _prepare(args.preset, args.particles, args.seed, args.workdir, args.diameter)
     numba.set_num_threads(args.threads)
-    modules = {name: importlib.import_module(f"plenoptrack.locate.{name}")
+    modules = {name: importlib.import_module(f"plenoptrack.{name}")
                for _, name, _, _ in KERNELS_TIMED}
     calls = {label: [] for label, _, _, _ in KERNELS_TIMED}
     originals = {}
@@ -313,13 +319,25 @@ def bench_kernels(args) -> None:
         base = getattr(_baseline_module(name), func)
         replay = calls[label]
         part = part or (lambda out: out)
-        outs = [(part(now(*a, **k)), part(base(*a, **k))) for a, k in replay]  # compiles both
+        fills = label == "decode gather"          # writes into its last argument
+        buffers = [np.empty_like(a[-1]) for a, _ in replay] if fills else None
+
+        def run(fn, i, a, k, keep=False):
+            if fills:
+                fn(*a[:-1], buffers[i], **k)
+                return buffers[i].copy() if keep else None
+            return fn(*a, **k)
+
+        outs = [(part(run(now, i, a, k, True)), part(run(base, i, a, k, True)))  # compiles
+                for i, (a, k) in enumerate(replay)]
         same = all(_same(x, y) for x, y in outs)
         diff = max(_close(x, y) for x, y in outs)
         t_now, t_base = [], []
         for _ in range(args.repeat):
-            t_now.append(_best(lambda: [now(*a, **k) for a, k in replay], 1)[0])
-            t_base.append(_best(lambda: [base(*a, **k) for a, k in replay], 1)[0])
+            t_now.append(_best(lambda: [run(now, i, a, k) for i, (a, k) in enumerate(replay)],
+                               1)[0])
+            t_base.append(_best(lambda: [run(base, i, a, k) for i, (a, k) in enumerate(replay)],
+                                1)[0])
         print(f"  {label:<24} {len(replay):4d} calls: now {min(t_now):.3f} s, baseline "
               f"{min(t_base):.3f} s, speed-up {min(t_base) / min(t_now):.2f}x; "
               + ("identical outputs" if same else f"outputs differ by at most {diff:.2g}"))

@@ -228,6 +228,8 @@ def _gather(raw, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - comp
     hi_r = raw.shape[0] - 2
     hi_c = raw.shape[1] - 2
     for t in numba.prange(t_lo, t_hi):
+        row0 = np.empty((n_ang, n_ang + 1))
+        row1 = np.empty((n_ang, n_ang + 1))
         for s in range(n_s):
             j0 = j0s[t, s]
             w1 = ws[t, s]
@@ -239,7 +241,7 @@ def _gather(raw, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - comp
             pc1 = cen[t, j1, 1] - rad
             inside = (min(pr0, pr1) >= 0.0 and max(pr0, pr1) + 2 * rad <= hi_r
                       and min(pc0, pc1) >= 0.0 and max(pc0, pc1) + 2 * rad <= hi_c)
-            if inside:  # fast path: no clamping
+            if inside:  # fast path: no clamping; bilinear taps split into rows, then columns
                 r0 = int(math.floor(pr0))
                 c0 = int(math.floor(pc0))
                 r1 = int(math.floor(pr1))
@@ -248,25 +250,25 @@ def _gather(raw, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - comp
                 fc0 = pc0 - c0
                 fr1 = pr1 - r1
                 fc1 = pc1 - c1
-                a00 = w0 * (1.0 - fr0) * (1.0 - fc0)
-                a01 = w0 * (1.0 - fr0) * fc0
-                a10 = w0 * fr0 * (1.0 - fc0)
-                a11 = w0 * fr0 * fc0
-                b00 = w1 * (1.0 - fr1) * (1.0 - fc1)
-                b01 = w1 * (1.0 - fr1) * fc1
-                b10 = w1 * fr1 * (1.0 - fc1)
-                b11 = w1 * fr1 * fc1
                 for iv in range(n_ang):
-                    ra = r0 + iv
-                    rb = r1 + iv
+                    for k in range(n_ang + 1):
+                        row0[iv, k] = ((1.0 - fr0) * raw[r0 + iv, c0 + k]
+                                       + fr0 * raw[r0 + iv + 1, c0 + k])
+                if w1 == 0.0:  # on a lens centre (every sample of a rectangular grid)
+                    for iv in range(n_ang):
+                        for iu in range(n_ang):
+                            out[iv, iu, t, s] = w0 * ((1.0 - fc0) * row0[iv, iu]
+                                                      + fc0 * row0[iv, iu + 1])
+                    continue
+                for iv in range(n_ang):
+                    for k in range(n_ang + 1):
+                        row1[iv, k] = ((1.0 - fr1) * raw[r1 + iv, c1 + k]
+                                       + fr1 * raw[r1 + iv + 1, c1 + k])
+                for iv in range(n_ang):
                     for iu in range(n_ang):
-                        ca = c0 + iu
-                        cb = c1 + iu
                         out[iv, iu, t, s] = (
-                            a00 * raw[ra, ca] + a01 * raw[ra, ca + 1]
-                            + a10 * raw[ra + 1, ca] + a11 * raw[ra + 1, ca + 1]
-                            + b00 * raw[rb, cb] + b01 * raw[rb, cb + 1]
-                            + b10 * raw[rb + 1, cb] + b11 * raw[rb + 1, cb + 1])
+                            w0 * ((1.0 - fc0) * row0[iv, iu] + fc0 * row0[iv, iu + 1])
+                            + w1 * ((1.0 - fc1) * row1[iv, iu] + fc1 * row1[iv, iu + 1]))
             else:  # lens image reaches past the sensor edge: clamp every tap
                 for iv in range(n_ang):
                     ra, fra = _corner(pr0 + iv, hi_r)

@@ -62,7 +62,7 @@ times the frame's typical scatter (``1 / chi2`` in units of the particle's own):
     k^2  ->  k^2 + (n / g) / chi2        (chi2 taken as 1 when unknown)
 
 On the development seeds of the validation matrix, before this term, the particles whose
-image moved by less than 0.75 view pixels (ideal optics, base cell: |z| < 0.9 mm) had a
+image moved by less than 0.75 view pixels (ideal optics, base cell: abs(z) < 0.9 mm) had a
 robust depth spread of about 0.065 mm against a median sigma_z of 0.041 mm, and 3 of the
 15 lay beyond 3 sigma; pooled over the coverage cells, the term takes the fraction beyond
 3 sigma in z from 0.042 to 0.023 (ideal) and from 0.028 to 0.021 (realistic), and makes the
