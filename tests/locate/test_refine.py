@@ -7,7 +7,7 @@ from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.locate.refine import (_masked_row_percentile, _normal_equations,
-                                       _patch_masks, disc_image, fit_images,
+                                       _patch_masks, _robust_sd, disc_image, fit_images,
                                        overlap_fraction)
 from plenoptrack.simulate import make_scene, render_frame
 
@@ -294,3 +294,14 @@ def test_refinement_keeps_recall_and_reduces_depth_error(small_calibrated):
     assert n_ref >= n_base - 1
     base, ref = np.concatenate(base_err), np.concatenate(ref_err)
     assert np.sqrt(np.mean(ref ** 2)) < np.sqrt(np.mean(base ** 2))
+
+
+def test_robust_sd_is_scipys_normal_scaled_mad():
+    from scipy.stats import median_abs_deviation
+
+    rng = np.random.default_rng(4)
+    for n in (1, 2, 7, 1000):
+        x = rng.standard_t(3, n)
+        assert _robust_sd(x) == float(median_abs_deviation(x, scale="normal"))
+    assert _robust_sd(rng.normal(0.0, 2.0, 200_000)) == pytest.approx(2.0, rel=0.01)
+
