@@ -295,9 +295,9 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
     """The held neighbours' image ``fixed`` (K, n, n; computed on the ``fit`` pixels only,
     1 elsewhere), the pixels ``near`` (within 2 px of any particle's image, excluded from
     the background) and the pixels ``fit`` (within ``margin`` px of a free image) of
-    patches with pixel ``[0, 0]`` at ``origin`` (K, 2). ``st_held`` (m, K, 2) and ``rc_held`` (m, 2) are the held particles' image
-    centres, radii and contrasts; ``st_free`` (k, K, 2) and ``r_free`` (k,) the free
-    particles' centres and radii."""
+    patches with pixel ``[0, 0]`` at ``origin`` (K, 2). ``st_held`` (m, K, 2) and
+    ``rc_held`` (m, 2) are the held particles' image centres, radii and contrasts;
+    ``st_free`` (k, K, 2) and ``r_free`` (k,) the free particles' centres and radii."""
     n_views = origin.shape[0]
     fixed = np.ones((n_views, n, n))
     near = np.zeros((n_views, n, n), dtype=np.bool_)
