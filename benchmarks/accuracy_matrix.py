@@ -345,6 +345,7 @@ def match(measured: pd.DataFrame, truth: pd.DataFrame, magnification: float) -> 
         "dx": m["x"] - t["x"], "dy": m["y"] - t["y"], "dz": m["z"] - t["z"],
         "sigma_x": m["sigma_x"], "sigma_y": m["sigma_y"], "sigma_z": m["sigma_z"],
         "diameter": m["diameter"], "true_diameter": t["diameter"],
+        "x_true": t["x"], "y_true": t["y"], "z_true": t["z"],
         **{c: m[c] for c in ("chi2", "travel_px", "n_views", "flags") if c in m}})
 
 

@@ -16,7 +16,8 @@ it also prints, per optics mode, the least-squares scale ``error_scale`` that gi
 coverage with the DLFC model error in place; claims are made on the validation seeds.
 On development seeds 100-102 it was 2.21 for ideal optics before the shared sampling term
 (``SolveSettings.sampling_error``); with that term the model error and the sampling term
-alone cover more than 68 % on some axis (0.71 ideal, the floor for realistic), so the
+alone cover more than 68 % on some axis (0.71 ideal, the floor for realistic; the floor
+for both once refined particles count their centroids' excess scatter), so the
 scale no longer sets the 1-sigma coverage and the default 2.3 of
 :class:`~plenoptrack.locate.settings.SolveSettings` stays.
 
@@ -130,7 +131,8 @@ def summary(pairs: pd.DataFrame) -> pd.DataFrame:
 def _variance_factor(pairs: pd.DataFrame, k: float) -> np.ndarray:
     """``(sigma^2 - model^2) / sigma_stat^2`` of each pair for error scale ``k``, as
     :func:`~plenoptrack.locate.uncertainty.total_sigma` forms it (with the excess scatter
-    of unrefined particles when the settings count it and the pairs record ``chi2``)."""
+    when the settings count it and the pairs record ``chi2``; refined particles' sigma is
+    their image fit's)."""
     from plenoptrack.locate.settings import SolveSettings
     from plenoptrack.locate.triangulate import TriangulationFlag
     from plenoptrack.locate.uncertainty import total_sigma
@@ -138,13 +140,13 @@ def _variance_factor(pairs: pd.DataFrame, k: float) -> np.ndarray:
     settings = SolveSettings()
     chi2 = travel = None
     n_views = pairs["n_views"].to_numpy(float) if "n_views" in pairs else None
+    refined = (pairs["flags"].to_numpy(np.int64) & int(TriangulationFlag.REFINED)) > 0
     if settings.excess_scatter and "chi2" in pairs:
-        refined = (pairs["flags"].to_numpy(np.int64) & int(TriangulationFlag.REFINED)) > 0
-        chi2 = np.where(refined, np.nan, pairs["chi2"].to_numpy(float))
+        chi2 = pairs["chi2"].to_numpy(float)
     if settings.sampling_error and "travel_px" in pairs:
         travel = pairs["travel_px"].to_numpy(float)
     unit = total_sigma(np.ones((len(pairs), 3)), None, error_scale=k, include_model_error=False,
-                       chi2=chi2, n_views=n_views, travel_px=travel)
+                       chi2=chi2, n_views=n_views, travel_px=travel, from_centroids=~refined)
     return unit[:, 0] ** 2
 
 
@@ -195,6 +197,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seeds", choices=list(SEED_SETS), default="validation")
     parser.add_argument("--optics", nargs="+", choices=am.OPTICS, default=list(am.OPTICS))
     parser.add_argument("--from-parquet", type=Path, default=None)
+    parser.add_argument("--out", type=Path, default=OUT,
+                        help=f"folder of the pairs and summary (default {OUT})")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
     if args.from_parquet is not None:
@@ -205,8 +209,8 @@ def main(argv=None) -> int:
             pairs = gather(SEED_SETS[args.seeds], args.optics, tmp)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
-        OUT.mkdir(parents=True, exist_ok=True)
-        pairs.to_parquet(OUT / f"pairs_{args.seeds}.parquet")
+        args.out.mkdir(parents=True, exist_ok=True)
+        pairs.to_parquet(args.out / f"pairs_{args.seeds}.parquet")
     table = summary(pairs)
     pd.set_option("display.width", 250)
     cols = ["optics", "cell", "n"] + [f"{ax} {m}" for ax in "xyz"
@@ -228,8 +232,8 @@ def main(argv=None) -> int:
                          f"axes: {k:.2f}" + (" (an axis's model error alone covers 68 %: it "
                                              "counts as 0.1)" if floor else ""))
             print(lines[-1])
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / f"summary_{args.seeds}.md").write_text("\n".join(lines) + "\n")
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"summary_{args.seeds}.md").write_text("\n".join(lines) + "\n")
     return 0
 
 

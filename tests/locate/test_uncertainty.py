@@ -170,6 +170,25 @@ def test_sampling_error_term_adds_the_views_that_share_it():
     np.testing.assert_allclose(low[0, 0], 0.01 * np.sqrt(4.0 + 4.0))
 
 
+def test_image_fit_sigma_keeps_the_excess_scatter_but_not_the_typical_scale():
+    """A sigma from an image fit (``from_centroids`` False) is not the centroids'
+    scatter, so the shared sampling error is sized by that sigma itself, not by the
+    frame's typical scatter 1 / chi2; the centroids' excess scatter (chi2 > 1) still
+    counts as shared by all views."""
+    stat = np.full((2, 3), 0.01)
+    n = np.array([100.0, 100.0])
+    chi2 = np.array([0.25, 4.0])
+    travel = np.array([4.5, 4.5])                    # g = 100: n / g = 1
+    kw = dict(error_scale=2.0, include_model_error=False, n_views=n, chi2=chi2,
+              travel_px=travel)
+    fit = total_sigma(stat, None, from_centroids=np.array([False, False]), **kw)
+    # chi2 0.25: k^2 + n / g, no 1 / chi2; chi2 4: (k^2 + n / g) / 4 + n (1 - 1 / 4)
+    np.testing.assert_allclose(fit[:, 0], 0.01 * np.sqrt([4.0 + 1.0, 5.0 / 4 + 75.0]))
+    cent = total_sigma(stat, None, from_centroids=np.array([True, True]), **kw)
+    np.testing.assert_allclose(cent[:, 0], 0.01 * np.sqrt([4.0 + 4.0, (4.0 + 0.25) / 4 + 75.0]))
+    np.testing.assert_allclose(total_sigma(stat, None, **kw), cent)
+
+
 def test_sampling_error_covers_particles_near_the_focal_plane():
     """Monte Carlo: each centroid is pulled towards the nearest view-pixel centre
     (pixel-locking, 0.08 px) plus independent 0.03 px noise; positions are solved by

@@ -605,15 +605,17 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     n_views = particles["n_views"].to_numpy(float)
     chi2 = reduced_chi2(particles["residual_px"].to_numpy(float), n_views)
     travel = image_travel_px(ctx.dlfc, positions, owner, ctx.views[ctx.view])[keep]
-    # a refined particle's sigma is its image fit's, not its centroids'
+    # A refined particle's sigma is its image fit's, not its centroids'. Its centroids'
+    # excess scatter still counts: it marks a disturbance (an unseen neighbour, an image
+    # that is not a disc) that the fit's residuals within each view do not reveal.
     refined = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.REFINED)) > 0
     particles[sigma] = total_sigma(particles[sigma].to_numpy(float), ctx.dlfc,
                                    error_scale=solve.error_scale,
                                    include_model_error=solve.model_error,
-                                   chi2=np.where(refined, np.nan, chi2)
-                                   if solve.excess_scatter else None, n_views=n_views,
-                                   z=particles["z"].to_numpy(float),
-                                   travel_px=travel if solve.sampling_error else None)
+                                   chi2=chi2 if solve.excess_scatter else None,
+                                   n_views=n_views, z=particles["z"].to_numpy(float),
+                                   travel_px=travel if solve.sampling_error else None,
+                                   from_centroids=~refined)
     particles["chi2"] = chi2
     particles["travel_px"] = travel
     particles.insert(0, T_COLUMN, frame)
