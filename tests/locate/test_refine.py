@@ -266,8 +266,8 @@ def test_refinement_keeps_recall_and_reduces_depth_error(small_calibrated):
     """Denser small scenes: refitting overlapped particles loses none and lowers the
     depth RMS error of the particles it moves."""
     optics, calib = small_calibrated
-    on = PerspectiveLocator()
-    assert on.check.refine_images   # on by default
+    assert PerspectiveLocator().check.refine_images   # on by default
+    on = PerspectiveLocator.from_dict({"check": {"split_merged": False}})
     off = PerspectiveLocator.from_dict({"check": {"refine_images": False}})
     base_err, ref_err, n_base, n_ref = [], [], 0, 0
     refined = int(TriangulationFlag.REFINED)

@@ -23,7 +23,9 @@
    refit those whose centroids are partly pulled by overlapping images, and solve again;
    then (``check.refine_images``, on by default) refit particles whose images overlap
    others' to the view pixels themselves (:func:`refine_particles`,
-   :mod:`~plenoptrack.locate.refine`);
+   :mod:`~plenoptrack.locate.refine`), and (``check.split_merged``) refit as two the
+   particles whose pixels one image cannot explain, two particles on nearly one line
+   of sight taken for one (:func:`split_merged_particles`);
 6. :func:`measure_particles` -- uncertainties (least-squares errors scaled for
    view-correlated centroid errors, plus the DLFC's model error;
    :mod:`~plenoptrack.locate.uncertainty`), in-plane size and shape from the member
@@ -70,7 +72,7 @@ from .uncertainty import image_travel_px, reduced_chi2, total_sigma
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
            "solve_particles", "grow_particles", "check_particles", "refine_particles",
-           "measure_particles"]
+           "split_merged_particles", "measure_particles"]
 
 PARTICLE_COLUMNS = (T_COLUMN, *POS_COLUMNS, "sigma_x", "sigma_y", "sigma_z", "n_views",
                     "confidence", "residual_px", "chi2", "travel_px", "diameter", "major_axis",
@@ -290,6 +292,8 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     if locator.check.refine_images:
         with clock("refine"):
             state = refine_particles(ctx, state, locator)
+            if locator.check.split_merged:
+                state = split_merged_particles(ctx, state, locator.check)
     with clock("checks"):
         particles, detections = measure_particles(ctx, state, locator.solve, frame=frame)
     if len(particles) == 0:
@@ -507,10 +511,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     radius = 0.5 * _member_diameter(ctx.detections, state.owner, n)
     keep &= np.isfinite(radius)
     lf = ctx.lf
-    vi = np.searchsorted(lf.v, ctx.views[:, 1])
-    ui = np.searchsorted(lf.u, ctx.views[:, 0])
-    usable = lf.valid_fraction[vi, ui] > 0.5
-    views_uv, view_rc = ctx.views[usable], np.c_[vi, ui][usable]
+    views_uv, view_rc = _fit_views(ctx)
     rc = np.c_[radius, np.full(n, 0.9)]
     centroid_sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
     sigma = centroid_sigma.copy()
@@ -553,7 +554,192 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     flags[changed] |= int(TriangulationFlag.REFINED)
     flags[keep & unexplained] |= int(TriangulationFlag.UNEXPLAINED)
     table["flags"] = flags
+    # what the split stage reads: how well each particle's last fit explained its pixels,
+    # and the image radius and contrast it found
+    fitted = keep & np.isfinite(model_error)
+    table[_FIT_ERROR] = np.where(fitted, model_error, np.nan)
+    table[_FIT_RADIUS] = np.where(fitted, rc[:, 0], np.nan)
+    table[_FIT_CONTRAST] = np.where(fitted, rc[:, 1], np.nan)
     return dataclasses.replace(state, positions=pos, table=table)
+
+
+_FIT_ERROR = "_fit_model_error"
+_FIT_RADIUS = "_fit_radius_px"
+_FIT_CONTRAST = "_fit_contrast"
+
+
+def _fit_views(ctx: FrameContext) -> tuple[np.ndarray, np.ndarray]:
+    """The views an image fit uses (more than half of their samples valid): their
+    ``(u, v)`` (V, 2) and their ``(v, u)`` index into the light field (V, 2)."""
+    lf = ctx.lf
+    vi = np.searchsorted(lf.v, ctx.views[:, 1])
+    ui = np.searchsorted(lf.u, ctx.views[:, 0])
+    usable = lf.valid_fraction[vi, ui] > 0.5
+    return ctx.views[usable], np.c_[vi, ui][usable]
+
+
+def split_merged_particles(ctx: FrameContext, state: ParticleState,
+                           settings: CheckSettings) -> ParticleState:
+    """Stage 5c: separate two particles on nearly one line of sight taken for one.
+
+    Two particles whose images overlap in every view (nearly in line with the camera,
+    far enough apart in depth) give one merged region per view; the clustering takes
+    them for one particle between them, and the refinement cannot explain its pixels
+    with one disc (``UNEXPLAINED``). Each such particle is refitted as two
+    (:func:`~plenoptrack.locate.refine.fit_images`, its neighbours held), started on the
+    line of sight of its central-view image one view pixel of image travel either side
+    of it in depth (:func:`_line_of_sight_pair`). The two are kept when both images are
+    opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
+    (model error at most ``1 / settings.split_min_gain`` of the single fit's) and
+    neither is a particle already located. The first takes the particle's row, the
+    second is appended; both carry ``REFINED`` and ``SPLIT`` and their position, sigma
+    and image radius come from the fit.
+    """
+    from .refine import fit_images
+
+    table = state.table
+    if _FIT_ERROR not in table.columns or state.n_particles == 0:
+        return state
+    flags = table["flags"].fillna(0).to_numpy(np.int64).copy()
+    pos = state.positions.copy()
+    single_error = table[_FIT_ERROR].to_numpy(float).copy()
+    candidates = np.flatnonzero(((flags & int(TriangulationFlag.UNEXPLAINED)) > 0)
+                                & np.isfinite(single_error) & np.all(np.isfinite(pos), axis=1))
+    if len(candidates) == 0:
+        return state
+    views_uv, view_rc = _fit_views(ctx)
+    # neighbours are drawn with the image their own fit found, where they had one
+    fit_radius = table[_FIT_RADIUS].to_numpy(float)
+    radius = np.where(np.isfinite(fit_radius), fit_radius,
+                      0.5 * _member_diameter(ctx.detections, state.owner, state.n_particles))
+    contrast = np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
+    sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
+    fit_error = single_error.copy()
+    parent, n_views = [], []           # of each appended particle
+    unexplained, refined = int(TriangulationFlag.UNEXPLAINED), int(TriangulationFlag.REFINED)
+
+    def neighbours(i, pred):
+        """Particles whose images come within 4 view pixels of particle i's in a view."""
+        live = np.all(np.isfinite(pos), axis=1) & np.isfinite(radius)
+        gap = np.hypot(*(pred - pred[i][None]).transpose(2, 0, 1))          # (P, V)
+        near = live & np.any(gap < (radius + radius[i] + 4.0)[:, None], axis=1)
+        near[i] = False
+        return np.flatnonzero(near)
+
+    for m in candidates:
+        if not flags[m] & unexplained:     # explained by a neighbour's split meanwhile
+            continue
+        pred = _predict_views(ctx.dlfc, pos, views_uv)
+        held = neighbours(m, pred)
+        two = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data,
+                         _line_of_sight_pair(ctx.dlfc, pos[m], views_uv),
+                         np.tile([radius[m], 0.9], (2, 1)), pos[held],
+                         np.c_[radius[held], contrast[held]],
+                         max_depth_shift=ctx.volume_depth_mm)
+        if (two is None or not np.all(np.isfinite(two.params))
+                or two.params[:, 4].min() < settings.split_min_contrast
+                or two.model_error * settings.split_min_gain > single_error[m]):
+            continue
+        pair_pred = _predict_views(ctx.dlfc, two.params[:, :3], views_uv)
+        apart = np.hypot(*(pair_pred[0] - pair_pred[1]).T)
+        if not np.nanmax(apart) >= two.params[:, 3].min():
+            continue    # one image fitted with two discs: they stand apart in no view
+        others = np.setdiff1d(np.flatnonzero(np.isfinite(radius)
+                                             & np.all(np.isfinite(pos), axis=1)), [m])
+        if _coincides(pair_pred, two.params[:, 3], pred[others], radius[others]):
+            continue
+        # the image nearer the merged solution in depth keeps the particle's row
+        first = int(np.argmin(np.abs(two.params[:, 2] - pos[m, 2])))
+        order = [first, 1 - first]
+        pos = np.vstack([pos, two.params[order[1], :3]])
+        pos[m] = two.params[first, :3]
+        sigma = np.vstack([sigma, two.sigma[order[1]]])
+        sigma[m] = two.sigma[first]
+        radius = np.append(radius, 0.0)
+        radius[[m, -1]] = two.params[order, 3]
+        contrast = np.append(contrast, 0.0)
+        contrast[[m, -1]] = two.params[order, 4]
+        fit_error = np.append(fit_error, two.model_error)
+        fit_error[m] = two.model_error
+        flags[m] = (flags[m] & ~unexplained) | refined | int(TriangulationFlag.SPLIT)
+        flags = np.append(flags, refined | int(TriangulationFlag.SPLIT))
+        parent.append(m)
+        n_views.append(two.n_views)
+        # The pair's merged image also spoilt its neighbours' fits: refit those the
+        # refinement could not explain, now beside the two.
+        pred = _predict_views(ctx.dlfc, pos, views_uv)
+        for q in held[(flags[held] & unexplained) > 0]:
+            near = neighbours(q, pred)
+            one = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, pos[[q]],
+                             np.array([[radius[q], contrast[q]]]), pos[near],
+                             np.c_[radius[near], contrast[near]],
+                             max_depth_shift=0.1 * ctx.volume_depth_mm)
+            if one is None or not np.all(np.isfinite(one.params)):
+                continue
+            single_error[q] = one.model_error
+            if one.model_error <= settings.refine_max_model_error:
+                pos[q] = one.params[0, :3]
+                sigma[q] = np.where(np.isfinite(one.sigma[0]), one.sigma[0], sigma[q])
+                radius[q], contrast[q] = one.params[0, 3:]
+                fit_error[q] = one.model_error
+                flags[q] = (flags[q] & ~unexplained) | refined
+                pred[q] = _predict_views(ctx.dlfc, pos[[q]], views_uv)[0]
+    if not parent:
+        return state
+    extra = table.loc[parent].copy()
+    extra["cluster"] = -1
+    extra["n_views"] = np.asarray(n_views, dtype=extra["n_views"].dtype)
+    extra["residual_px"] = np.nan
+    extra["mean_residual_px"] = np.nan
+    table = pd.concat([table, extra], ignore_index=True)
+    table["flags"] = flags
+    table[list(POS_COLUMNS)] = pos
+    table[list(SIGMA_COLUMNS)] = sigma
+    table[_FIT_ERROR] = fit_error
+    table[_FIT_RADIUS] = radius
+    table[_FIT_CONTRAST] = contrast
+    initial = np.vstack([state.initial, pos[len(state.initial):]])
+    return dataclasses.replace(state, initial=initial, positions=pos, table=table)
+
+
+def _predict_views(dlfc, positions: np.ndarray, views_uv: np.ndarray) -> np.ndarray:
+    """(P, V, 2) predicted image centres ``(s, t)`` of ``positions`` (P, 3) in the
+    views ``views_uv`` (V, 2); NaN rows for NaN positions."""
+    s, t = dlfc.predict(positions[:, None, 0], positions[:, None, 1], positions[:, None, 2],
+                        views_uv[None, :, 0], views_uv[None, :, 1])
+    return np.stack([s, t], axis=-1)
+
+
+def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray) -> np.ndarray:
+    """(2, 3) starting positions of a split: the points of the line of sight through
+    ``xyz`` (mm) of its central-view image ``(u, v) = (0, 0)`` whose images move one view
+    pixel (:func:`~plenoptrack.locate.uncertainty.image_travel_px`) nearer to and farther
+    from those of ``xyz`` over the views, in front of it and behind it."""
+    _, jac = dlfc.predict_with_jacobian(xyz[0], xyz[1], xyz[2], views_uv[:, 0], views_uv[:, 1])
+    rate = np.sqrt(8.0 * np.sum(np.var(jac[:, :, 2], axis=0)))       # travel, px per mm
+    dz = 1.0 / max(rate, 1e-6)
+    s0, t0 = dlfc.predict(xyz[0], xyz[1], xyz[2], 0.0, 0.0)
+    out = np.empty((2, 3))
+    for i, z in enumerate((xyz[2] - dz, xyz[2] + dz)):
+        q = np.array([xyz[0], xyz[1], z], dtype=float)
+        for _ in range(4):   # Newton: the same central-view image at depth z
+            st, j = dlfc.predict_with_jacobian(q[0], q[1], q[2], 0.0, 0.0)
+            q[:2] += np.linalg.solve(j[:, :2], [s0 - st[0], t0 - st[1]])
+        out[i] = q
+    return out
+
+
+def _coincides(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
+               other_radius: np.ndarray) -> bool:
+    """Whether any of the images ``pred`` (k, V, 2) of radius ``radius`` (k,) lies on an
+    image of ``other_pred`` (P, V, 2) (median distance over the views below the larger
+    radius): the same particle found twice."""
+    if len(other_pred) == 0:
+        return False
+    d = np.hypot(*(pred[:, None] - other_pred[None]).transpose(3, 0, 1, 2))   # (k, P, V)
+    with np.errstate(invalid="ignore"):
+        close = np.nanmedian(d, axis=2) < np.maximum(radius[:, None], other_radius[None])
+    return bool(np.any(close))
 
 
 def _member_diameter(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
@@ -603,7 +789,10 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                  "confidence", "residual_px", "flags"]].copy()
     sigma = ["sigma_x", "sigma_y", "sigma_z"]
     n_views = particles["n_views"].to_numpy(float)
+    # a split particle's residual is that of the merged pair's centroids: NaN
     chi2 = reduced_chi2(particles["residual_px"].to_numpy(float), n_views)
+    split = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.SPLIT)) > 0
+    chi2[split] = np.nan
     travel = image_travel_px(ctx.dlfc, positions, owner, ctx.views[ctx.view])[keep]
     # A refined particle's sigma is its image fit's, not its centroids'. Its centroids'
     # excess scatter still counts: it marks a disturbance (an unseen neighbour, an image
@@ -623,6 +812,11 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     particles["major_axis"] = shape.loc[keep, "major_px"].to_numpy() / mag
     particles["minor_axis"] = shape.loc[keep, "minor_px"].to_numpy() / mag
     particles["orientation"] = shape.loc[keep, "orientation"].to_numpy()
+    if split.any():   # their regions are the merged pair's: size from the image fit
+        fitted = 2.0 * table.loc[keep, _FIT_RADIUS].to_numpy(float)[split] / mag[split]
+        for column in ("diameter", "major_axis", "minor_axis"):
+            particles.loc[particles.index[split], column] = fitted
+        particles.loc[particles.index[split], "orientation"] = np.nan
     # Renumber particles 0..n-1 and point the detections at the kept rows.
     new_index = np.full(len(positions), -1, dtype=np.int64)
     new_index[np.flatnonzero(keep)] = np.arange(int(keep.sum()))

@@ -312,6 +312,19 @@ class CheckSettings:
         centroid solution stands. Where the model is wrong (a neighbour missed or
         misplaced in a crowd, an elongated image) the refit is worse than the centroid
         solve. Chosen on the development seeds of the accuracy matrix.
+    split_merged : bool
+        Try to separate each particle whose refit could not explain the pixels into two
+        particles on nearly one line of sight, which the centroids had taken for one
+        (:func:`~plenoptrack.locate.perspective.split_merged_particles`): a joint fit of
+        two images started one view pixel of image travel either side of it in depth.
+        Needs ``refine_images``.
+    split_min_contrast : float
+        ... kept only when both fitted images block at least this fraction of the
+        background light at their centre (an opaque particle's image: about 1; a disc
+        fitted to a blurred edge or to what the model misses is faint) ...
+    split_min_gain : float
+        ... and the two-particle fit leaves at most ``1 / split_min_gain`` of the single
+        fit's model error (both RMS beyond the pixel noise).
     """
 
     max_residual_ratio: float = 4.0
@@ -322,6 +335,9 @@ class CheckSettings:
     refine_min_overlap: float = 0.1
     refine_pair_overlap: float = 0.5
     refine_max_model_error: float = 0.08
+    split_merged: bool = True
+    split_min_contrast: float = 0.5
+    split_min_gain: float = 1.5
 
     def __post_init__(self) -> None:
         _require(self.max_residual_ratio > 1, "max_residual_ratio", "above 1",
@@ -337,6 +353,10 @@ class CheckSettings:
                  self.refine_pair_overlap)
         _require(self.refine_max_model_error > 0, "refine_max_model_error", "above 0",
                  self.refine_max_model_error)
+        _require(0 < self.split_min_contrast <= 1, "split_min_contrast", "in (0, 1]",
+                 self.split_min_contrast)
+        _require(self.split_min_gain >= 1, "split_min_gain", "at least 1",
+                 self.split_min_gain)
 
 
 _SECTIONS = {"segment": SegmentSettings, "cluster": ClusterSettings, "solve": SolveSettings,

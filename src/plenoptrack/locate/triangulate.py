@@ -60,6 +60,7 @@ class TriangulationFlag(enum.IntFlag):
     SINGULAR = 16
     REFINED = 32
     UNEXPLAINED = 64
+    SPLIT = 128
 
 
 FLAG_DESCRIPTIONS = {
@@ -79,6 +80,10 @@ FLAG_DESCRIPTIONS = {
                                    "check.refine_max_model_error): an unseen or merged "
                                    "neighbour is likely; position and sigma are the "
                                    "centroid solve's",
+    TriangulationFlag.SPLIT: "one of two particles on nearly one line of sight that had been "
+                             "taken for one: the image-model refinement separated them "
+                             "(check.split_merged); position, sigma and size come from "
+                             "the two-particle image fit",
 }
 """What each :class:`TriangulationFlag` bit means."""
 
