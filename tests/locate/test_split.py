@@ -54,6 +54,24 @@ def test_a_pair_on_one_line_of_sight_is_split(small_calibrated, seed):
     assert not (found["flags"].to_numpy() & UNEXPLAINED).any()
 
 
+def test_an_elongated_particle_is_not_split(small_calibrated):
+    """An ellipsoid of aspect 3 lying across the line of sight makes an elongated
+    image that one disc cannot explain and two discs side by side can; only parallax
+    tells two particles from one, and two discs at one depth have none."""
+    optics, calib = small_calibrated
+    truth = _truth([(-2.5, 1.2, -3.0), (2.5, -1.2, 4.0), (0.0, 0.0, 2.0), (0.5, 0.35, 0.0)],
+                   0.8)
+    truth["shape"] = ["sphere", "sphere", "ellipsoid", "sphere"]
+    truth["aspect"] = [1.0, 1.0, 3.0, 1.0]
+    truth["axis_x"], truth["axis_y"], truth["axis_z"] = [0.0, 0.0, 1.0, 0.0], 0.0, \
+        [1.0, 1.0, 0.0, 1.0]
+    for seed in (0, 1):
+        raw = render_frame(optics, truth, seed=np.random.default_rng([seed, 3, 0]))
+        found = locate_frame(raw, calib).particles
+        assert not (found["flags"].to_numpy() & SPLIT).any()
+        assert len(found) == len(locate_frame(raw, calib, locator=OFF).particles)
+
+
 def test_splitting_adds_no_false_particles(small_calibrated):
     """Random scenes of 40 particles: the split finds at least as many true particles
     and no more false ones."""

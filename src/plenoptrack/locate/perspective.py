@@ -585,15 +585,21 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     Two particles whose images overlap in every view (nearly in line with the camera,
     far enough apart in depth) give one merged region per view; the clustering takes
     them for one particle between them, and the refinement cannot explain its pixels
-    with one disc (``UNEXPLAINED``). Each such particle is refitted as two
+    with one disc (``UNEXPLAINED``). Each such particle whose regions' length changes
+    across its views by at least a view pixel (two images sliding over each other; a
+    single elongated image keeps its length) is refitted as two
     (:func:`~plenoptrack.locate.refine.fit_images`, its neighbours held), started on the
     line of sight of its central-view image one view pixel of image travel either side
     of it in depth (:func:`_line_of_sight_pair`). The two are kept when both images are
     opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
-    (model error at most ``1 / settings.split_min_gain`` of the single fit's) and
-    neither is a particle already located. The first takes the particle's row, the
-    second is appended; both carry ``REFINED`` and ``SPLIT`` and their position, sigma
-    and image radius come from the fit.
+    (model error at most ``1 / settings.split_min_gain`` of the single fit's), their
+    images move apart across the views by at least one view pixel and stand apart by the
+    smaller radius in some view (only parallax tells two particles from one elongated
+    image), and neither is a particle already located. The image nearer the merged
+    solution in depth takes the particle's row, the other is appended; both carry
+    ``REFINED`` and ``SPLIT`` and their position, sigma and image radius come from the
+    fit. The unexplained neighbours of a split particle are then refitted beside the two
+    and become ``REFINED`` where that explains their pixels.
     """
     from .refine import fit_images
 
@@ -603,8 +609,13 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     flags = table["flags"].fillna(0).to_numpy(np.int64).copy()
     pos = state.positions.copy()
     single_error = table[_FIT_ERROR].to_numpy(float).copy()
+    # Two images sliding over each other make a merged region whose length changes
+    # across the views by their parallax (at least a view pixel for a split to be kept);
+    # a single elongated image keeps its length.
     candidates = np.flatnonzero(((flags & int(TriangulationFlag.UNEXPLAINED)) > 0)
-                                & np.isfinite(single_error) & np.all(np.isfinite(pos), axis=1))
+                                & np.isfinite(single_error) & np.all(np.isfinite(pos), axis=1)
+                                & (_length_spread(ctx.detections, state.owner,
+                                                  state.n_particles) >= 1.0))
     if len(candidates) == 0:
         return state
     views_uv, view_rc = _fit_views(ctx)
@@ -641,9 +652,12 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 or two.model_error * settings.split_min_gain > single_error[m]):
             continue
         pair_pred = _predict_views(ctx.dlfc, two.params[:, :3], views_uv)
-        apart = np.hypot(*(pair_pred[0] - pair_pred[1]).T)
-        if not np.nanmax(apart) >= two.params[:, 3].min():
-            continue    # one image fitted with two discs: they stand apart in no view
+        offset = pair_pred[0] - pair_pred[1]                                 # (V, 2)
+        # Only parallax tells two particles from one elongated image: the two images
+        # must move apart across the views (by a view pixel) and stand apart somewhere.
+        if not (_parallax_px(offset) >= 1.0
+                and np.nanmax(np.hypot(*offset.T)) >= two.params[:, 3].min()):
+            continue
         others = np.setdiff1d(np.flatnonzero(np.isfinite(radius)
                                              & np.all(np.isfinite(pos), axis=1)), [m])
         if _coincides(pair_pred, two.params[:, 3], pred[others], radius[others]):
@@ -702,6 +716,18 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     return dataclasses.replace(state, initial=initial, positions=pos, table=table)
 
 
+def _length_spread(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
+    """(n,) how much the length (major axis) of each particle's regions changes across
+    its views: 90th minus 10th percentile, view pixels; NaN for particles without
+    regions."""
+    mine = owner >= 0
+    length = pd.Series(detections["major_axis_px"].to_numpy(float)[mine]).groupby(owner[mine])
+    spread = length.quantile(0.9) - length.quantile(0.1)
+    out = np.full(n, np.nan)
+    out[spread.index.to_numpy()] = spread.to_numpy()
+    return out
+
+
 def _predict_views(dlfc, positions: np.ndarray, views_uv: np.ndarray) -> np.ndarray:
     """(P, V, 2) predicted image centres ``(s, t)`` of ``positions`` (P, 3) in the
     views ``views_uv`` (V, 2); NaN rows for NaN positions."""
@@ -731,15 +757,29 @@ def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray) -> np.ndarr
 
 def _coincides(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
                other_radius: np.ndarray) -> bool:
-    """Whether any of the images ``pred`` (k, V, 2) of radius ``radius`` (k,) lies on an
-    image of ``other_pred`` (P, V, 2) (median distance over the views below the larger
-    radius): the same particle found twice."""
+    """Whether any of the images ``pred`` (k, V, 2) of radius ``radius`` (k,) is one with
+    an image of ``other_pred`` (P, V, 2): centres closer than the larger radius (median
+    over the views; the same particle found twice), or overlapping images that keep their
+    offset across the views (parallax below one view pixel,
+    :func:`_parallax_px`): nothing then tells them from one elongated image."""
     if len(other_pred) == 0:
         return False
-    d = np.hypot(*(pred[:, None] - other_pred[None]).transpose(3, 0, 1, 2))   # (k, P, V)
-    with np.errstate(invalid="ignore"):
-        close = np.nanmedian(d, axis=2) < np.maximum(radius[:, None], other_radius[None])
-    return bool(np.any(close))
+    offset = pred[:, None] - other_pred[None]                             # (k, P, V, 2)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)                   # all-NaN rows
+        dist = np.nanmedian(np.hypot(offset[..., 0], offset[..., 1]), axis=2)
+        parallax = _parallax_px(offset)
+        same = dist < np.maximum(radius[:, None], other_radius[None])
+        merged = (dist < radius[:, None] + other_radius[None]) & (parallax < 1.0)
+    return bool(np.any(same | merged))
+
+
+def _parallax_px(offset: np.ndarray) -> np.ndarray:
+    """How far the offset ``(..., V, 2)`` between two particles' images changes across
+    the views: ``sqrt(8 (var ds + var dt))``, view pixels (as
+    :func:`~plenoptrack.locate.uncertainty.image_travel_px`); 0 for two particles at one
+    depth."""
+    return np.sqrt(8.0 * np.nansum(np.nanvar(offset, axis=-2), axis=-1))
 
 
 def _member_diameter(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
