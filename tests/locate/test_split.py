@@ -54,6 +54,22 @@ def test_a_pair_on_one_line_of_sight_is_split(small_calibrated, seed):
     assert not (found["flags"].to_numpy() & UNEXPLAINED).any()
 
 
+def test_a_pair_that_no_neighbour_overlaps_is_split(small_calibrated):
+    """The same pair alone: the refinement never fits it (no neighbour overlaps it);
+    the split stage tries a one-image fit, which cannot explain the merged image, and
+    then two."""
+    optics, calib = small_calibrated
+    truth = _truth([(-2.5, 1.2, -3.0), (2.5, -1.2, 4.0), (0.0, 0.0, -4.0), (0.1, 0.0, 4.0)],
+                   0.8)
+    raw = render_frame(optics, truth, seed=np.random.default_rng([2, 3, 0]))
+    plain = locate_frame(raw, calib, locator=OFF).particles
+    assert len(plain) == 3
+    found = locate_frame(raw, calib).particles
+    pairs = match_particles(found, truth, tolerance_mm=0.3)
+    assert len(found) == 4 and len(pairs) == 4
+    assert ((found["flags"].to_numpy() & SPLIT) > 0).sum() == 2
+
+
 def test_an_elongated_particle_is_not_split(small_calibrated):
     """An ellipsoid of aspect 3 lying across the line of sight makes an elongated
     image that one disc cannot explain and two discs side by side can; only parallax

@@ -585,9 +585,11 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     Two particles whose images overlap in every view (nearly in line with the camera,
     far enough apart in depth) give one merged region per view; the clustering takes
     them for one particle between them, and the refinement cannot explain its pixels
-    with one disc (``UNEXPLAINED``). Each such particle whose regions' length changes
-    across its views by at least a view pixel (two images sliding over each other; a
-    single elongated image keeps its length) is refitted as two
+    with one disc (``UNEXPLAINED``); when no neighbour overlaps the pair, the refinement
+    never fits it at all. Each such particle, unexplained or never fitted, whose regions'
+    length changes across its views by at least a view pixel (two images sliding over
+    each other; a single elongated image keeps its length) is refitted as two (a never
+    fitted one only once a one-image fit has failed to explain its pixels)
     (:func:`~plenoptrack.locate.refine.fit_images`, its neighbours held), started on the
     line of sight of its central-view image one view pixel of image travel either side
     of it in depth (:func:`_line_of_sight_pair`). The two are kept when both images are
@@ -612,8 +614,13 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     # Two images sliding over each other make a merged region whose length changes
     # across the views by their parallax (at least a view pixel for a split to be kept);
     # a single elongated image keeps its length.
-    candidates = np.flatnonzero(((flags & int(TriangulationFlag.UNEXPLAINED)) > 0)
-                                & np.isfinite(single_error) & np.all(np.isfinite(pos), axis=1)
+    # Candidates: the particles the refinement could not explain, and those it never
+    # fitted (no neighbour overlaps them), which a one-image fit must fail first.
+    unexplained, refined = int(TriangulationFlag.UNEXPLAINED), int(TriangulationFlag.REFINED)
+    never_fitted = ((flags & (unexplained | refined)) == 0) & ~np.isfinite(single_error)
+    candidates = np.flatnonzero((((flags & unexplained) > 0) & np.isfinite(single_error)
+                                 | never_fitted)
+                                & np.all(np.isfinite(pos), axis=1)
                                 & (_length_spread(ctx.detections, state.owner,
                                                   state.n_particles) >= 1.0))
     if len(candidates) == 0:
@@ -627,7 +634,6 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
     fit_error = single_error.copy()
     parent, n_views = [], []           # of each appended particle
-    unexplained, refined = int(TriangulationFlag.UNEXPLAINED), int(TriangulationFlag.REFINED)
 
     def neighbours(i, pred):
         """Particles whose images come within 4 view pixels of particle i's in a view."""
@@ -638,10 +644,19 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         return np.flatnonzero(near)
 
     for m in candidates:
-        if not flags[m] & unexplained:     # explained by a neighbour's split meanwhile
-            continue
+        if flags[m] & refined and not flags[m] & unexplained:
+            continue                       # explained beside a neighbour's split meanwhile
         pred = _predict_views(ctx.dlfc, pos, views_uv)
         held = neighbours(m, pred)
+        if never_fitted[m]:
+            one = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, pos[[m]],
+                             np.array([[radius[m], 0.9]]), pos[held],
+                             np.c_[radius[held], contrast[held]],
+                             max_depth_shift=0.1 * ctx.volume_depth_mm)
+            if (one is None or not np.isfinite(one.model_error)
+                    or one.model_error <= settings.refine_max_model_error):
+                continue                   # one image explains it: left as it is
+            single_error[m] = one.model_error
         two = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data,
                          _line_of_sight_pair(ctx.dlfc, pos[m], views_uv),
                          np.tile([radius[m], 0.9], (2, 1)), pos[held],
