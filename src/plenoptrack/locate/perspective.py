@@ -611,11 +611,11 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     flags = table["flags"].fillna(0).to_numpy(np.int64).copy()
     pos = state.positions.copy()
     single_error = table[_FIT_ERROR].to_numpy(float).copy()
-    # Two images sliding over each other make a merged region whose length changes
-    # across the views by their parallax (at least a view pixel for a split to be kept);
-    # a single elongated image keeps its length.
     # Candidates: the particles the refinement could not explain, and those it never
-    # fitted (no neighbour overlaps them), which a one-image fit must fail first.
+    # fitted (no neighbour overlaps them; a one-image fit must fail first), whose regions'
+    # length changes across the views by a view pixel: two images sliding over each other
+    # make such a region (their parallax must reach a view pixel for a split to be kept);
+    # a single elongated image keeps its length.
     unexplained, refined = int(TriangulationFlag.UNEXPLAINED), int(TriangulationFlag.REFINED)
     never_fitted = ((flags & (unexplained | refined)) == 0) & ~np.isfinite(single_error)
     candidates = np.flatnonzero((((flags & unexplained) > 0) & np.isfinite(single_error)
@@ -718,8 +718,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     extra = table.loc[parent].copy()
     extra["cluster"] = -1
     extra["n_views"] = np.asarray(n_views, dtype=extra["n_views"].dtype)
-    extra["residual_px"] = np.nan
-    extra["mean_residual_px"] = np.nan
+    # residual_px stays the merged pair's: its excess scatter sizes both halves' sigma
     table = pd.concat([table, extra], ignore_index=True)
     table["flags"] = flags
     table[list(POS_COLUMNS)] = pos
@@ -844,14 +843,13 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                  "confidence", "residual_px", "flags"]].copy()
     sigma = ["sigma_x", "sigma_y", "sigma_z"]
     n_views = particles["n_views"].to_numpy(float)
-    # a split particle's residual is that of the merged pair's centroids: NaN
     chi2 = reduced_chi2(particles["residual_px"].to_numpy(float), n_views)
     split = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.SPLIT)) > 0
-    chi2[split] = np.nan
     travel = image_travel_px(ctx.dlfc, positions, owner, ctx.views[ctx.view])[keep]
     # A refined particle's sigma is its image fit's, not its centroids'. Its centroids'
     # excess scatter still counts: it marks a disturbance (an unseen neighbour, an image
-    # that is not a disc) that the fit's residuals within each view do not reveal.
+    # that is not a disc) that the fit's residuals within each view do not reveal. A
+    # split particle's is that of the merged pair's centroids (both halves), shown as NaN.
     refined = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.REFINED)) > 0
     particles[sigma] = total_sigma(particles[sigma].to_numpy(float), ctx.dlfc,
                                    error_scale=solve.error_scale,
@@ -860,7 +858,7 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                    n_views=n_views, z=particles["z"].to_numpy(float),
                                    travel_px=travel if solve.sampling_error else None,
                                    from_centroids=~refined)
-    particles["chi2"] = chi2
+    particles["chi2"] = np.where(split, np.nan, chi2)
     particles["travel_px"] = travel
     particles.insert(0, T_COLUMN, frame)
     particles["diameter"] = shape.loc[keep, "diameter_px"].to_numpy() / mag
