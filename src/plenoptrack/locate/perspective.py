@@ -632,8 +632,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                       0.5 * _member_diameter(ctx.detections, state.owner, state.n_particles))
     contrast = np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
     sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
-    fit_error = single_error.copy()
     parent, n_views = [], []           # of each appended particle
+    pred = _predict_all(ctx.dlfc, pos, views_uv)     # kept current as particles change
 
     def neighbours(i, pred):
         """Particles whose images come within 4 view pixels of particle i's in a view."""
@@ -646,7 +646,6 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     for m in candidates:
         if flags[m] & refined and not flags[m] & unexplained:
             continue                       # explained beside a neighbour's split meanwhile
-        pred = _predict_views(ctx.dlfc, pos, views_uv)
         held = neighbours(m, pred)
         if never_fitted[m]:
             one = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, pos[[m]],
@@ -666,7 +665,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 or two.params[:, 4].min() < settings.split_min_contrast
                 or two.model_error * settings.split_min_gain > single_error[m]):
             continue
-        pair_pred = _predict_views(ctx.dlfc, two.params[:, :3], views_uv)
+        pair_pred = _predict_all(ctx.dlfc, two.params[:, :3], views_uv)
         offset = pair_pred[0] - pair_pred[1]                                 # (V, 2)
         # Only parallax tells two particles from one elongated image: the two images
         # must move apart across the views (by a view pixel) and stand apart somewhere.
@@ -688,15 +687,13 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         radius[[m, -1]] = two.params[order, 3]
         contrast = np.append(contrast, 0.0)
         contrast[[m, -1]] = two.params[order, 4]
-        fit_error = np.append(fit_error, two.model_error)
-        fit_error[m] = two.model_error
         flags[m] = (flags[m] & ~unexplained) | refined | int(TriangulationFlag.SPLIT)
         flags = np.append(flags, refined | int(TriangulationFlag.SPLIT))
         parent.append(m)
         n_views.append(two.n_views)
         # The pair's merged image also spoilt its neighbours' fits: refit those the
         # refinement could not explain, now beside the two.
-        pred = _predict_views(ctx.dlfc, pos, views_uv)
+        pred = _predict_all(ctx.dlfc, pos, views_uv)
         for q in held[(flags[held] & unexplained) > 0]:
             near = neighbours(q, pred)
             one = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, pos[[q]],
@@ -710,9 +707,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 pos[q] = one.params[0, :3]
                 sigma[q] = np.where(np.isfinite(one.sigma[0]), one.sigma[0], sigma[q])
                 radius[q], contrast[q] = one.params[0, 3:]
-                fit_error[q] = one.model_error
                 flags[q] = (flags[q] & ~unexplained) | refined
-                pred[q] = _predict_views(ctx.dlfc, pos[[q]], views_uv)[0]
+                pred[q] = _predict_all(ctx.dlfc, pos[[q]], views_uv)[0]
     if not parent:
         return state
     extra = table.loc[parent].copy()
@@ -723,9 +719,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     table["flags"] = flags
     table[list(POS_COLUMNS)] = pos
     table[list(SIGMA_COLUMNS)] = sigma
-    table[_FIT_ERROR] = fit_error
     table[_FIT_RADIUS] = radius
-    table[_FIT_CONTRAST] = contrast
     initial = np.vstack([state.initial, pos[len(state.initial):]])
     return dataclasses.replace(state, initial=initial, positions=pos, table=table)
 
@@ -740,14 +734,6 @@ def _length_spread(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.nd
     out = np.full(n, np.nan)
     out[spread.index.to_numpy()] = spread.to_numpy()
     return out
-
-
-def _predict_views(dlfc, positions: np.ndarray, views_uv: np.ndarray) -> np.ndarray:
-    """(P, V, 2) predicted image centres ``(s, t)`` of ``positions`` (P, 3) in the
-    views ``views_uv`` (V, 2); NaN rows for NaN positions."""
-    s, t = dlfc.predict(positions[:, None, 0], positions[:, None, 1], positions[:, None, 2],
-                        views_uv[None, :, 0], views_uv[None, :, 1])
-    return np.stack([s, t], axis=-1)
 
 
 def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray) -> np.ndarray:
