@@ -30,7 +30,10 @@ cards, spec-sheet values that differ from the truth; see
 * shape sweep: ``ellipsoid`` (prolate spheroids, aspect ratio log-uniform in 1-3, random
   orientation) and ``fragment`` (irregular convex or star-shaped bodies), at the base size
   (volume-equivalent diameter) and density; shapes the simulator does not know are skipped
-  with a message;
+  with a message. Fragments are located with ``solve.shape_error = FRAGMENT_SHAPE_ERROR``
+  (the uncertainty of an irregular body's centre of mass, which an experimenter imaging
+  fragments sets: ``plenoptrack locate --shape-error 0.02``); every other cell with the
+  defaults;
 * effect sweep (not with ``--no-effects`` or ``--quick``): the base cell with the ideal
   optics plus *one* group of :class:`~plenoptrack.simulate.realism.Realism` at its realistic
   size (optics ``ideal+blur``, ``ideal+lens``, ...), each with its own calibration, on the
@@ -133,6 +136,8 @@ TOL_LATERAL_MM = 0.5
 """Lateral half-axis of the matching ellipsoid at magnification -0.5, mm."""
 TOL_DEPTH_MM = 1.5
 """Depth half-axis of the matching ellipsoid at magnification -0.5, mm."""
+FRAGMENT_SHAPE_ERROR = 0.02
+"""``solve.shape_error`` of the fragment cells (:mod:`plenoptrack.locate.uncertainty`)."""
 MAX_FILL = 0.1
 """Cells whose particles would fill more of the default volume than this are skipped."""
 
@@ -329,6 +334,17 @@ def make_cell_scene(cell: Cell, seed: int, frames: int):
     return Scene(camera=camera, volume=volume, truth=truth, seed=seed)
 
 
+def cell_locator(cell: Cell):
+    """The locator settings of a cell: the defaults, with the shape error for fragments."""
+    from plenoptrack.locate import PerspectiveLocator
+
+    locator = PerspectiveLocator()
+    if cell.shape == "fragment":
+        locator = locator.updated({"solve": {"shape_error": FRAGMENT_SHAPE_ERROR}},
+                                  source="accuracy matrix")
+    return locator
+
+
 def match(measured: pd.DataFrame, truth: pd.DataFrame, magnification: float) -> pd.DataFrame:
     """Pairs within the tolerance ellipsoid, with the measured and true columns needed."""
     from plenoptrack.evaluate import match_particles
@@ -452,6 +468,7 @@ class Runner:
         if sim.optics != cal_optics:
             raise RuntimeError(f"{cell.name} {optics} seed {seed}: the frames' optics differ "
                                "from the calibration's; the calibration cannot be reused")
+        locator = cell_locator(cell)
         pairs, n_measured, seconds, caught_all = [], 0, [], set()
         for f, path in enumerate(sim.frame_paths):
             raw = read_raw(path)
@@ -459,10 +476,12 @@ class Runner:
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 if not self.warm:
-                    locate_frame(raw, calib, frame=f, white=white)   # warm-up, untimed
+                    locate_frame(raw, calib, frame=f, white=white,   # warm-up, untimed
+                                 locator=locator)
                     self.warm = True
                 t = time.perf_counter()
-                found = locate_frame(raw, calib, frame=f, white=white).particles
+                found = locate_frame(raw, calib, frame=f, white=white,
+                                     locator=locator).particles
                 seconds.append(time.perf_counter() - t)
             caught_all |= {w.category.__name__ for w in caught}
             n_measured += len(found)

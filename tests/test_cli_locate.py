@@ -148,8 +148,9 @@ def test_locate_config_settings_reach_the_locator_and_the_table_metadata(calibra
                       "[cluster]\nn_planes = 12\n")
     out = tmp_path / "p.csv"
     ok("locate", frame, "--calib", root / "calib.json", "--config", config, "--planes", 14,
-       "--out", out, "--detections", tmp_path / "d.parquet")
+       "--shape-error", 0.02, "--out", out, "--detections", tmp_path / "d.parquet")
     meta = read_table(out).attrs["plenoptrack"]
+    assert meta["settings"]["solve"]["shape_error"] == 0.02
     assert meta["method"] == "perspective" and meta["package_version"]
     seg = meta["settings"]["segment"]
     assert seg["window"] == 41 and seg["core_contrast"] is None     # from the file

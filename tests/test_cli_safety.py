@@ -146,6 +146,8 @@ BAD_INPUTS = {
     "locate-contrast-1": (LOCATE + ["--contrast", "1", "--out", "p.parquet"], 2, ["--contrast", "below 1"]),
     "locate-contrast-nan": (LOCATE + ["--contrast", "nan", "--out", "p.parquet"], 2, ["--contrast", "finite"]),
     "locate-planes-0": (LOCATE + ["--planes", "0", "--out", "p.parquet"], 2, ["--planes"]),
+    "locate-shape-error-1": (LOCATE + ["--shape-error", "1", "--out", "p.parquet"], 2, ["--shape-error", "below 1"]),
+    "locate-shape-error-negative": (LOCATE + ["--shape-error", "-0.1", "--out", "p.parquet"], 2, ["--shape-error", "at least 0"]),
     "locate-planes-1": (LOCATE + ["--planes", "1", "--out", "p.parquet"], 2, ["--planes"]),
     "locate-window-text": (LOCATE + ["--window", "wide", "--out", "p.parquet"], 2, ["--window"]),
     "locate-unknown-option": (LOCATE + ["--speed", "3", "--out", "p.parquet"], 2, ["--speed"]),

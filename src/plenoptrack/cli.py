@@ -521,6 +521,7 @@ def locate(
     window: Optional[int] = typer.Option(None, "--window", min=3, help="Local-threshold window of the segmentation, view pixels (at least 3; default 31). Overrides --config."),
     contrast: Optional[float] = typer.Option(None, "--contrast", callback=_finite(positive=True, below=1.0), help="Relative darkness a particle pixel needs (between 0 and 1; default 0.15). Overrides --config."),
     planes: Optional[int] = typer.Option(None, "--planes", min=2, help="Refocus planes of the clustering (at least 2; default 10). Overrides --config."),
+    shape_error: Optional[float] = typer.Option(None, "--shape-error", callback=_finite(at_least=0.0, below=1.0), help="Uncertainty of an irregular particle's centre of mass, per axis, as a fraction of its diameter, added to sigma (default 0 for spheres, droplets and ellipsoids; about 0.02 for fragments). Overrides --config."),
     white: Optional[Path] = typer.Option(None, "--white", "-w", help="White (flat-field) image to divide every frame by (default: the one the calibration file records)."),
     flat_field: bool = typer.Option(True, "--flat-field/--no-flat-field", help="Divide every frame by the white image (recommended: dust shadows and dead pixels are otherwise taken for particles)."),
     partial: bool = typer.Option(False, "--partial", help="On Ctrl-C, keep the frames already located (default: write nothing)."),
@@ -541,7 +542,8 @@ def locate(
     if white is not None and not flat_field:
         raise typer.BadParameter("--white and --no-flat-field contradict each other; give one",
                                  param_hint="--white")
-    locator = _locator_settings(config, window=window, contrast=contrast, planes=planes)
+    locator = _locator_settings(config, window=window, contrast=contrast, planes=planes,
+                                shape_error=shape_error)
     locator = _method_locator(method, locator, stack_planes)
     with _outputs({"--out": out_file, "--detections": detections_file},
                   {"RAW": raw, "--calib": calib_file, "--white": white, "--config": config}
@@ -594,7 +596,8 @@ def _locator_settings(config: Path | None, **flags):
     from .locate import PerspectiveLocator, read_settings
 
     locator = read_settings(config) if config is not None else PerspectiveLocator()
-    sections = {"window": "segment", "contrast": "segment", "planes": "cluster"}
+    sections = {"window": "segment", "contrast": "segment", "planes": "cluster",
+                "shape_error": "solve"}
     names = {"planes": "n_planes"}
     changes: dict = {}
     for flag, value in flags.items():

@@ -67,7 +67,7 @@ from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings)
 from .triangulate import TriangulationFlag, triangulate_clusters
-from .uncertainty import image_travel_px, reduced_chi2, total_sigma
+from .uncertainty import image_travel_px, reduced_chi2, total_sigma, with_shape_error
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
@@ -806,7 +806,9 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     and renumbered 0..n-1; their uncertainties are the least-squares ones scaled for
     view-correlated errors (with ``solve.excess_scatter``, scatter beyond the frame's
     typical scatter counted as shared by all views) plus the DLFC's model error
-    (:func:`~plenoptrack.locate.uncertainty.total_sigma`); size and shape come from their
+    (:func:`~plenoptrack.locate.uncertainty.total_sigma`) and, with ``solve.shape_error``,
+    the uncertainty of an irregular body's centre
+    (:func:`~plenoptrack.locate.uncertainty.with_shape_error`); size and shape come from their
     member regions (:func:`~plenoptrack.locate._regions._region_shape`) divided by the
     DLFC's local magnification at their position.
 
@@ -856,6 +858,8 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
         for column in ("diameter", "major_axis", "minor_axis"):
             particles.loc[particles.index[split], column] = fitted
         particles.loc[particles.index[split], "orientation"] = np.nan
+    particles[sigma] = with_shape_error(particles[sigma].to_numpy(float),
+                                        particles["diameter"].to_numpy(float), solve.shape_error)
     # Renumber particles 0..n-1 and point the detections at the kept rows.
     new_index = np.full(len(positions), -1, dtype=np.int64)
     new_index[np.flatnonzero(keep)] = np.arange(int(keep.sum()))
