@@ -644,7 +644,9 @@ def write_report(out: Path, doc: dict) -> Path:
              "- calibration: once per (magnification, optics, seed), simulated white image "
              "and default dot cards, `calibrate` defaults; frames flat-fielded with that "
              "white image",
-             f"- locator settings: `{json.dumps(meta['locator'])}`", ""]
+             f"- locator settings: `{json.dumps(meta['locator'])}`; fragment cells with "
+             f"`solve.shape_error = {FRAGMENT_SHAPE_ERROR}` (the uncertainty of an irregular "
+             "body's centre of mass, which an experimenter imaging fragments sets)", ""]
     if meta["skipped"]:
         lines += ["Skipped:", ""] + [f"- {s}" for s in meta["skipped"]] + [""]
     lines += ["Cells:", "", "| cell | axis | n particles | frames per seed | tolerance x,y / z mm "

@@ -72,6 +72,12 @@ class SegmentSettings:
         region that holds two or more cores is the merged image of touching particles, and its
         pixels are shared out between its cores (each pixel to the nearest core along
         paths within the region), one detection per core. None disables the split.
+        A region's peak is its darkest particle's; a touching neighbour that passes a
+        fraction ``tau`` of the light has a plateau of ``1 - tau`` of it, so a core
+        threshold above ``1 - tau`` loses that neighbour: 0.85 keeps particles passing
+        up to about 10 % (0.9 less blur and noise). Chosen on the development seeds of
+        the accuracy matrix among 0.85, 0.89 and 0.93 (realistic optics, 0.03 per
+        microlens: recall 0.93, 0.86, 0.76).
     min_core_ratio : float
         A core of a single pixel does not count as another particle when the largest core
         in its region has more than ``1 / min_core_ratio`` pixels: the ridge of a thin
@@ -103,7 +109,7 @@ class SegmentSettings:
 
     window: int = 31
     contrast: float = 0.15
-    core_contrast: float | None = 0.93
+    core_contrast: float | None = 0.85
     min_core_ratio: float = 0.08
     area_range: tuple[float, float] = (2.0, math.inf)
     max_eccentricity: float = 1.0
