@@ -2,8 +2,6 @@
 diameter to sigma, which the silhouettes cannot show (module notes of
 :mod:`plenoptrack.locate.uncertainty`)."""
 
-import dataclasses
-
 import numpy as np
 import pandas as pd
 import pytest
@@ -46,8 +44,8 @@ def test_fragments_are_covered_only_with_the_shape_error(small_calibrated):
     term most lateral errors exceed sigma; with 0.02 about 68 % fall within it. The
     positions are the same both ways and sigma grows by exactly the added term."""
     optics, calib = small_calibrated
-    plain, shaped = PerspectiveLocator(), PerspectiveLocator()
-    shaped = dataclasses.replace(shaped, solve=SolveSettings(shape_error=0.02))
+    plain = PerspectiveLocator()
+    shaped = plain.updated({"solve": {"shape_error": 0.02}})
     ratios_plain, ratios_shaped = [], []
     for seed in (11, 12, 13):
         scene = make_scene(calib.camera, n_particles=32, diameter_mm=0.4, shape="fragment",
