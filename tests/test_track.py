@@ -96,6 +96,31 @@ def test_fragments_are_tracked_ballistically():
     assert st["speed_m_per_s"].between(500 * 0.97, 1000 * 1.03).all()
 
 
+def test_a_depth_outlier_neither_bends_nor_moves_the_prediction():
+    # A particle at 3 mm per frame along x, whose last point is a depth outlier 2 mm off
+    # (a ghost on its line of sight). Continuing from that point along the last step's
+    # velocity predicts it 8 mm off in depth three frames later, where another particle on
+    # nearly the same line of sight is taken for it (a track that switches particles).
+    from types import SimpleNamespace
+
+    from plenoptrack.track import TrackVelocityPredict
+
+    def frame(t, z):
+        return pd.DataFrame({"frame": [t], "particle": [7], "x": [3.0 * t], "y": [0.0], "z": [z]})
+
+    def predicted(history):
+        pred = TrackVelocityPredict(history=history)
+        for t in range(5):
+            pred.observe(frame(t, 2.0 if t == 4 else 0.0))
+        point = SimpleNamespace(pos=(12.0, 0.0, 2.0), t=4, track=SimpleNamespace(id=7))
+        return pred.predict(7, [point])[0]
+
+    np.testing.assert_allclose(predicted(2), [21.0, 0.0, 8.0])   # the last step alone
+    np.testing.assert_allclose(predicted(4), [21.0, 0.0, 0.0])   # the default
+    with pytest.raises(SettingsError, match="history"):
+        TrackVelocityPredict(history=1)
+
+
 def test_anisotropic_search_range_and_memory():
     # one particle jumps 2 mm in depth (linked: depth range 3 mm), another 2 mm sideways
     # (not linked: lateral range 1 mm); a third misses frame 2 (bridged by memory 1)

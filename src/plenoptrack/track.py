@@ -144,13 +144,15 @@ def _min_points(degree: int) -> int:
 
 
 class TrackVelocityPredict:
-    """trackpy predictor: each track continues along its own latest velocity.
+    """trackpy predictor: each track continues along its own recent velocity.
 
-    A track with two or more points moves by its velocity between its last two points
-    (mm per frame) times the frames since its last point. A track with one point takes
-    the velocity of the nearest entry of a guess field (e.g. the tracks of an earlier
-    linking pass, per frame), else the median velocity of the tracks that have one, else
-    ``drift`` (:func:`estimate_drift`).
+    A track with two or more points continues along the median of the velocities
+    between its last ``history`` points (mm per frame), from the median of those points
+    carried forward to the frame predicted: one point far off (a depth outlier, or a
+    ghost on the line of sight of the true particle) then neither bends the prediction
+    nor moves its start. A track with one point takes the velocity of the nearest entry
+    of a guess field (e.g. the tracks of an earlier linking pass, per frame), else the
+    median velocity of the tracks that have one, else ``drift`` (:func:`estimate_drift`).
 
     Parameters
     ----------
@@ -160,6 +162,9 @@ class TrackVelocityPredict:
         Velocity of tracks with nothing better, mm per frame (default 0).
     pos_columns : sequence of str
         Position columns, in the linker's order.
+    history : int
+        Latest points of a track that its prediction uses (2 is the plain last-step
+        velocity).
 
     Notes
     -----
@@ -167,16 +172,20 @@ class TrackVelocityPredict:
     track) and the frame to predict for, and :meth:`observe` with every linked frame.
     """
 
-    def __init__(self, guess: dict | None = None, *, drift=None, pos_columns=POS_COLUMNS):
+    def __init__(self, guess: dict | None = None, *, drift=None, pos_columns=POS_COLUMNS,
+                 history: int = 4):
+        if not (isinstance(history, (int, np.integer)) and history >= 2):
+            raise SettingsError(f"history must be an integer of at least 2 points; got {history!r}")
         self.pos_columns = list(pos_columns)
         self.guess = {} if guess is None else dict(guess)
         self.drift = np.zeros(len(self.pos_columns)) if drift is None else np.asarray(drift, float)
+        self.history = int(history)
         self._trees = {}
-        self._last: dict[int, tuple[int, np.ndarray]] = {}
+        self._points: dict[int, list[tuple[int, np.ndarray]]] = {}
         self._velocity: dict[int, np.ndarray] = {}
 
     def __repr__(self) -> str:
-        return f"TrackVelocityPredict(guess frames={len(self.guess)}, tracks={len(self._last)})"
+        return f"TrackVelocityPredict(guess frames={len(self.guess)}, tracks={len(self._points)})"
 
     # trackpy's predictor protocol (see trackpy.predict.NullPredict)
     def link_df(self, features: pd.DataFrame, search_range, **kw) -> pd.DataFrame:
@@ -197,10 +206,26 @@ class TrackVelocityPredict:
         t = int(frame[T_COLUMN].iloc[0]) if len(frame) else None
         pos = frame[self.pos_columns].to_numpy(float)
         for pid, p in zip(frame[ID_COLUMN].to_numpy(np.int64), pos):
-            prev = self._last.get(int(pid))
-            if prev is not None and t > prev[0]:
-                self._velocity[int(pid)] = (p - prev[1]) / (t - prev[0])
-            self._last[int(pid)] = (t, p)
+            points = self._points.setdefault(int(pid), [])
+            if points and t <= points[-1][0]:
+                continue
+            points.append((t, p))
+            del points[:-self.history]
+            if len(points) >= 2:
+                ts = np.array([q[0] for q in points], dtype=float)
+                ps = np.array([q[1] for q in points])
+                steps = np.diff(ps, axis=0) / np.diff(ts)[:, None]
+                self._velocity[int(pid)] = np.median(steps, axis=0)
+
+    def _start(self, track_id: int, t1: int) -> np.ndarray | None:
+        """Median of a track's recent points carried forward to ``t1`` by its velocity."""
+        points = self._points.get(track_id)
+        v = self._velocity.get(track_id)
+        if not points or v is None:
+            return None
+        ts = np.array([q[0] for q in points], dtype=float)
+        ps = np.array([q[1] for q in points])
+        return np.median(ps + v * (t1 - ts)[:, None], axis=0)
 
     def _fallback(self, positions: np.ndarray, t_from: np.ndarray) -> np.ndarray:
         out = np.zeros_like(positions)
@@ -229,15 +254,17 @@ class TrackVelocityPredict:
             return np.zeros((0, len(self.pos_columns)))
         pos = np.array([p.pos for p in particles], dtype=float)
         t0 = np.array([p.t for p in particles], dtype=np.int64)
-        vel = np.full_like(pos, np.nan)
+        out = np.full_like(pos, np.nan)
         for i, p in enumerate(particles):
-            v = self._velocity.get(p.track.id) if p.track is not None else None
-            if v is not None:
-                vel[i] = v
-        missing = np.isnan(vel[:, 0])
+            if p.track is not None:
+                start = self._start(p.track.id, t1)
+                if start is not None:
+                    out[i] = start
+        missing = np.isnan(out[:, 0])
         if missing.any():
-            vel[missing] = self._fallback(pos[missing], t0[missing])
-        return pos + vel * (t1 - t0)[:, None]
+            vel = self._fallback(pos[missing], t0[missing])
+            out[missing] = pos[missing] + vel * (t1 - t0[missing])[:, None]
+        return out
 
 
 # --------------------------------------------------------------------------------------
