@@ -121,6 +121,19 @@ def test_a_depth_outlier_neither_bends_nor_moves_the_prediction():
         TrackVelocityPredict(history=1)
 
 
+@pytest.mark.parametrize("seed", [1, 4])
+def test_an_expanding_ring_is_linked_from_its_first_frame(seed):
+    # Fragments fly out in every direction: no displacement is common to the field, but
+    # chance pairs still make a peak in the displacement histogram. New tracks sent along
+    # that made-up drift missed their second point (seed 1: 5 of 24 fragments untracked).
+    truth = fragment_field_scene(FragmentField(seed=seed)).truth
+    meas = noisy(truth, seed=seed, missed=0.0, outliers=0.0)
+    res = track_particles(meas, TrackSettings(order=1, window=6, search_range_mm=(1.5, 3.0)))
+    st = res.statistics
+    assert len(st) == truth["particle"].nunique() == 24
+    assert (st["n_frames"] == 6).all()
+
+
 def test_anisotropic_search_range_and_memory():
     # one particle jumps 2 mm in depth (linked: depth range 3 mm), another 2 mm sideways
     # (not linked: lateral range 1 mm); a third misses frame 2 (bridged by memory 1)

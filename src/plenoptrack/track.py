@@ -312,12 +312,14 @@ def estimate_drift(particles: pd.DataFrame, *, max_displacement_mm: float,
     return d[near].mean(axis=0) / float(f1 - f0)
 
 
-def _link_once(particles: pd.DataFrame, settings: TrackSettings, guess) -> np.ndarray:
+def _link_once(particles: pd.DataFrame, settings: TrackSettings, guess,
+               drift: np.ndarray | None = None) -> np.ndarray:
     """Track id of every row of ``particles`` (trackpy numbering), one linking pass.
 
-    Without a ``guess`` field the predictor starts from the drift between the first two
-    frames (:func:`estimate_drift`, displacements up to ``5 lateral + depth`` search
-    ranges, bins of half the lateral range).
+    Without a ``guess`` field the predictor starts new tracks along ``drift`` (mm per
+    frame), by default the drift between the first two frames (:func:`estimate_drift`,
+    displacements up to ``5 lateral + depth`` search ranges, bins of half the lateral
+    range).
     """
     import trackpy
 
@@ -329,8 +331,7 @@ def _link_once(particles: pd.DataFrame, settings: TrackSettings, guess) -> np.nd
     feats = feats.sort_values(T_COLUMN, kind="stable")
     trackpy.quiet()
     if settings.predict:
-        drift = None
-        if guess is None:
+        if guess is None and drift is None:
             drift = estimate_drift(particles, max_displacement_mm=5 * lateral + depth,
                                    bin_mm=0.5 * lateral)
         predictor = TrackVelocityPredict(guess, drift=drift)
@@ -374,6 +375,13 @@ def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSetti
         first_pass = dataclasses.replace(settings, search_range_mm=(2 * lateral, 2 * depth))
     ids = _link_once(particles, first_pass, None)
     if settings.predict and settings.passes == 2:
+        # The drift is the most common displacement; a field without one (fragments
+        # flying out in every direction) still has a peak of chance pairs, which would
+        # send every new track the wrong way. Keep whichever start, drift or rest,
+        # links more of the particles.
+        still = _link_once(particles, first_pass, None, drift=np.zeros(3))
+        if len(np.unique(still)) < len(np.unique(ids)):
+            ids = still
         first = smooth_tracks(particles.assign(**{ID_COLUMN: ids}),
                               TrackSettings(window=5, order=1, clip=0.0, min_length=2))
         guess = {}
