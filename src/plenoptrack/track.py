@@ -74,8 +74,9 @@ class TrackSettings:
         Move each track along its latest velocity before linking (:class:`TrackVelocityPredict`).
     passes : int
         Linking passes (1 or 2). With 2 the first pass links with twice the search range
-        only to measure the velocity field; the second starts new tracks with the
-        velocity measured near them in the first.
+        only to measure the velocity field (new tracks start along the field's most
+        common displacement, or at rest if that links more particles); the second starts
+        new tracks with the velocity measured near them in the first.
     min_length : int
         Tracks with fewer points are dropped from the output.
     window : int
