@@ -530,40 +530,52 @@ def locate_image(raw, calibration, method: str, *, white=None, frame: int = 0) -
         return fn(raw, calibration, frame=frame, white=white).particles
 
 
-def _image_task(config_dir: str, config: StudyConfig, index: int, repeat: int,
-                one_thread: bool) -> str:
-    """Simulate and locate one image; write its table; return the file name."""
+def _image_name(index: int, repeat: int) -> str:
+    return f"p{index:03d}_r{repeat:02d}.parquet"
+
+
+def _position_task(config_dir: str, config: StudyConfig, index: int, repeats: list[int],
+                   one_thread: bool) -> list[str]:
+    """Simulate and locate the images ``repeats`` of traverse position ``index``; write one
+    table per image; return their file names.
+
+    The field does not move between repeats, so it is ray-traced once and exposed with
+    each repeat's noise seed (:func:`~plenoptrack.simulate.render_repeats`): the images
+    are the same as simulating each one on its own.
+    """
     if one_thread:
         import numba
         numba.set_num_threads(1)
-    from .simulate import render_frame
+    from .simulate import render_repeats
 
-    out = Path(config_dir) / "images" / f"p{index:03d}_r{repeat:02d}.parquet"
-    if out.exists():
-        return out.name
+    images = Path(config_dir) / "images"
+    repeats = [r for r in repeats if not (images / _image_name(index, r)).exists()]
+    if not repeats:
+        return []
     optics, calib, white, field = _setup(config_dir, config)
-    positions = traverse_positions(config.travel_mm, config.step_mm)
-    p = float(positions[index])
-    parts = _frame_particles(field, p, 0)
-    raw = render_frame(optics, parts, seed=np.random.default_rng([config.seed, 72, index, repeat]))
-    tables = []
-    for method, n_rep in config.n_repeats.items():
-        if repeat >= n_rep:
-            continue
-        _reset_peak()
-        t0 = time.perf_counter()
-        found = locate_image(raw, calib, method, white=white)
-        sec = time.perf_counter() - t0
-        peak = _peak_rss_mb()
-        tables.append(found.assign(method=method, position_mm=p, repeat=repeat, seconds=sec,
-                                   peak_mb=peak, n_found=len(found)))
-        if len(found) == 0:   # keep the image's timing even when nothing was found
-            tables[-1] = pd.DataFrame({"method": [method], "position_mm": [p],
-                                       "repeat": [repeat], "seconds": [sec], "peak_mb": [peak],
-                                       "n_found": [0], "x": [np.nan], "y": [np.nan],
-                                       "z": [np.nan]})
-    write_table(pd.concat(tables, ignore_index=True), out)
-    return out.name
+    p = float(traverse_positions(config.travel_mm, config.step_mm)[index])
+    seeds = [np.random.default_rng([config.seed, 72, index, r]) for r in repeats]
+    names = []
+    for repeat, raw in zip(repeats, render_repeats(optics, _frame_particles(field, p, 0), seeds)):
+        tables = []
+        for method, n_rep in config.n_repeats.items():
+            if repeat >= n_rep:
+                continue
+            _reset_peak()
+            t0 = time.perf_counter()
+            found = locate_image(raw, calib, method, white=white)
+            sec = time.perf_counter() - t0
+            peak = _peak_rss_mb()
+            tables.append(found.assign(method=method, position_mm=p, repeat=repeat,
+                                       seconds=sec, peak_mb=peak, n_found=len(found)))
+            if len(found) == 0:   # keep the image's timing even when nothing was found
+                tables[-1] = pd.DataFrame({"method": [method], "position_mm": [p],
+                                           "repeat": [repeat], "seconds": [sec],
+                                           "peak_mb": [peak], "n_found": [0], "x": [np.nan],
+                                           "y": [np.nan], "z": [np.nan]})
+        write_table(pd.concat(tables, ignore_index=True), images / _image_name(index, repeat))
+        names.append(_image_name(index, repeat))
+    return names
 
 
 def _prepare(config_dir: Path, config: StudyConfig, progress) -> None:
@@ -673,29 +685,33 @@ def run_study(configs: list[StudyConfig], out_dir: str | Path, *, workers: int =
             _prepare(cdir, cfg, bar)
             if bar is not None:
                 bar.remove_task(prep)
+            # one job per position and its missing repeats (traced once, exposed per repeat)
             n_rep = max(cfg.n_repeats.values())
             order = coarse_to_fine(len(traverse_positions(cfg.travel_mm, cfg.step_mm)))
-            jobs.append([(str(cdir), cfg, int(i), r) for r in range(n_rep) for i in order
-                         if not (cdir / "images" / f"p{i:03d}_r{r:02d}.parquet").exists()])
+            todo = [(int(i), [r for r in range(n_rep)
+                              if not (cdir / "images" / _image_name(i, r)).exists()])
+                    for i in order]
+            jobs.append([(str(cdir), cfg, i, missing) for i, missing in todo if missing])
         # interleave the configurations so that a study stopped early covers all of them
         jobs = [job for group in itertools.zip_longest(*jobs) for job in group if job is not None]
-        task = bar.add_task("study images", total=len(jobs)) if bar is not None else None
+        total = sum(len(job[3]) for job in jobs)
+        task = bar.add_task("study images", total=total) if bar is not None else None
         if workers == 0:
             for job in jobs:
-                _image_task(*job, False)
+                _position_task(*job, False)
                 if bar is not None:
-                    bar.update(task, advance=1)
+                    bar.update(task, advance=len(job[3]))
         elif jobs:
             from dask.distributed import Client, LocalCluster, as_completed
 
             with LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                               dashboard_address=None) as cluster, Client(cluster) as client:
-                futures = [client.submit(_image_task, *job, workers > 1, pure=False)
-                           for job in jobs]
+                futures = {client.submit(_position_task, *job, workers > 1, pure=False): job
+                           for job in jobs}
                 for fut in as_completed(futures):
                     fut.result()
                     if bar is not None:
-                        bar.update(task, advance=1)
+                        bar.update(task, advance=len(futures[fut][3]))
     return report_study(configs, out)
 
 

@@ -9,7 +9,8 @@ import pytest
 from scipy.spatial import cKDTree
 
 from plenoptrack import preset
-from plenoptrack.simulate import make_optics, render_dotcard, render_frame, render_white
+from plenoptrack.simulate import (make_optics, render_dotcard, render_frame, render_repeats,
+                                  render_white)
 from plenoptrack.simulate.illumination import (backlight_field, dust_patches, dust_table,
                                                illuminate, illuminated, image_rng)
 from plenoptrack.simulate.psf import (AIRY_FIRST_ZERO, DIRECT_MAX_TAPS, _optics_transfer,
@@ -307,6 +308,18 @@ def _card_frame_white(o, particles):
 
 PARTS = pd.DataFrame([[0.5, -0.3, 2.0, 0.8], [-2.0, 1.0, -6.0, 1.0]],
                      columns=["x", "y", "z", "diameter"])
+
+
+def test_repeats_of_a_still_scene_are_the_frames_of_their_seeds(image_realistic):
+    o = image_realistic
+    seeds = [np.random.default_rng([0, 72, 3, r]) for r in range(3)]
+    alone = [render_frame(o, PARTS, seed=np.random.default_rng([0, 72, 3, r]))
+             for r in range(3)]
+    repeats = list(render_repeats(o, PARTS, seeds))
+    assert len(repeats) == 3
+    for a, b in zip(repeats, alone):
+        assert a.tobytes() == b.tobytes()
+    assert repeats[0].tobytes() != repeats[1].tobytes()   # fresh noise per repeat
 
 
 def test_groups_scaled_to_zero_give_the_ideal_bytes(ideal):

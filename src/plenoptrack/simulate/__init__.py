@@ -27,7 +27,8 @@ from .optics import SimOptics, make_optics, true_camera
 from .fragments import Fragment, fragment_geometry, fragment_silhouette
 from .realism import (BlurEffects, IlluminationEffects, LensEffects, ParticleEffects, Realism,
                       SensorEffects, SpecEffects, TargetEffects, realism_from_dict)
-from .render import expose_image, render_dark, render_frame, render_irradiance, render_white
+from .render import (expose_image, render_dark, render_frame, render_irradiance, render_repeats,
+                     render_white)
 from .scene import (Scene, SceneError, Volume, default_diameter_mm, default_volume, load_scene,
                     make_scene, moving_particles, particle_silhouettes,
                     random_particles, with_particle_effects)
@@ -38,7 +39,7 @@ __all__ = [
     "Realism", "BlurEffects", "LensEffects", "IlluminationEffects", "SensorEffects", "TargetEffects",
     "SpecEffects", "ParticleEffects", "realism_from_dict", "CardPlacement",
     "draw_card_placements",
-    "render_white", "render_frame", "render_irradiance", "render_dark", "expose_image",
+    "render_white", "render_frame", "render_repeats", "render_irradiance", "render_dark", "expose_image",
     "DotCard", "default_dotcard", "default_dotcard_depths", "dot_grid", "render_dotcard",
     "dotcard_irradiance",
     "Scene", "SceneError", "Volume", "default_volume", "default_diameter_mm", "random_particles",

@@ -647,9 +647,36 @@ def render_frame(optics: SimOptics, particles: pd.DataFrame | None, *,
     (rows, cols) uint16 ndarray
         Raw counts.
     """
+    return next(render_repeats(optics, particles, [seed], noise=noise,
+                               samples_per_pixel=samples_per_pixel, sensor=sensor))
+
+
+def render_repeats(optics: SimOptics, particles: pd.DataFrame | None, seeds, *,
+                   noise: bool = True, samples_per_pixel: int = DEFAULT_SAMPLES_PER_PIXEL,
+                   sensor: SensorModel = SensorModel()):
+    """Raw images of one unchanged scene, one per noise seed, ray-traced once.
+
+    Repeated exposures of a still scene differ only in the image-domain draws of
+    :func:`expose_image` (back-light change, noise), so the scene's irradiance is traced
+    once and exposed for each seed. Image ``k`` is bit-identical to
+    ``render_frame(optics, particles, seed=seeds[k], ...)``.
+
+    Parameters
+    ----------
+    optics, particles, noise, samples_per_pixel, sensor
+        As :func:`render_frame`.
+    seeds : iterable of int or numpy.random.Generator
+        One noise seed per image.
+
+    Yields
+    ------
+    (rows, cols) uint16 ndarray
+        The raw counts for each seed in turn; the trace happens at the first one.
+    """
     irr = render_irradiance(optics, particles, samples_per_pixel=samples_per_pixel)
-    return expose_image(irr, optics, level=sensor.background_level, sensor=sensor, seed=seed,
-                        noise=noise)
+    for seed in seeds:
+        yield expose_image(irr, optics, level=sensor.background_level, sensor=sensor,
+                           seed=seed, noise=noise)
 
 
 def render_dark(optics: SimOptics, *, seed: int | np.random.Generator | None = 0,
