@@ -5,7 +5,7 @@ import pandas as pd
 import pytest
 
 from plenoptrack.evaluate import match_particles
-from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
+from plenoptrack.locate.perspective import PerspectiveLocator, _view_subgrid, locate_frame
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.simulate import make_scene, render_frame
 
@@ -21,21 +21,24 @@ def _truth(rows, diameter):
                          "projected_area": np.pi * diameter ** 2 / 4, "orientation": 0.0})
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_a_pair_on_one_line_of_sight_is_split(small_calibrated, seed):
+@pytest.mark.parametrize("seed, stride", [(0, 2), (1, 2), (0, 1)])
+def test_a_pair_on_one_line_of_sight_is_split(small_calibrated, seed, stride):
     """Two 0.8 mm particles 0.1 mm apart laterally and 8 mm in depth overlap in every
     view: the centroids take them for one particle between them, which the refinement
     cannot explain (a neighbour overlaps it). The split finds both, and the neighbour's
-    refit, spoilt by the merged image, is then explained too."""
+    refit, spoilt by the merged image, is then explained too; decided on a quarter of the
+    views (the default) or on all of them."""
     optics, calib = small_calibrated
     assert PerspectiveLocator().check.split_merged     # on by default
+    assert PerspectiveLocator().check.split_trial_stride == 2
     truth = _truth([(-2.5, 1.2, -3.0), (2.5, -1.2, 4.0), (2.6, 1.3, 0.5), (-2.4, -1.4, 6.0),
                     (0.0, 0.0, -4.0), (0.1, 0.0, 4.0), (0.7, 0.3, 1.0)], 0.8)
     raw = render_frame(optics, truth, seed=np.random.default_rng([seed, 3, 0]))
     plain = locate_frame(raw, calib, locator=OFF).particles
     pairs = match_particles(plain, truth, tolerance_mm=0.5)
     assert not {4, 5} <= set(pairs["truth_index"])              # one of them at most
-    found = locate_frame(raw, calib).particles
+    locator = PerspectiveLocator.from_dict({"check": {"split_trial_stride": stride}})
+    found = locate_frame(raw, calib, locator=locator).particles
     pairs = match_particles(found, truth, tolerance_mm=0.5)
     assert len(found) == len(truth) and len(pairs) == len(truth)
     split = (found["flags"].to_numpy() & SPLIT) > 0
@@ -108,6 +111,25 @@ def test_split_settings_are_checked():
     from plenoptrack.errors import SettingsError
 
     for bad in ({"split_min_contrast": 0.0}, {"split_min_contrast": 1.5},
-                {"split_min_gain": 0.9}):
+                {"split_min_gain": 0.9}, {"split_trial_stride": 0},
+                {"split_trial_stride": 1.5}, {"split_trial_stride": True}):
         with pytest.raises(SettingsError):
             PerspectiveLocator.from_dict({"check": bad})
+
+
+def test_the_trial_views_are_a_subgrid_through_the_centre_spanning_the_aperture():
+    # the usable views of a 14-pixel lens: (v, u) indices within a disc around (7, 7)
+    vv, uu = np.mgrid[0:15, 0:15]
+    inside = np.hypot(vv - 7, uu - 7) <= 6.2
+    view_rc = np.c_[vv[inside], uu[inside]]
+    keep = _view_subgrid(view_rc, 2)
+    sub = view_rc[keep]
+    assert [7, 7] in sub.tolist()
+    assert np.all((sub - 7) % 2 == 0)
+    assert 0.2 < keep.mean() < 0.3                        # about a quarter
+    # the sub-grid reaches the aperture's edge: its baseline (parallax) is kept
+    assert np.abs(sub - 7).max() == np.abs(view_rc - 7).max()
+    assert _view_subgrid(view_rc, 1).all()
+    # too few views left for a two-particle fit: every view
+    small = view_rc[np.hypot(*(view_rc - 7).T) <= 2.3]
+    assert _view_subgrid(small, 2).all()

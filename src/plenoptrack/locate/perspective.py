@@ -643,39 +643,55 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         near[i] = False
         return np.flatnonzero(near)
 
-    for m in candidates:
-        if flags[m] & refined and not flags[m] & unexplained:
-            continue                       # explained beside a neighbour's split meanwhile
-        held = neighbours(m, pred)
-        if never_fitted[m]:
-            one = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, pos[[m]],
-                             np.array([[radius[m], 0.9]]), pos[held],
-                             np.c_[radius[held], contrast[held]],
-                             max_depth_shift=0.1 * ctx.volume_depth_mm)
-            if (one is None or not np.isfinite(one.model_error)
-                    or one.model_error <= settings.refine_max_model_error):
-                continue                   # one image explains it: left as it is
-            single_error[m] = one.model_error
-        two = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data,
-                         _line_of_sight_pair(ctx.dlfc, pos[m], views_uv),
-                         np.tile([radius[m], 0.9], (2, 1)), pos[held],
-                         np.c_[radius[held], contrast[held]],
-                         max_depth_shift=ctx.volume_depth_mm)
+    # the decision's fits use a sub-grid of the views; a split that passes is refitted
+    trial = _view_subgrid(view_rc, settings.split_trial_stride)
+    trial_uv, trial_rc = views_uv[trial], view_rc[trial]
+
+    def two_particles(two, m) -> bool:
+        """Whether the fit ``two`` shows two opaque particles where m was, apart by their
+        parallax, neither of them one already located."""
         if (two is None or not np.all(np.isfinite(two.params))
-                or two.params[:, 4].min() < settings.split_min_contrast
-                or two.model_error * settings.split_min_gain > single_error[m]):
-            continue
+                or two.params[:, 4].min() < settings.split_min_contrast):
+            return False
         pair_pred = _predict_all(ctx.dlfc, two.params[:, :3], views_uv)
         offset = pair_pred[0] - pair_pred[1]                                 # (V, 2)
         # Only parallax tells two particles from one elongated image: the two images
         # must move apart across the views (by a view pixel) and stand apart somewhere.
         if not (_parallax_px(offset) >= 1.0
                 and np.nanmax(np.hypot(*offset.T)) >= two.params[:, 3].min()):
-            continue
+            return False
         others = np.setdiff1d(np.flatnonzero(np.isfinite(radius)
                                              & np.all(np.isfinite(pos), axis=1)), [m])
-        if _coincides(pair_pred, two.params[:, 3], pred[others], radius[others]):
+        return not _coincides(pair_pred, two.params[:, 3], pred[others], radius[others])
+
+    for m in candidates:
+        if flags[m] & refined and not flags[m] & unexplained:
+            continue                       # explained beside a neighbour's split meanwhile
+        held = neighbours(m, pred)
+        held_rc = np.c_[radius[held], contrast[held]]
+        # one image and two, fitted to the same pixels
+        if never_fitted[m] or not trial.all():
+            one = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, pos[[m]],
+                             np.array([[radius[m], 0.9]]), pos[held], held_rc,
+                             max_depth_shift=0.1 * ctx.volume_depth_mm)
+            if one is None or not np.isfinite(one.model_error):
+                continue
+            if never_fitted[m] and one.model_error <= settings.refine_max_model_error:
+                continue                   # one image explains it: left as it is
+            single_error[m] = one.model_error
+        two = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data,
+                         _line_of_sight_pair(ctx.dlfc, pos[m], views_uv),
+                         np.tile([radius[m], 0.9], (2, 1)), pos[held], held_rc,
+                         max_depth_shift=ctx.volume_depth_mm)
+        if (two is None or two.model_error * settings.split_min_gain > single_error[m]
+                or not two_particles(two, m)):
             continue
+        if not trial.all():                # the pair on every view, from the trial's fit
+            two = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, two.params[:, :3],
+                             two.params[:, 3:], pos[held], held_rc,
+                             max_depth_shift=ctx.volume_depth_mm)
+            if not two_particles(two, m):
+                continue
         # the image nearer the merged solution in depth keeps the particle's row
         first = int(np.argmin(np.abs(two.params[:, 2] - pos[m, 2])))
         order = [first, 1 - first]
@@ -722,6 +738,15 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     table[_FIT_RADIUS] = radius
     initial = np.vstack([state.initial, pos[len(state.initial):]])
     return dataclasses.replace(state, initial=initial, positions=pos, table=table)
+
+
+def _view_subgrid(view_rc: np.ndarray, stride: int, *, min_views: int = 12) -> np.ndarray:
+    """(V,) bool: the views whose ``(v, u)`` index ``view_rc`` (V, 2) differs from the
+    central view's by a multiple of ``stride`` in both, a regular sub-grid spanning the
+    aperture; every view when that leaves fewer than ``min_views``."""
+    centre = np.round(np.median(view_rc, axis=0)).astype(np.int64)
+    keep = np.all((view_rc - centre) % stride == 0, axis=1)
+    return keep if keep.sum() >= min_views else np.ones(len(view_rc), dtype=bool)
 
 
 def _length_spread(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
