@@ -692,6 +692,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                              max_depth_shift=ctx.volume_depth_mm)
             if not two_particles(two, m):
                 continue
+        if not np.all(np.isfinite(two.sigma)):
+            continue                       # a pair the pixels do not determine
         # the image nearer the merged solution in depth keeps the particle's row
         first = int(np.argmin(np.abs(two.params[:, 2] - pos[m, 2])))
         order = [first, 1 - first]

@@ -251,7 +251,8 @@ def _view_robust_sigma(jtj, meat, n_views):
 
         cov = V / (V - p) (J^T J)^-1 [sum_v J_v^T r_v r_v^T J_v] (J^T J)^-1
 
-    NaN where ``J^T J`` is singular or there are no more views than parameters."""
+    NaN where ``J^T J`` is singular (or too nearly so for its inverse to be finite) or
+    there are no more views than parameters."""
     n_par = len(jtj)
     if n_views <= n_par:
         return np.full((n_par // 5, 5), np.nan)
@@ -259,8 +260,9 @@ def _view_robust_sigma(jtj, meat, n_views):
         inv = np.linalg.inv(jtj)
     except np.linalg.LinAlgError:
         return np.full((n_par // 5, 5), np.nan)
-    cov = n_views / (n_views - n_par) * inv @ meat @ inv
-    return np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(-1, 5)
+    with np.errstate(invalid="ignore", over="ignore"):   # a nearly singular J^T J
+        cov = n_views / (n_views - n_par) * inv @ meat @ inv
+        return np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(-1, 5)
 
 
 def _masked_row_percentile(values, exclude, q, *, min_count):
