@@ -96,6 +96,28 @@ def test_fragments_are_tracked_ballistically():
     assert st["speed_m_per_s"].between(500 * 0.97, 1000 * 1.03).all()
 
 
+def test_smoothed_sigma_keeps_the_error_a_particle_keeps_from_frame_to_frame(vortex):
+    # Each particle's depth error is a part it keeps in every frame (a model error at its
+    # place, its shape) plus a part that changes from frame to frame; the sigmas are
+    # right about the sum. The scatter about a track shows only the changing part, so the
+    # smoothed sigma must not shrink the kept part by averaging.
+    rng = np.random.default_rng(5)
+    kept_mm, changing_mm = 0.08, 0.05
+    m = vortex.copy()
+    per_particle = rng.standard_normal(m["particle"].max() + 1) * kept_mm
+    m["z"] += per_particle[m["particle"]] + rng.standard_normal(len(m)) * changing_mm
+    m["sigma_x"] = m["sigma_y"] = 1e-3
+    m["sigma_z"] = np.hypot(kept_mm, changing_mm)
+    truth_z = vortex["z"].to_numpy()
+    tracks = smooth_tracks(m.assign(_truth_z=truth_z))
+    err = (tracks["z_smooth"] - tracks["_truth_z"]).to_numpy()
+    within = np.abs(err) < tracks["sigma_z_smooth"].to_numpy()
+    assert 0.6 <= within.mean() <= 0.8
+    assert np.mean(np.abs(err) < 2 * tracks["sigma_z_smooth"].to_numpy()) >= 0.92
+    # the kept part is not averaged away, and the estimate of the gain says so
+    assert track_particles(m).depth_scatter_ratio < 1.3
+
+
 def test_a_depth_outlier_neither_bends_nor_moves_the_prediction():
     # A particle at 3 mm per frame along x, whose last point is a depth outlier 2 mm off
     # (a ghost on its line of sight). Continuing from that point along the last step's

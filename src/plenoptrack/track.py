@@ -493,6 +493,31 @@ def _local_fit(t: np.ndarray, y: np.ndarray, w: np.ndarray, idx: np.ndarray, ord
     return coef, smoother, slope_row
 
 
+def _smoothed_sigma(L: np.ndarray, sigma_window: np.ndarray, scale: float, *,
+                    measured: bool = True) -> np.ndarray:
+    """(n,) standard error of each smoothed value (mm) from the fit's weights ``L`` (n, k)
+    and the locator's sigmas of the window's points ``sigma_window`` (n, k; 0 where
+    unused), given the tracks' scatter ``scale`` (their scatter about the fits over the
+    locator's sigmas).
+
+    The scatter about a track measures only the part of the error that changes from
+    frame to frame. With ``scale >= 1`` that is all of it and the sigmas are rescaled:
+    ``scale sqrt(sum L^2 sigma^2)``. With ``scale < 1`` the locator's sigma holds more
+    than the track shows (the DLFC's model error, a particle's shape: errors that a
+    slowly moving particle keeps from frame to frame); that share, ``1 - scale^2`` of
+    the variance, is taken as shared by the window's points and is not averaged away::
+
+        var = scale^2 sum L^2 sigma^2 + (1 - scale^2) (sum L sigma)^2
+
+    ``measured`` False: the sigmas are placeholders (a table without them), in no unit
+    of error; they are only rescaled.
+    """
+    shared = max(1.0 - scale ** 2, 0.0) if measured else 0.0
+    var = (scale ** 2 * (L ** 2 * sigma_window ** 2).sum(axis=1)
+           + shared * (L * sigma_window).sum(axis=1) ** 2)
+    return np.sqrt(var)
+
+
 def _worst_third(bad: np.ndarray, score: np.ndarray, pid: np.ndarray,
                  lengths: np.ndarray) -> np.ndarray:
     """``bad`` limited to the ``floor(n / 3)`` highest-``score`` rows of each track of
@@ -543,9 +568,11 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     ``clip`` times their robust scale ``s`` (1.4826 MAD over all rows); points beyond are
     given weight 0 and the fits repeated (three rounds); at most a third of a track's
     points are rejected (the worst), and tracks shorter than ``order + 4`` points keep
-    every point. The smoothed sigma is
-    ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's weights): ``s`` rescales the
-    locator's sigmas to the scatter the tracks show.
+    every point. The smoothed sigma is ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's
+    weights) when ``s >= 1``: ``s`` rescales the locator's sigmas to the scatter the
+    tracks show. When ``s < 1`` the rest of each sigma is error that the track does not
+    show as scatter (kept from frame to frame) and is not averaged away
+    (:func:`_smoothed_sigma`).
     """
     cols = [T_COLUMN, ID_COLUMN, *POS_COLUMNS]
     missing = [c for c in cols if c not in linked.columns]
@@ -600,7 +627,8 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
         valid = idx >= 0
         sig_win = np.where(valid, sigma[np.where(valid, idx, 0)], 0.0)
         out[SMOOTH_COLUMNS[axis]] = coef[:, 0]
-        out[SMOOTH_SIGMA_COLUMNS[axis]] = scale * np.sqrt((L ** 2 * sig_win ** 2).sum(axis=1))
+        out[SMOOTH_SIGMA_COLUMNS[axis]] = _smoothed_sigma(L, sig_win, scale,
+                                                          measured=sig_name in df.columns)
         out[VELOCITY_COLUMNS[axis]] = coef[:, 1] if coef.shape[1] > 1 else np.zeros(n)
         out[ACCELERATION_COLUMNS[axis]] = 2 * coef[:, 2] if coef.shape[1] > 2 else np.zeros(n)
         out[f"_scale_{c}"] = np.full(n, scale)
@@ -628,8 +656,9 @@ def tracking_record(tracks: pd.DataFrame) -> dict:
 def depth_scatter_ratio(tracks: pd.DataFrame) -> float:
     """Estimated per-frame depth scatter over track-smoothed depth scatter (median over rows).
 
-    The per-frame scatter of a row is its ``sigma_z`` times the tracks' scatter scale
-    (:func:`tracking_record`, 1 when absent); the smoothed one is
+    The per-frame scatter of a row is its ``sigma_z``, times the tracks' scatter scale
+    (:func:`tracking_record`) where that is above 1 (where it is below, the rest of the
+    sigma is error kept from frame to frame, :func:`smooth_tracks`); the smoothed one is
     ``sigma_z_smooth``. Without ``sigma_z`` every row counts as equally uncertain.
     """
     if len(tracks) == 0:
@@ -640,6 +669,8 @@ def depth_scatter_ratio(tracks: pd.DataFrame) -> float:
     if sig is None:
         # equal weights: per-frame scatter is the scale itself (sigma = 1 after filling)
         sig = np.ones(len(tracks))
+    else:
+        scale = max(scale, 1.0)
     ok = np.isfinite(sig) & np.isfinite(smooth) & (smooth > 0)
     return float(np.median(scale * sig[ok] / smooth[ok])) if ok.any() else float("nan")
 
