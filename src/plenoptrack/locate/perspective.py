@@ -646,6 +646,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     # the decision's fits use a sub-grid of the views; a split that passes is refitted
     trial = _view_subgrid(view_rc, settings.split_trial_stride)
     trial_uv, trial_rc = views_uv[trial], view_rc[trial]
+    all_views = bool(trial.all())
 
     def two_particles(two, m) -> bool:
         """Whether the fit ``two`` shows two opaque particles where m was, apart by their
@@ -670,7 +671,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         held = neighbours(m, pred)
         held_rc = np.c_[radius[held], contrast[held]]
         # one image and two, fitted to the same pixels
-        if never_fitted[m] or not trial.all():
+        if never_fitted[m] or not all_views:
             one = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, pos[[m]],
                              np.array([[radius[m], 0.9]]), pos[held], held_rc,
                              max_depth_shift=0.1 * ctx.volume_depth_mm)
@@ -686,7 +687,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         if (two is None or two.model_error * settings.split_min_gain > single_error[m]
                 or not two_particles(two, m)):
             continue
-        if not trial.all():                # the pair on every view, from the trial's fit
+        if not all_views:                  # the pair on every view, from the trial's fit
             two = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, two.params[:, :3],
                              two.params[:, 3:], pos[held], held_rc,
                              max_depth_shift=ctx.volume_depth_mm)
