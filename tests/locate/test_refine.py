@@ -7,8 +7,8 @@ from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.locate.refine import (_masked_row_percentile, _normal_equations,
-                                       _patch_masks, _robust_sd, disc_image, fit_images,
-                                       overlap_fraction)
+                                       _patch_masks, _patches, _robust_sd, disc_image,
+                                       fit_images, overlap_fraction)
 from plenoptrack.simulate import make_scene, render_frame
 
 
@@ -245,6 +245,34 @@ def test_a_patch_outside_every_view_gives_none():
     data = np.ones((9, 9, 90, 110))
     assert fit_images(dlfc, views_uv, view_rc, data, np.array([[20.0, 0.0, 0.0]]),
                       np.array([[2.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 2))) is None
+
+
+def test_patches_reaching_beyond_the_view_mark_their_pixels_outside():
+    data = np.arange(2 * 1 * 6 * 8, dtype=float).reshape(2, 1, 6, 8)
+    view_rc = np.array([[0, 0], [1, 0]])
+    centre = np.array([[1.0, 4.0], [9.0, 2.0]])          # (s, t): in view 0, beyond view 1
+    keep, origin, values, inside = _patches(data, view_rc, centre, 2)
+    assert keep.tolist() == [True, False]
+    assert origin.tolist() == [[-1.0, 2.0]]
+    t, s = np.mgrid[2:7, -1:4]
+    assert np.array_equal(inside[0], (t < 6) & (s >= 0))
+    assert np.array_equal(values[0][inside[0]], data[0, 0][t[inside[0]], s[inside[0]]])
+
+
+def test_an_image_cut_by_the_view_edge_is_fitted_on_its_part_in_the_view():
+    """The image lies across the view's left edge in every view (its patch cannot fit
+    inside any view): the fit uses the pixels in the view and finds the particle."""
+    dlfc = LinearCalibration()
+    views_uv, view_rc = _views()
+    truth = np.array([[-4.85, 0.0, 1.0]])                # s = 1.5 +- 1.2 over the views
+    rc = np.array([[2.5, 0.95]])
+    data = _render(dlfc, truth, rc, views_uv, view_rc, noise=0.01, seed=3)
+    fitted = fit_images(dlfc, views_uv, view_rc, data, truth + [0.03, -0.02, 0.4],
+                        np.array([[2.0, 0.8]]), np.zeros((0, 3)), np.zeros((0, 2)))
+    assert fitted is not None and fitted.n_views == len(views_uv)
+    assert np.abs(fitted.params[0, :3] - truth[0]).max() < 0.02
+    assert fitted.params[0, 3] == pytest.approx(2.5, abs=0.1)
+    assert fitted.model_error < 0.01
 
 
 def test_overlap_fraction_against_brute_force():

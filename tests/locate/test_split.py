@@ -112,6 +112,7 @@ def test_split_settings_are_checked():
 
     for bad in ({"split_min_contrast": 0.0}, {"split_min_contrast": 1.5},
                 {"split_min_gain": 0.9}, {"split_trial_stride": 0},
+                {"split_max_images": 1}, {"split_max_images": 2.5},
                 {"split_trial_stride": 1.5}, {"split_trial_stride": True}):
         with pytest.raises(SettingsError):
             PerspectiveLocator.from_dict({"check": bad})
@@ -133,3 +134,48 @@ def test_the_trial_views_are_a_subgrid_through_the_centre_spanning_the_aperture(
     # too few views left for a two-particle fit: every view
     small = view_rc[np.hypot(*(view_rc - 7).T) <= 2.3]
     assert _view_subgrid(small, 2).all()
+
+
+def test_two_large_particles_that_overlap_in_every_view_are_split(small_calibrated):
+    """Two 1.6 mm particles 0.2 mm apart laterally and 8 mm in depth: their images
+    overlap in every view, never standing apart by a radius, but they are two bodies
+    apart in space (further apart than the sum of their radii) whose images move apart
+    by their parallax."""
+    optics, calib = small_calibrated
+    truth = _truth([(-2.2, 0.9, -3.0), (2.2, -0.9, 4.0), (0.0, 0.0, -4.0), (0.15, 0.12, 4.0)],
+                   1.6)
+    for seed in (0, 1):
+        raw = render_frame(optics, truth, seed=np.random.default_rng([seed, 3, 0]))
+        assert len(match_particles(locate_frame(raw, calib, locator=OFF).particles, truth,
+                                   tolerance_mm=0.3)) == 2
+        found = locate_frame(raw, calib).particles
+        pairs = match_particles(found, truth, tolerance_mm=0.3)
+        assert len(found) == 4 and len(pairs) == 4
+        assert ((found["flags"].to_numpy() & SPLIT) > 0).sum() == 2
+
+
+def test_three_large_particles_in_line_are_all_found(small_calibrated):
+    """Three 1.6 mm particles within 0.5 mm of one line of sight, 6 mm apart in depth:
+    their images overlap in every view and the centroids take them for one particle. A
+    split into two leaves the pixels unexplained and one of the two is split again;
+    with ``split_max_images = 2`` the pair found is rejected and all three are missed.
+    (Not every such triple is resolved: in most random ones tried, the merged particle
+    is not one the split can start from.)"""
+    optics, calib = small_calibrated
+    truth = _truth([(-2.5, 1.2, -3.0), (2.5, -1.2, 4.0),
+                    (0.06, 0.04, -6.92), (-0.43, -0.24, 0.06), (-0.03, -0.33, 5.92)], 1.6)
+    truth.loc[:1, "diameter"] = 0.8
+    raw = render_frame(optics, truth, seed=np.random.default_rng([4, 3, 0]))
+    found = locate_frame(raw, calib).particles
+    pairs = match_particles(found, truth, tolerance_mm=0.3)
+    assert len(found) == 5 and len(pairs) == 5
+    m = found.loc[pairs["measured_index"]].reset_index(drop=True)
+    t = truth.loc[pairs["truth_index"]].reset_index(drop=True)
+    line = t["particle"].isin([2, 3, 4]).to_numpy()
+    assert np.all((m["flags"].to_numpy()[line] & SPLIT) > 0)
+    assert np.all(np.abs(m["diameter"].to_numpy()[line] / 1.6 - 1) < 0.1)
+    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())[line]
+    assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.2)
+    pairs_only = PerspectiveLocator.from_dict({"check": {"split_max_images": 2}})
+    found = locate_frame(raw, calib, locator=pairs_only).particles
+    assert len(match_particles(found, truth, tolerance_mm=0.3)) == 2

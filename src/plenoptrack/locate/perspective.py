@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import itertools
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -648,22 +649,53 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     trial_uv, trial_rc = views_uv[trial], view_rc[trial]
     all_views = bool(trial.all())
 
-    def two_particles(two, m) -> bool:
-        """Whether the fit ``two`` shows two opaque particles where m was, apart by their
-        parallax, neither of them one already located."""
-        if (two is None or not np.all(np.isfinite(two.params))
-                or two.params[:, 4].min() < settings.split_min_contrast):
+    def distinct(fit, m) -> bool:
+        """Whether the fit shows ``k`` opaque particles where m was, each two apart by
+        their parallax, none of them one already located."""
+        if (fit is None or not np.all(np.isfinite(fit.params))
+                or fit.params[:, 4].min() < settings.split_min_contrast):
             return False
-        pair_pred = _predict_all(ctx.dlfc, two.params[:, :3], views_uv)
-        offset = pair_pred[0] - pair_pred[1]                                 # (V, 2)
-        # Only parallax tells two particles from one elongated image: the two images
-        # must move apart across the views (by a view pixel) and stand apart somewhere.
-        if not (_parallax_px(offset) >= 1.0
-                and np.nanmax(np.hypot(*offset.T)) >= two.params[:, 3].min()):
-            return False
+        group_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)     # (k, V, 2)
+        for a, b in itertools.combinations(range(len(fit.params)), 2):
+            offset = group_pred[a] - group_pred[b]                           # (V, 2)
+            # Only parallax tells two particles from one elongated image: the two
+            # images must move apart across the views (by a view pixel) and either
+            # stand apart in some view or be two bodies apart in space (one body fitted
+            # with two discs puts them inside itself, overlapping; two large particles
+            # far apart in depth can overlap in every view).
+            if not (_parallax_px(offset) >= 1.0
+                    and (np.nanmax(np.hypot(*offset.T)) >= fit.params[[a, b], 3].min()
+                         or _apart_in_space(ctx.dlfc, fit.params[[a, b]]))):
+                return False
         others = np.setdiff1d(np.flatnonzero(np.isfinite(radius)
                                              & np.all(np.isfinite(pos), axis=1)), [m])
-        return not _coincides(pair_pred, two.params[:, 3], pred[others], radius[others])
+        return not _coincides(group_pred, fit.params[:, 3], pred[others], radius[others])
+
+    def split(m, held, held_rc, start, error):
+        """The best fit of one more image than ``start`` (k, 5) on the trial views, each
+        image in turn replaced by a pair on its line of sight, when it explains the
+        pixels ``split_min_gain`` times better than ``error`` (model error on the trial
+        views) and passes :func:`distinct`: ``(fit refitted on every view, its model
+        error on the trial views)``; else None."""
+        best = None
+        for j in range(len(start)):
+            xyz = np.vstack([np.delete(start[:, :3], j, axis=0),
+                             _line_of_sight_pair(ctx.dlfc, start[j, :3], views_uv)])
+            rc = np.vstack([np.delete(start[:, 3:], j, axis=0),
+                            np.tile([start[j, 3], 0.9], (2, 1))])
+            fit = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, xyz, rc, pos[held],
+                             held_rc, max_depth_shift=ctx.volume_depth_mm)
+            if (fit is not None and fit.model_error * settings.split_min_gain <= error
+                    and (best is None or fit.model_error < best.model_error)
+                    and distinct(fit, m)):
+                best = fit
+        if best is None or all_views:
+            return None if best is None else (best, best.model_error)
+        trial_error = best.model_error     # the group on every view, from the trial's fit
+        best = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, best.params[:, :3],
+                          best.params[:, 3:], pos[held], held_rc,
+                          max_depth_shift=ctx.volume_depth_mm)
+        return (best, trial_error) if distinct(best, m) else None
 
     for m in candidates:
         if flags[m] & refined and not flags[m] & unexplained:
@@ -672,46 +704,46 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         held_rc = np.c_[radius[held], contrast[held]]
         # one image and two, fitted to the same pixels
         if never_fitted[m] or not all_views:
+            # no limit on its depth: only its model error is used, and one image that
+            # wanders off in depth is one that does not explain the pixels
             one = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, pos[[m]],
-                             np.array([[radius[m], 0.9]]), pos[held], held_rc,
-                             max_depth_shift=0.1 * ctx.volume_depth_mm)
+                             np.array([[radius[m], 0.9]]), pos[held], held_rc)
             if one is None or not np.isfinite(one.model_error):
                 continue
             if never_fitted[m] and one.model_error <= settings.refine_max_model_error:
                 continue                   # one image explains it: left as it is
             single_error[m] = one.model_error
-        two = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data,
-                         _line_of_sight_pair(ctx.dlfc, pos[m], views_uv),
-                         np.tile([radius[m], 0.9], (2, 1)), pos[held], held_rc,
-                         max_depth_shift=ctx.volume_depth_mm)
-        if (two is None or two.model_error * settings.split_min_gain > single_error[m]
-                or not two_particles(two, m)):
-            continue
-        if not all_views:                  # the pair on every view, from the trial's fit
-            two = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, two.params[:, :3],
-                             two.params[:, 3:], pos[held], held_rc,
-                             max_depth_shift=ctx.volume_depth_mm)
-            if not two_particles(two, m):
-                continue
-        if not np.all(np.isfinite(two.sigma)):
-            continue                       # a pair the pixels do not determine
+        found = split(m, held, held_rc, np.array([[*pos[m], radius[m], 0.9]]),
+                      single_error[m])
+        # Three or more particles on one line of sight: split an image of the group
+        # again while the group leaves the pixels unexplained.
+        while (found is not None and len(found[0].params) < settings.split_max_images
+               and found[0].model_error > settings.refine_max_model_error):
+            more = split(m, held, held_rc, found[0].params, found[1])
+            if more is None:
+                break
+            found = more
+        if found is None or not np.all(np.isfinite(found[0].sigma)):
+            continue                       # no split, or one the pixels do not determine
+        group = found[0]
         # the image nearer the merged solution in depth keeps the particle's row
-        first = int(np.argmin(np.abs(two.params[:, 2] - pos[m, 2])))
-        order = [first, 1 - first]
-        pos = np.vstack([pos, two.params[order[1], :3]])
-        pos[m] = two.params[first, :3]
-        sigma = np.vstack([sigma, two.sigma[order[1]]])
-        sigma[m] = two.sigma[first]
-        radius = np.append(radius, 0.0)
-        radius[[m, -1]] = two.params[order, 3]
-        contrast = np.append(contrast, 0.0)
-        contrast[[m, -1]] = two.params[order, 4]
+        k = len(group.params)
+        first = int(np.argmin(np.abs(group.params[:, 2] - pos[m, 2])))
+        rest = [i for i in range(k) if i != first]
+        pos = np.vstack([pos, group.params[rest, :3]])
+        pos[m] = group.params[first, :3]
+        sigma = np.vstack([sigma, group.sigma[rest]])
+        sigma[m] = group.sigma[first]
+        radius = np.append(radius, group.params[rest, 3])
+        radius[m] = group.params[first, 3]
+        contrast = np.append(contrast, group.params[rest, 4])
+        contrast[m] = group.params[first, 4]
         flags[m] = (flags[m] & ~unexplained) | refined | int(TriangulationFlag.SPLIT)
-        flags = np.append(flags, refined | int(TriangulationFlag.SPLIT))
-        parent.append(m)
-        n_views.append(two.n_views)
-        # The pair's merged image also spoilt its neighbours' fits: refit those the
-        # refinement could not explain, now beside the two.
+        flags = np.append(flags, np.full(k - 1, refined | int(TriangulationFlag.SPLIT)))
+        parent.extend([m] * (k - 1))
+        n_views.extend([group.n_views] * (k - 1))
+        # The group's merged image also spoilt its neighbours' fits: refit those the
+        # refinement could not explain, now beside the group.
         pred = _predict_all(ctx.dlfc, pos, views_uv)
         for q in held[(flags[held] & unexplained) > 0]:
             near = neighbours(q, pred)
@@ -800,6 +832,14 @@ def _coincides(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
         same = dist < np.maximum(radius[:, None], other_radius[None])
         merged = (dist < radius[:, None] + other_radius[None]) & (parallax < 1.0)
     return bool(np.any(same | merged))
+
+
+def _apart_in_space(dlfc, params: np.ndarray) -> bool:
+    """Whether two fitted images ``params`` (2, 5: x, y, z mm, radius px, contrast) are
+    two bodies that do not overlap: centres further apart than the sum of their radii,
+    each radius taken to object space with the DLFC's local magnification (px per mm)."""
+    radius_mm = params[:, 3] / dlfc.local_magnification(*params[:, :3].T)
+    return bool(np.linalg.norm(params[0, :3] - params[1, :3]) >= radius_mm.sum())
 
 
 def _parallax_px(offset: np.ndarray) -> np.ndarray:

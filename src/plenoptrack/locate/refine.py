@@ -108,18 +108,25 @@ def disc_image(rho: np.ndarray, radius, contrast, edge: float = EDGE_PX):
 
 def _patches(data, view_rc, centre, half):
     """Square patches of side ``2 half + 1`` around ``centre`` (V, 2) ``(s, t)`` in every
-    view; returns ``(keep (V,) bool, origin (K, 2) float, values (K, n, n) float)``, where
-    ``origin`` is the ``(s, t)`` of each kept patch's pixel ``[0, 0]``."""
+    view whose centre pixel lies in the view; returns ``(keep (V,) bool, origin (K, 2)
+    float, values (K, n, n) float, inside (K, n, n) bool)``, where ``origin`` is the
+    ``(s, t)`` of each kept patch's pixel ``[0, 0]``. A patch may reach beyond its view
+    (a large image, or one near the edge): ``inside`` marks its pixels within the view;
+    those beyond hold the nearest edge pixel's value and must not be used."""
     n_t, n_s = data.shape[2:]
-    s0 = np.rint(centre[:, 0]).astype(np.int64) - half
-    t0 = np.rint(centre[:, 1]).astype(np.int64) - half
-    keep = (s0 >= 0) & (t0 >= 0) & (s0 + 2 * half < n_s) & (t0 + 2 * half < n_t)
+    cs = np.rint(centre[:, 0]).astype(np.int64)
+    ct = np.rint(centre[:, 1]).astype(np.int64)
+    keep = (cs >= 0) & (ct >= 0) & (cs < n_s) & (ct < n_t)
     off = np.arange(2 * half + 1)
-    ss = (s0[keep, None] + off)[:, None, :]
-    tt = (t0[keep, None] + off)[:, :, None]
+    s = cs[keep, None] - half + off                                   # (K, n)
+    t = ct[keep, None] - half + off
+    inside = (((t >= 0) & (t < n_t))[:, :, None] & ((s >= 0) & (s < n_s))[:, None, :])
+    ss = np.clip(s, 0, n_s - 1)[:, None, :]
+    tt = np.clip(t, 0, n_t - 1)[:, :, None]
     vr, ur = view_rc[keep, 0], view_rc[keep, 1]
     values = data[vr[:, None, None], ur[:, None, None], tt, ss].astype(np.float64)
-    return keep, np.stack([s0[keep], t0[keep]], axis=1).astype(np.float64), values
+    origin = np.stack([s[:, 0], t[:, 0]], axis=1).astype(np.float64)
+    return keep, origin, values, inside
 
 
 def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixed_rc, *,
@@ -159,7 +166,9 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     -------
     ImageFit or None
         The fitted parameters and their standard errors; None when fewer than 6 views
-        have a usable patch, or the fit wandered beyond ``max_depth_shift``.
+        have a usable patch (its centre in the view, enough background pixels), or the
+        fit wandered beyond ``max_depth_shift``. Pixels beyond a view's edge are left
+        out, so an image cut by the edge is fitted on its part in the view.
     """
     k = len(free_xyz)
     u, v = views_uv[:, 0], views_uv[:, 1]
@@ -168,7 +177,7 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     centre = st_free.mean(axis=0)
     reach = np.max(np.hypot(*(st_free - centre[None]).transpose(2, 0, 1)))
     half = int(math.ceil(reach + free_rc[:, 0].max() + margin_px))
-    keep, origin, values = _patches(data, view_rc, centre, half)
+    keep, origin, values, inside = _patches(data, view_rc, centre, half)
     if keep.sum() < 6:
         return None
     uk, vk = u[keep], v[keep]
@@ -180,6 +189,8 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
                                     np.ascontiguousarray(st_free[:, keep]),
                                     np.ascontiguousarray(free_rc[:, 0], dtype=np.float64),
                                     margin_px, EDGE_PX)
+    fit &= inside                      # pixels beyond the view are neither fitted
+    near |= ~inside                    # nor background
     background = _masked_row_percentile(values, near, 60.0, min_count=5)
     use = np.isfinite(background) & (background > 0)
     if use.sum() < 6:

@@ -342,6 +342,11 @@ class CheckSettings:
     split_min_gain : float
         ... and the two-particle fit leaves at most ``1 / split_min_gain`` of the single
         fit's model error (both RMS beyond the pixel noise).
+    split_max_images : int
+        A particle is split into at most this many images on nearly one line of sight:
+        while the split images still leave the pixels unexplained (model error above
+        ``refine_max_model_error``), one of them is split again under the same tests
+        (three large particles in line). 2: pairs only.
     split_trial_stride : int
         The one- and two-image fits that decide a split use every
         ``split_trial_stride``-th usable view in ``u`` and in ``v`` (a regular sub-grid
@@ -363,6 +368,7 @@ class CheckSettings:
     split_merged: bool = True
     split_min_contrast: float = 0.5
     split_min_gain: float = 1.5
+    split_max_images: int = 3
     split_trial_stride: int = 2
 
     def __post_init__(self) -> None:
@@ -383,6 +389,8 @@ class CheckSettings:
                  self.split_min_contrast)
         _require(self.split_min_gain >= 1, "split_min_gain", "at least 1",
                  self.split_min_gain)
+        _require(_is_int(self.split_max_images) and self.split_max_images >= 2,
+                 "split_max_images", "a whole number of at least 2", self.split_max_images)
         _require(_is_int(self.split_trial_stride) and self.split_trial_stride >= 1,
                  "split_trial_stride", "a whole number of at least 1", self.split_trial_stride)
 
