@@ -596,13 +596,17 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     of it in depth (:func:`_line_of_sight_pair`). The two are kept when both images are
     opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
     (model error at most ``1 / settings.split_min_gain`` of the single fit's), their
-    images move apart across the views by at least one view pixel and stand apart by the
-    smaller radius in some view (only parallax tells two particles from one elongated
-    image), and neither is a particle already located. The image nearer the merged
-    solution in depth takes the particle's row, the other is appended; both carry
-    ``REFINED`` and ``SPLIT`` and their position, sigma and image radius come from the
-    fit. The unexplained neighbours of a split particle are then refitted beside the two
-    and become ``REFINED`` where that explains their pixels.
+    images move apart across the views by at least one view pixel and either stand apart
+    by the smaller radius in some view or are two bodies apart in space
+    (:func:`_apart_in_space`; only parallax tells two particles from one elongated
+    image), and neither is a particle already located. While the two still leave the
+    pixels unexplained (model error above ``settings.refine_max_model_error``), one of
+    them is split again under the same tests, up to ``settings.split_max_images``
+    images. The image nearer the merged solution in depth takes the particle's row, the
+    others are appended; all carry ``REFINED`` and ``SPLIT`` and their position, sigma
+    and image radius come from the fit. The unexplained neighbours of a split particle
+    are then refitted beside the group and become ``REFINED`` where that explains their
+    pixels.
     """
     from .refine import fit_images
 
