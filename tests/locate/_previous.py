@@ -130,24 +130,32 @@ def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner:
         owner[rows[~first]] = -1
     return owner
 
-def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_):
-    """Return large round regions that no located particle is predicted on to the pool.
+def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_,
+                          halves=None, tolerance_px=1.0):
+    """Return held regions that no located particle accounts for to the pool.
 
     A region taken for a merged image (owner ``_MERGED``) that is round and has no
     located particle predicted inside it (within ``radius_px``) is the image of one
     particle near the camera, larger than the typical image; it is released (owner -1)
-    so that the next clustering pass can find that particle.
+    so that the next clustering pass can find that particle. A held half of a split pair
+    is released when no prediction claims it (the region nearest a prediction, at
+    ``d``, and every region within ``2 d + tolerance_px`` that it lies inside).
     """
-    rows = np.flatnonzero((owner == _MERGED) & round_)
+    halves = np.zeros(len(owner), dtype=bool) if halves is None else halves
+    rows = np.flatnonzero((owner == _MERGED) & (round_ | halves))
     ok = np.all(np.isfinite(positions), axis=1)
     if len(rows) == 0 or not ok.any():
         return owner
-    pred = _predict_all(dlfc, positions[ok], views)                       # (P, V, 2)
-    d = np.hypot(st[rows, None, 0] - pred[:, view[rows], 0].T,
-                 st[rows, None, 1] - pred[:, view[rows], 1].T)           # (m, P)
-    empty = ~(d <= radius_px[rows, None]).any(axis=1)
+    pred = _predict_all(dlfc, positions[ok], views).reshape(-1, 2)       # (P V, 2)
+    pred_view = np.tile(np.arange(len(views)), int(ok.sum()))
+    d = np.hypot(st[:, None, 0] - pred[None, :, 0], st[:, None, 1] - pred[None, :, 1])
+    inside = (d <= radius_px[:, None]) & (view[:, None] == pred_view[None, :])   # (M, P V)
+    near = np.where(inside, d, np.inf).min(axis=0)
+    claimed = (inside & (d <= 2.0 * near + tolerance_px)).any(axis=1)
+    release = np.zeros(len(owner), dtype=bool)
+    release[rows] = np.where(halves[rows], ~claimed[rows], ~inside[rows].any(axis=1))
     owner = owner.copy()
-    owner[rows[empty]] = -1
+    owner[release] = -1
     return owner
 
 def _explained_by_others(pred: np.ndarray, st: np.ndarray, view: np.ndarray,

@@ -120,11 +120,38 @@ def test_release_single_large_matches_all_pairs():
         views = rng.integers(-2, 3, (n_v, 2)).astype(float)
         owner = np.where(rng.random(len(a["owner"])) < 0.5, _assign._MERGED, a["owner"])
         round_ = rng.random(len(owner)) < 0.8
+        halves = rng.random(len(owner)) < 0.3
         args = (_ShiftModel(), positions, views, a["st"], a["view"], owner, a["radius"], round_)
-        want = previous._release_single_large(*args)
-        assert np.array_equal(_assign._release_single_large(*args), want), seed
-        released += int(np.any(want != owner))
-    assert released > 30
+        for kw in ({}, {"halves": halves, "tolerance_px": 1.0}):
+            want = previous._release_single_large(*args, **kw)
+            assert np.array_equal(_assign._release_single_large(*args, **kw), want), seed
+            released += int(np.any(want != owner))
+    assert released > 60
+
+
+def test_a_half_its_located_partner_leaves_is_released():
+    """Two halves of a split pair 3 px apart in each of 5 views. A particle located on
+    one half leaves the other to the pool; one located between them (an elongated image
+    of one particle) claims both."""
+    views = np.column_stack([np.arange(5.0), np.zeros(5)])
+    st = np.vstack([np.tile([[10.0, 10.0]], (5, 1)), np.tile([[13.0, 10.0]], (5, 1))])
+    view = np.tile(np.arange(5), 2)
+    owner = np.full(10, _assign._MERGED)
+    radius = np.full(10, 3.5)
+    halves = np.ones(10, dtype=bool)
+    round_ = np.ones(10, dtype=bool)
+    on_first = np.array([[10.0, 10.0, 0.0]])
+    got = _assign._release_single_large(_ShiftModel(), on_first, views, st, view, owner,
+                                        radius, round_, halves=halves, tolerance_px=1.0)
+    assert np.all(got[:5] == _assign._MERGED) and np.all(got[5:] == -1)
+    between = np.array([[11.5, 10.0, 0.0]])
+    got = _assign._release_single_large(_ShiftModel(), between, views, st, view, owner,
+                                        radius, round_, halves=halves, tolerance_px=1.0)
+    assert np.all(got == _assign._MERGED)
+    # without the halves flag only the round-and-empty rule applies: nothing is released
+    got = _assign._release_single_large(_ShiftModel(), on_first, views, st, view, owner,
+                                        radius, round_)
+    assert np.all(got == _assign._MERGED)
 
 
 def test_trim_refit_matches_per_particle_scan():

@@ -223,25 +223,42 @@ def _absorb(order, start, partner, strength):  # pragma: no cover - compiled
     return target
 
 
-def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_):
-    """Return large round regions that no located particle is predicted on to the pool.
+def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_,
+                          halves=None, tolerance_px: float = 1.0):
+    """Return held regions that no located particle accounts for to the pool.
 
     A region taken for a merged image (owner ``_MERGED``) that is round and has no
     located particle predicted inside it (within ``radius_px``) is the image of one
     particle near the camera, larger than the typical image; it is released (owner -1)
-    so that the next clustering pass can find that particle.
+    so that the next clustering pass can find that particle. A held half of a split pair
+    (``halves``) is released when no located particle claims it: in each view a particle
+    claims the region nearest its prediction, at distance ``d``, and every region within
+    ``2 d + tolerance_px`` (among the regions it is predicted inside). One particle
+    predicted between the two halves of its own elongated image claims both; the half
+    that a located particle predicted on the other half leaves is the image of another
+    particle, however close the two images are.
     """
-    rows = np.flatnonzero((owner == _MERGED) & round_)
+    halves = np.zeros(len(owner), dtype=bool) if halves is None else halves
+    rows = np.flatnonzero((owner == _MERGED) & (round_ | halves))
     ok = np.all(np.isfinite(positions), axis=1)
     if len(rows) == 0 or not ok.any():
         return owner
     pred = _predict_all(dlfc, positions[ok], views)                       # (P, V, 2)
     n_p, n_v = pred.shape[:2]
-    q, _, _ = pairs_within(st[rows], view[rows], radius_px[rows], pred.reshape(-1, 2),
-                           np.tile(np.arange(n_v), n_p))
-    empty = np.bincount(q, minlength=len(rows)) == 0
+    q, d, dist = pairs_within(st, view, radius_px, pred.reshape(-1, 2),
+                              np.tile(np.arange(n_v), n_p))
+    held = np.zeros(len(owner), dtype=bool)
+    held[rows] = True
+    inside = np.bincount(q, minlength=len(owner)) > 0
+    # Each prediction claims the region nearest it and any region nearly as near: a
+    # particle predicted between the two halves of its own elongated image claims both.
+    nearest = np.full(n_p * n_v, np.inf)
+    np.minimum.at(nearest, d, dist)
+    claimed = np.zeros(len(owner), dtype=bool)
+    claimed[q[dist <= 2.0 * nearest[d] + tolerance_px]] = True
+    release = held & np.where(halves, ~claimed, ~inside)
     owner = owner.copy()
-    owner[rows[empty]] = -1
+    owner[release] = -1
     return owner
 
 

@@ -148,6 +148,9 @@ class FrameContext:
         Depth of the clustered volume, mm.
     merge_px : float
         Distance under which two particles' predictions coincide, view pixels.
+    tolerance_px : float
+        How far a centroid may lie from a particle's prediction and still be its image
+        (``grow.add_tolerance_px``), view pixels.
     """
 
     lf: LightField
@@ -164,6 +167,7 @@ class FrameContext:
     n_possible: int
     volume_depth_mm: float
     merge_px: float
+    tolerance_px: float
 
     @classmethod
     def build(cls, lf: LightField, calibration, detections: pd.DataFrame,
@@ -187,7 +191,7 @@ class FrameContext:
                    geometry=ProjectionGeometry.from_lightfield(lf, camera),
                    alphas=plane_alphas(camera, (z_lo, z_hi), locator.cluster.n_planes),
                    n_possible=int(lf.view_mask.sum()), volume_depth_mm=z_hi - z_lo,
-                   merge_px=merge_px)
+                   merge_px=merge_px, tolerance_px=locator.grow.add_tolerance_px)
 
 
 @dataclass(frozen=True)
@@ -377,7 +381,9 @@ def cluster_unassigned(ctx: FrameContext, state: ParticleState, settings: Cluste
     owner = state.owner
     if state.n_particles:
         owner = _release_single_large(ctx.dlfc, state.positions, ctx.views, ctx.st, ctx.view,
-                                      owner, ctx.radius_px, ctx.round_)
+                                      owner, ctx.radius_px, ctx.round_,
+                                      halves=_split(ctx.detections),
+                                      tolerance_px=ctx.tolerance_px)
     free = np.flatnonzero(owner == -1)
     if len(free) < min_views:
         return dataclasses.replace(state, owner=owner), 0
@@ -638,6 +644,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     contrast = np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
     sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
     parent, n_views = [], []           # of each appended particle
+    group_error = np.full(len(pos), np.nan)   # model error of each split group's fit
     pred = _predict_all(ctx.dlfc, pos, views_uv)     # kept current as particles change
 
     def neighbours(i, pred):
@@ -745,6 +752,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         flags[m] = (flags[m] & ~unexplained) | refined | int(TriangulationFlag.SPLIT)
         flags = np.append(flags, np.full(k - 1, refined | int(TriangulationFlag.SPLIT)))
         parent.extend([m] * (k - 1))
+        group_error = np.append(group_error, np.full(k - 1, group.model_error))
+        group_error[m] = group.model_error
         n_views.extend([group.n_views] * (k - 1))
         # The group's merged image also spoilt its neighbours' fits: refit those the
         # refinement could not explain, now beside the group.
@@ -775,6 +784,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     table[list(POS_COLUMNS)] = pos
     table[list(SIGMA_COLUMNS)] = sigma
     table[_FIT_RADIUS] = radius
+    table[_FIT_ERROR] = np.where(np.isfinite(group_error), group_error,
+                                 table[_FIT_ERROR].to_numpy(float))
     initial = np.vstack([state.initial, pos[len(state.initial):]])
     return dataclasses.replace(state, initial=initial, positions=pos, table=table)
 
