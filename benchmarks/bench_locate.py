@@ -147,7 +147,7 @@ def _previous_steps(previous):
     from plenoptrack.locate import cluster, perspective, triangulate
 
     swaps = [(perspective, name) for name in ("_add_centroids", "_merge_duplicates",
-                                              "_release_single_large",
+                                              "_release_unclaimed",
                                               "_explained_by_others", "_trim_refit")]
     swaps += [(cluster, name) for name in ("_lloyd", "_kmeanspp_topup")]
     swaps += [(triangulate, "_triangulate")]

@@ -130,7 +130,7 @@ def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner:
         owner[rows[~first]] = -1
     return owner
 
-def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_,
+def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round_,
                           halves=None, tolerance_px=1.0):
     """Return held regions that no located particle accounts for to the pool.
 

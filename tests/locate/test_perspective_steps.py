@@ -109,7 +109,7 @@ class _ShiftModel:
         return x + u * z, y + v * z
 
 
-def test_release_single_large_matches_all_pairs():
+def test_release_unclaimed_matches_all_pairs():
     released = 0
     for seed in SEEDS:
         rng = np.random.default_rng(seed)
@@ -123,8 +123,8 @@ def test_release_single_large_matches_all_pairs():
         halves = rng.random(len(owner)) < 0.3
         args = (_ShiftModel(), positions, views, a["st"], a["view"], owner, a["radius"], round_)
         for kw in ({}, {"halves": halves, "tolerance_px": 1.0}):
-            want = previous._release_single_large(*args, **kw)
-            assert np.array_equal(_assign._release_single_large(*args, **kw), want), seed
+            want = previous._release_unclaimed(*args, **kw)
+            assert np.array_equal(_assign._release_unclaimed(*args, **kw), want), seed
             released += int(np.any(want != owner))
     assert released > 60
 
@@ -141,15 +141,15 @@ def test_a_half_its_located_partner_leaves_is_released():
     halves = np.ones(10, dtype=bool)
     round_ = np.ones(10, dtype=bool)
     on_first = np.array([[10.0, 10.0, 0.0]])
-    got = _assign._release_single_large(_ShiftModel(), on_first, views, st, view, owner,
+    got = _assign._release_unclaimed(_ShiftModel(), on_first, views, st, view, owner,
                                         radius, round_, halves=halves, tolerance_px=1.0)
     assert np.all(got[:5] == _assign._MERGED) and np.all(got[5:] == -1)
     between = np.array([[11.5, 10.0, 0.0]])
-    got = _assign._release_single_large(_ShiftModel(), between, views, st, view, owner,
+    got = _assign._release_unclaimed(_ShiftModel(), between, views, st, view, owner,
                                         radius, round_, halves=halves, tolerance_px=1.0)
     assert np.all(got == _assign._MERGED)
     # without the halves flag only the round-and-empty rule applies: nothing is released
-    got = _assign._release_single_large(_ShiftModel(), on_first, views, st, view, owner,
+    got = _assign._release_unclaimed(_ShiftModel(), on_first, views, st, view, owner,
                                         radius, round_)
     assert np.all(got == _assign._MERGED)
 
@@ -180,7 +180,7 @@ def test_trim_refit_matches_per_particle_scan():
 
 
 def _use_previous_steps(monkeypatch):
-    for name in ("_add_centroids", "_merge_duplicates", "_release_single_large",
+    for name in ("_add_centroids", "_merge_duplicates", "_release_unclaimed",
                  "_explained_by_others", "_trim_refit"):
         monkeypatch.setattr(perspective, name, getattr(previous, name))
     for name in ("_lloyd", "_kmeanspp_topup"):

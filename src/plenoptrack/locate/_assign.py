@@ -223,7 +223,7 @@ def _absorb(order, start, partner, strength):  # pragma: no cover - compiled
     return target
 
 
-def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, round_,
+def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round_,
                           halves=None, tolerance_px: float = 1.0):
     """Return held regions that no located particle accounts for to the pool.
 
@@ -247,8 +247,6 @@ def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, ro
     n_p, n_v = pred.shape[:2]
     q, d, dist = pairs_within(st, view, radius_px, pred.reshape(-1, 2),
                               np.tile(np.arange(n_v), n_p))
-    held = np.zeros(len(owner), dtype=bool)
-    held[rows] = True
     inside = np.bincount(q, minlength=len(owner)) > 0
     # Each prediction claims the region nearest it and any region nearly as near: a
     # particle predicted between the two halves of its own elongated image claims both.
@@ -256,9 +254,8 @@ def _release_single_large(dlfc, positions, views, st, view, owner, radius_px, ro
     np.minimum.at(nearest, d, dist)
     claimed = np.zeros(len(owner), dtype=bool)
     claimed[q[dist <= 2.0 * nearest[d] + tolerance_px]] = True
-    release = held & np.where(halves, ~claimed, ~inside)
     owner = owner.copy()
-    owner[release] = -1
+    owner[rows[np.where(halves[rows], ~claimed[rows], ~inside[rows])]] = -1
     return owner
 
 

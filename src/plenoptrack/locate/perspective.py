@@ -60,7 +60,7 @@ from ..errors import NoParticlesWarning
 from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
 from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_duplicates,
-                      _predict_all, _release_single_large, _trim_refit)
+                      _predict_all, _release_unclaimed, _trim_refit)
 from ._nearby import pairs_within
 from ._regions import _region_shape, _single_image_area, _split_pairs
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
@@ -380,7 +380,7 @@ def cluster_unassigned(ctx: FrameContext, state: ParticleState, settings: Cluste
     """
     owner = state.owner
     if state.n_particles:
-        owner = _release_single_large(ctx.dlfc, state.positions, ctx.views, ctx.st, ctx.view,
+        owner = _release_unclaimed(ctx.dlfc, state.positions, ctx.views, ctx.st, ctx.view,
                                       owner, ctx.radius_px, ctx.round_,
                                       halves=_split(ctx.detections),
                                       tolerance_px=ctx.tolerance_px)
@@ -644,7 +644,6 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     contrast = np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
     sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
     parent, n_views = [], []           # of each appended particle
-    group_error = np.full(len(pos), np.nan)   # model error of each split group's fit
     pred = _predict_all(ctx.dlfc, pos, views_uv)     # kept current as particles change
 
     def neighbours(i, pred):
@@ -752,8 +751,6 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         flags[m] = (flags[m] & ~unexplained) | refined | int(TriangulationFlag.SPLIT)
         flags = np.append(flags, np.full(k - 1, refined | int(TriangulationFlag.SPLIT)))
         parent.extend([m] * (k - 1))
-        group_error = np.append(group_error, np.full(k - 1, group.model_error))
-        group_error[m] = group.model_error
         n_views.extend([group.n_views] * (k - 1))
         # The group's merged image also spoilt its neighbours' fits: refit those the
         # refinement could not explain, now beside the group.
@@ -784,8 +781,6 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     table[list(POS_COLUMNS)] = pos
     table[list(SIGMA_COLUMNS)] = sigma
     table[_FIT_RADIUS] = radius
-    table[_FIT_ERROR] = np.where(np.isfinite(group_error), group_error,
-                                 table[_FIT_ERROR].to_numpy(float))
     initial = np.vstack([state.initial, pos[len(state.initial):]])
     return dataclasses.replace(state, initial=initial, positions=pos, table=table)
 
