@@ -51,7 +51,7 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
     "decode": ("plenoptrack.lightfield.decode", "_gather",
                (_a(_u2, 2), _F3, _I2, _F2, _i8, _i8, _i8, _a(_f4, 4))),
     "segment": ("plenoptrack.locate.segment", "_segment_stack",
-                (_a(_f4, 3), _B1, _a(_b1, 2), _b1, _i8, _i8, _f8, _f8, _f8, _b1, _F3, _I1,
+                (_a(_f4, 3), _I1, _a(_b1, 2), _b1, _i8, _i8, _f8, _f8, _f8, _b1, _F3, _I1,
                  _i8)),
     "dlfc_eval": ("plenoptrack.locate.dlfc", "_eval_kernel", (_F2, _I1r, _I1r, _F2r, _b1)),
     "dlfc_eval_serial": ("plenoptrack.locate.dlfc", "_eval_serial",

@@ -39,10 +39,8 @@ DETECTION_COLUMNS = (T_COLUMN, "u", "v", "s", "t", "area", "diameter_px", "major
 _N, _SW, _SWS, _SWT, _SS, _ST, _SSS, _STT, _SST, _DARK, _EDGE, _S0, _T0, _SD, _PART, _PARENT_N = (
     range(16))
 _N_STATS = 16
-# Regions per view the kernel has room for on its first pass. The buffer is allocated
-# with np.empty and only the rows written become resident memory, so a generous capacity
-# costs address space, not memory; views with more regions are segmented again.
-_INITIAL_CAPACITY = 4096
+# Regions per view the kernel's buffer has room for at least (see _region_stats).
+_INITIAL_CAPACITY = 256
 
 
 # --------------------------------------------------------------------------------------
@@ -533,20 +531,16 @@ def _work_arrays(h, w):  # pragma: no cover - compiled
 
 
 @numba.njit(parallel=True, cache=True)
-def _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast,
+def _segment_stack(stack, views, mask, zero_invalid, b, rb, contrast, core_contrast,
                    min_core_ratio, conn8, out, counts, n_chunks):  # pragma: no cover - compiled
-    """Segment the views ``stack[k]`` with ``use[k]``; region sums into ``out[k]``, region
-    counts into ``counts[k]``. The views are dealt out to ``n_chunks`` chunks (one per
-    thread), each with one work space (:func:`_work_arrays`) for all its views."""
-    n_views = stack.shape[0]
+    """Segment the views ``stack[views[k]]``; region sums into ``out[k]``, region counts
+    into ``counts[k]``. The views are dealt out to ``n_chunks`` chunks (one per thread),
+    each with one work space (:func:`_work_arrays`) for all its views."""
     for c in numba.prange(n_chunks):
         work = _work_arrays(stack.shape[1], stack.shape[2])
-        for k in range(c, n_views, n_chunks):
-            if use[k]:
-                counts[k] = _segment_one(stack[k], mask, zero_invalid, b, rb, contrast,
-                                         core_contrast, min_core_ratio, conn8, out[k], work)
-            else:
-                counts[k] = 0
+        for k in range(c, views.shape[0], n_chunks):
+            counts[k] = _segment_one(stack[views[k]], mask, zero_invalid, b, rb, contrast,
+                                     core_contrast, min_core_ratio, conn8, out[k], work)
 
 
 # --------------------------------------------------------------------------------------
@@ -556,31 +550,45 @@ def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8, core_c
     """Per-region sums of every view: ``(stats (M, _N_STATS), view index (M,))``.
 
     Regions are in view order, and in raster order of their first pixel within a view.
-    The kernel writes at most ``_INITIAL_CAPACITY`` regions per view; only the views
-    that found more are segmented again, with room for all of theirs.
+    The kernel writes at most a fixed number of regions per view into its buffer, whose
+    size is what segmentation adds to peak memory: the first views (one per thread) are
+    segmented with room for ``_INITIAL_CAPACITY`` regions, the rest with room for 1.5
+    times the most those held (a power of two, at least ``_INITIAL_CAPACITY``); a view
+    that found more is segmented again with room for all of its regions.
     """
-    n_views = stack.shape[0]
-    counts = np.zeros(n_views, dtype=np.int64)
-    out = np.empty((n_views, _INITIAL_CAPACITY, _N_STATS), dtype=np.float64)
-    _segment_stack(stack, use, mask, zero_invalid, b, rb, contrast, core_contrast,
-                   min_core_ratio, conn8, out, counts, _n_chunks(n_views))
-    view_idx = np.repeat(np.arange(n_views), counts)
-    rank = np.arange(len(view_idx)) - np.repeat(np.cumsum(counts) - counts, counts)
-    full = counts > _INITIAL_CAPACITY
-    if not full.any():
-        return out[view_idx, rank], view_idx
-    stats = np.empty((len(view_idx), _N_STATS), dtype=np.float64)
-    fits = ~full[view_idx]
-    stats[fits] = out[view_idx[fits], rank[fits]]
-    again = np.flatnonzero(full)
-    more = np.empty((len(again), int(counts[again].max()), _N_STATS), dtype=np.float64)
-    _segment_stack(np.ascontiguousarray(stack[again]), np.ones(len(again), dtype=bool), mask,
-                   zero_invalid, b, rb, contrast, core_contrast, min_core_ratio, conn8, more,
-                   counts[again].copy(), _n_chunks(len(again)))
-    slot = np.zeros(n_views, dtype=np.int64)
-    slot[again] = np.arange(len(again))
-    stats[~fits] = more[slot[view_idx[~fits]], rank[~fits]]
-    return stats, view_idx
+    views = np.flatnonzero(use)
+    args = (mask, zero_invalid, b, rb, contrast, core_contrast, min_core_ratio, conn8)
+    probe = _n_chunks(len(views))
+    first, first_counts = _segment_batch(stack, views[:probe], _INITIAL_CAPACITY, args)
+    peak = int(first_counts.max(initial=0))
+    capacity = max(_INITIAL_CAPACITY, 1 << max(int(math.ceil(1.5 * peak)) - 1, 0).bit_length())
+    rest, rest_counts = _segment_batch(stack, views[probe:], capacity, args)
+    counts = np.concatenate([first_counts, rest_counts])
+    return np.concatenate([first, rest]), np.repeat(views, counts)
+
+
+def _segment_batch(stack, views, capacity, args):
+    """Region sums ``(M, _N_STATS)`` of the views ``stack[views]`` in order, and the
+    number of regions of each view, with room for ``capacity`` regions per view and a
+    second pass for the views that found more."""
+    counts = np.zeros(len(views), dtype=np.int64)
+    out = np.empty((len(views), capacity, _N_STATS), dtype=np.float64)
+    if len(views):
+        _segment_stack(stack, views, *args, out, counts, _n_chunks(len(views)))
+    full = np.flatnonzero(counts > capacity)
+    if len(full):
+        more = np.empty((len(full), int(counts[full].max()), _N_STATS), dtype=np.float64)
+        _segment_stack(stack, views[full], *args, more, counts[full].copy(),
+                       _n_chunks(len(full)))
+    rows = []
+    for k in range(len(views)):
+        if counts[k] > capacity:
+            rows.append(more[np.searchsorted(full, k), :counts[k]])
+        else:
+            rows.append(out[k, :counts[k]])
+    if not rows:
+        return np.empty((0, _N_STATS), dtype=np.float64), counts
+    return np.concatenate(rows), counts
 
 
 def _n_chunks(n_views: int) -> int:
