@@ -78,7 +78,11 @@ placed at random in the volume (a false positive can match by chance that often)
 recall, precision; depth bias (mean dz), depth std (ddof 1) and robust std (1.4826 MAD
 about the median); ``>3sz``: fraction of matched particles with |dz| > 3 sigma_z;
 ``1s``/``2s``: fraction with |d| <= 1 and 2 sigma for x, y and z (a calibrated sigma gives
-0.68 and 0.95); lateral RMS error; diameter ratio: median of measured / true diameter;
+0.68 and 0.95); lateral RMS error; diameter ratio: median of measured diameter over the
+true silhouette's equivalent diameter ``sqrt(4 A / pi)`` (``A`` the truth's
+``projected_area``: what the locator's shadow-based ``diameter`` measures; for a sphere
+its diameter, for an ellipsoid or a fragment larger than its volume-equivalent
+``diameter``);
 seconds per frame of :func:`~plenoptrack.locate.perspective.locate_frame` on the raw
 image (decode included, reading and simulating excluded, after one warm-up call).
 
@@ -345,6 +349,17 @@ def cell_locator(cell: Cell):
     return locator
 
 
+def _silhouette_diameter(truth: pd.DataFrame) -> pd.Series:
+    """Equivalent diameter of each true particle's silhouette in the x-y plane, mm:
+    ``sqrt(4 projected_area / pi)``, or ``diameter`` where the truth has no
+    ``projected_area``."""
+    if "projected_area" not in truth.columns:
+        return truth["diameter"]
+    area = truth["projected_area"].to_numpy(float)
+    return pd.Series(np.where(np.isfinite(area), np.sqrt(4.0 * area / math.pi),
+                              truth["diameter"].to_numpy(float)), index=truth.index)
+
+
 def match(measured: pd.DataFrame, truth: pd.DataFrame, magnification: float) -> pd.DataFrame:
     """Pairs within the tolerance ellipsoid, with the measured and true columns needed."""
     from plenoptrack.evaluate import match_particles
@@ -360,7 +375,7 @@ def match(measured: pd.DataFrame, truth: pd.DataFrame, magnification: float) -> 
     return pd.DataFrame({
         "dx": m["x"] - t["x"], "dy": m["y"] - t["y"], "dz": m["z"] - t["z"],
         "sigma_x": m["sigma_x"], "sigma_y": m["sigma_y"], "sigma_z": m["sigma_z"],
-        "diameter": m["diameter"], "true_diameter": t["diameter"],
+        "diameter": m["diameter"], "true_diameter": _silhouette_diameter(t),
         "x_true": t["x"], "y_true": t["y"], "z_true": t["z"],
         **{c: m[c] for c in ("chi2", "travel_px", "n_views", "flags") if c in m}})
 
