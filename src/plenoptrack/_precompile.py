@@ -76,6 +76,8 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
                     (_F1, _F1, _I1, _F1, _I1, _F1, _F1, _f8, _f8, _i8)),
     "first_untaken": ("plenoptrack.locate._assign", "_first_untaken", (_I1, _I1, _i8)),
     "absorb": ("plenoptrack.locate._assign", "_absorb", (_I1, _I1, _I1, _I1)),
+    "refine_gather": ("plenoptrack.locate.refine", "_gather_patches",
+                      (_a(_f4, 4), _I2, _I1, _I1, _i8)),
     "refine_masks": ("plenoptrack.locate.refine", "_patch_masks",
                      (_F2, _i8, _F3, _F2, _F3, _F1, _f8, _f8)),
     "refine_normal": ("plenoptrack.locate.refine", "_normal_equations",
@@ -90,8 +92,8 @@ STEPS: dict[str, tuple[str, ...]] = {
                   "robust_thresholds", "normal", "lm", "moments", "residual"),
     "locate": ("decode", "segment", "dlfc_eval", "dlfc_eval_serial", "kmeans_lloyd", "kmeans_topup",
                "kmeans_evaluate", "robust_thresholds", "normal", "lm", "moments", "residual",
-               "nearby_bucket", "nearby_scan", "first_untaken", "absorb", "refine_masks",
-               "refine_normal"),
+               "nearby_bucket", "nearby_scan", "first_untaken", "absorb", "refine_gather",
+               "refine_masks", "refine_normal"),
 }
 """The kernels each step needs (``calibrate``: lenslet grid and DLFC fit from a white image
 and dot cards; ``locate``: decoding and the perspective-shift locator)."""

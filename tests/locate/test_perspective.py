@@ -218,3 +218,23 @@ def test_views_vignetted_in_the_white_image_are_not_searched(small):
     # fewer views, still the same particles
     ev = evaluate_particles(result.particles, scene.truth, tolerance_mm=1.0)
     assert ev.recall >= 0.8 and ev.precision >= 0.8
+
+
+def test_member_diameter_of_regions_and_of_their_shadows():
+    """A particle's diameter is the median over its whole regions (all of them when it
+    has fewer than three whole ones); its shadow's, the median of ``sqrt(4 dark_area /
+    pi)``, smaller than the thresholded regions by their blurred edge."""
+    import math
+
+    from plenoptrack.locate.perspective import _member_diameter
+
+    detections = pd.DataFrame({
+        "diameter_px": [4.0, 5.0, 6.0, 9.0, 3.0, 3.5, 9.0],
+        "dark_area": [4.0, 9.0, 16.0, 50.0, 2.0, 3.0, 1.0],
+        "whole": [True, True, True, False, True, False, True]})
+    owner = np.array([0, 0, 0, 0, 1, 1, -1])
+    assert _member_diameter(detections, owner, 3)[:2].tolist() == [5.0, 3.25]
+    assert np.isnan(_member_diameter(detections, owner, 3)[2])
+    shadow = _member_diameter(detections, owner, 3, shadow=True)
+    assert shadow[0] == pytest.approx(math.sqrt(4.0 * 9.0 / math.pi))
+    assert shadow[1] == pytest.approx(np.median(np.sqrt(4.0 * np.array([2.0, 3.0]) / math.pi)))

@@ -171,10 +171,38 @@ def test_a_fit_stops_once_its_steps_are_below_tolerance(monkeypatch, seed):
     # the start and three accepted steps; evaluating the last, negligible step made 5
     assert len(calls) <= 4
     calls.clear()
-    tight = fit_images(*args, xyz_tol=1e-8)
+    tight = fit_images(*args, xyz_tol=1e-8, step_sigma=0.0)
     assert len(calls) > 4
     assert np.abs(fitted.params[0, :3] - tight.params[0, :3]).max() < 1e-3
     assert np.abs(tight.params[0, :3] - truth[0]).max() < 0.005
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_steps_far_inside_the_uncertainty_end_the_fit(monkeypatch, seed):
+    """With ``step_sigma`` the fit stops once a step moves every parameter by less than
+    that fraction of its standard error: fewer model evaluations than without (the
+    absolute tolerance made negligible in both), and a result within a tenth of a
+    standard error."""
+    import plenoptrack.locate.refine as refine
+
+    dlfc = LinearCalibration()
+    views_uv, view_rc = _views()
+    truth = np.array([[0.0, 0.0, 2.0], [0.3, 0.1, -1.5]])
+    rc = np.array([[2.0, 0.95], [2.2, 0.9]])
+    data = _render(dlfc, truth, rc, views_uv, view_rc, noise=0.02, seed=seed)
+    calls = []
+    normal_equations = refine._normal_equations
+    monkeypatch.setattr(refine, "_normal_equations",
+                        lambda *a: calls.append(1) or normal_equations(*a))
+    args = (dlfc, views_uv, view_rc, data, truth + [[0.02, -0.01, 0.5], [-0.01, 0.02, 0.4]],
+            rc + [[-0.4, -0.1], [-0.3, -0.05]], np.zeros((0, 3)), np.zeros((0, 2)))
+    quick = fit_images(*args, xyz_tol=1e-9, step_sigma=0.05)
+    n_quick = len(calls)
+    calls.clear()
+    strict = fit_images(*args, xyz_tol=1e-9, step_sigma=0.0)
+    assert n_quick < len(calls)
+    assert np.all(np.abs(quick.params[:, :3] - strict.params[:, :3]) <= 0.1 * strict.sigma)
+    assert np.allclose(quick.sigma, strict.sigma, rtol=0.05)
 
 
 def test_a_particle_is_refitted_beside_a_held_neighbour():

@@ -805,14 +805,19 @@ def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, a
                                   area[remaining], n_views, thresholds[p],
                                   float(area_factor), need, float(max_trim),
                                   line_tol_samples * g.mm_per_sample * a)
-            for c in np.flatnonzero(np.isfinite(size)):
-                members = acc == c
+            accepted = np.flatnonzero(np.isfinite(size))
+            # members of each accepted cluster, in point order, from one sort
+            by_cluster = np.argsort(acc, kind="stable")
+            first = np.searchsorted(acc[by_cluster], accepted, side="left")
+            last = np.searchsorted(acc[by_cluster], accepted, side="right")
+            for c, lo, hi in zip(accepted, first, last):
+                members = by_cluster[lo:hi]
                 cid = len(rows)
                 idx = remaining[members]
                 cluster[idx] = cid
                 cluster_alpha[idx] = a
                 cx, cy = pts[members].mean(axis=0)
-                rows.append((cid, a, int(members.sum()), size[c], thresholds[p], cx, cy,
+                rows.append((cid, a, len(members), size[c], thresholds[p], cx, cy,
                              g.axis_st[0] + cx / (a * g.mm_per_sample),
                              g.axis_st[1] + cy / (a * g.mm_per_sample)))
                 found += 1

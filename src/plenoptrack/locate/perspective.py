@@ -48,6 +48,7 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import itertools
+import math
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -519,7 +520,11 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     keep &= np.isfinite(radius)
     lf = ctx.lf
     views_uv, view_rc = _fit_views(ctx)
-    rc = np.c_[radius, np.full(n, 0.9)]
+    # The image model's disc starts at (and a neighbour never fitted is drawn with) the
+    # particle's shadow; the thresholded regions, larger by their blurred edge, decide
+    # which images overlap.
+    shadow = 0.5 * _member_diameter(ctx.detections, state.owner, n, shadow=True)
+    rc = np.c_[np.where(np.isfinite(shadow) & (shadow > 0), shadow, radius), np.full(n, 0.9)]
     centroid_sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
     sigma = centroid_sigma.copy()
     model_error = np.full(n, np.nan)   # of each particle's last fit
@@ -860,12 +865,17 @@ def _parallax_px(offset: np.ndarray) -> np.ndarray:
     return np.sqrt(8.0 * np.nansum(np.nanvar(offset, axis=-2), axis=-1))
 
 
-def _member_diameter(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
+def _member_diameter(detections: pd.DataFrame, owner: np.ndarray, n: int, *,
+                     shadow: bool = False) -> np.ndarray:
     """(n,) median equivalent diameter (view pixels) of each particle's regions: of its
-    whole regions when it has at least 3, else of all; NaN for particles without any."""
+    whole regions when it has at least 3, else of all; NaN for particles without any.
+    With ``shadow``, the equivalent diameter of each region's shadow,
+    ``sqrt(4 dark_area / pi)`` (the opaque disc of the same summed darkness: smaller than
+    the thresholded region by about the blur of its edge)."""
     mine = owner >= 0
-    d = pd.DataFrame({"owner": owner[mine],
-                      "diameter": detections["diameter_px"].to_numpy(float)[mine],
+    diameter = (np.sqrt(4.0 * np.maximum(detections["dark_area"].to_numpy(float), 0.0) / math.pi)
+                if shadow else detections["diameter_px"].to_numpy(float))
+    d = pd.DataFrame({"owner": owner[mine], "diameter": diameter[mine],
                       "whole": detections["whole"].to_numpy(bool)[mine]})
     every = d.groupby("owner")["diameter"].median()
     grouped = d[d["whole"]].groupby("owner")["diameter"]

@@ -54,7 +54,8 @@ class ImageFit:
         Sum of squared residuals of the normalised pixels.
     noise : float
         Robust standard deviation (1.4826 MAD) of the normalised background pixels of
-        the patches: the pixel noise the fit would leave if its model were exact.
+        the patches (at most about :data:`_NOISE_SAMPLES` of them, evenly spaced): the
+        pixel noise the fit would leave if its model were exact.
     """
 
     params: np.ndarray
@@ -117,21 +118,38 @@ def _patches(data, view_rc, centre, half):
     cs = np.rint(centre[:, 0]).astype(np.int64)
     ct = np.rint(centre[:, 1]).astype(np.int64)
     keep = (cs >= 0) & (ct >= 0) & (cs < n_s) & (ct < n_t)
-    off = np.arange(2 * half + 1)
-    s = cs[keep, None] - half + off                                   # (K, n)
-    t = ct[keep, None] - half + off
-    inside = (((t >= 0) & (t < n_t))[:, :, None] & ((s >= 0) & (s < n_s))[:, None, :])
-    ss = np.clip(s, 0, n_s - 1)[:, None, :]
-    tt = np.clip(t, 0, n_t - 1)[:, :, None]
-    vr, ur = view_rc[keep, 0], view_rc[keep, 1]
-    values = data[vr[:, None, None], ur[:, None, None], tt, ss].astype(np.float64)
-    origin = np.stack([s[:, 0], t[:, 0]], axis=1).astype(np.float64)
+    s0 = cs[keep] - half
+    t0 = ct[keep] - half
+    values, inside = _gather_patches(data, np.ascontiguousarray(view_rc[keep], dtype=np.int64),
+                                     s0, t0, 2 * half + 1)
+    origin = np.stack([s0, t0], axis=1).astype(np.float64)
     return keep, origin, values, inside
+
+
+@numba.njit(cache=True, nogil=True)
+def _gather_patches(data, view_rc, s0, t0, n):  # pragma: no cover - compiled
+    """The ``n x n`` patches of ``data[v, u]`` (``view_rc`` (K, 2) rows ``(v, u)``) with
+    pixel ``[0, 0]`` at ``(s0, t0)`` (K,), as float64, pixels beyond the view clamped to
+    its edge, and the mask of pixels within the view."""
+    n_t, n_s = data.shape[2], data.shape[3]
+    k = view_rc.shape[0]
+    values = np.empty((k, n, n))
+    inside = np.empty((k, n, n), dtype=np.bool_)
+    for m in range(k):
+        view = data[view_rc[m, 0], view_rc[m, 1]]
+        for i in range(n):
+            t = t0[m] + i
+            tt = min(max(t, 0), n_t - 1)
+            for j in range(n):
+                s = s0[m] + j
+                values[m, i, j] = view[tt, min(max(s, 0), n_s - 1)]
+                inside[m, i, j] = 0 <= t < n_t and 0 <= s < n_s
+    return values, inside
 
 
 def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixed_rc, *,
                margin_px: float = 3.0, max_iter: int = 30, xyz_tol: float = 1e-4,
-               max_depth_shift: float = math.inf):
+               step_sigma: float = 0.05, max_depth_shift: float = math.inf):
     """Fit ``k`` free particles to the view pixels around them, neighbours held fixed.
 
     Parameters
@@ -155,8 +173,13 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     max_iter : int
         Levenberg-Marquardt iterations.
     xyz_tol : float
-        The fit has converged when an accepted step moves every particle by less than
-        this (mm, each coordinate) and its radius and contrast by less than 0.001.
+        The fit has converged when an accepted step (or the next proposed one) moves
+        every particle by less than this (mm, each coordinate) and its radius and
+        contrast by less than 0.001, or moves every parameter by less than
+        ``step_sigma`` times its standard error at the current fit.
+    step_sigma : float
+        See ``xyz_tol``: steps far inside a parameter's own uncertainty change nothing a
+        caller can see, and the fit does not pay for them.
     max_depth_shift : float
         Give up, returning None, as soon as an accepted step has moved a particle's depth
         by more than this from its start (mm): a fit the caller would discard anyway
@@ -197,6 +220,8 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
         return None
     y = values[use] / background[use, None, None]
     far = y[~near[use]]
+    # every pixel of a large patch is far more than the noise level needs
+    far = far[::max(1, far.size // _NOISE_SAMPLES)]
     noise = _robust_sd(far) if far.size else math.nan
     origin, fixed, fit = origin[use], fixed[use], fit[use]
     uk, vk = uk[use], vk[use]
@@ -212,6 +237,13 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     lam = 1e-3
     cost, jtj, grad, meat = normal_equations(theta)
     lo, hi = np.tile(_BOUNDS[0], (k, 1)), np.tile(_BOUNDS[1], (k, 1))
+    absolute = np.tile([xyz_tol, xyz_tol, xyz_tol, 1e-3, 1e-3], (k, 1))
+
+    def tolerance(jtj, meat):
+        with np.errstate(invalid="ignore"):
+            return np.fmax(absolute, step_sigma * _view_robust_sigma(jtj, meat, len(y)))
+
+    tol = tolerance(jtj, meat)
     for _ in range(max_iter):
         try:
             step = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -grad)
@@ -221,17 +253,15 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
                 break
             continue
         trial = np.clip(theta + step.reshape(k, 5), lo, hi)
-        proposed = np.abs(trial - theta)
-        if proposed[:, :3].max() < xyz_tol and proposed[:, 3:].max() < 1e-3:
+        if np.all(np.abs(trial - theta) < tol):
             # At the minimum a rejected step only raises the damping until the steps
             # are this small; stop there instead of paying for ever smaller trials.
             break
         cost_new, jtj_new, grad_new, meat_new = normal_equations(trial)
         if cost_new < cost:
-            moved = np.abs(trial - theta)
-            converged = (cost - cost_new < 1e-9 * cost
-                         or (moved[:, :3].max() < xyz_tol and moved[:, 3:].max() < 1e-3))
+            converged = cost - cost_new < 1e-9 * cost or np.all(np.abs(trial - theta) < tol)
             theta, jtj, grad, cost, meat = trial, jtj_new, grad_new, cost_new, meat_new
+            tol = tolerance(jtj, meat)
             if np.any(np.abs(theta[:, 2] - free_xyz[:, 2]) > max_depth_shift):
                 return None
             lam = max(lam / 3.0, 1e-9)
@@ -251,6 +281,10 @@ def _robust_sd(values: np.ndarray) -> float:
     without its per-call overhead, which is most of the cost on patch-sized arrays)."""
     return float(np.median(np.abs(values - np.median(values))) / _NORMAL_MAD)
 
+
+_NOISE_SAMPLES = 8192
+"""At most about this many background pixels (evenly spaced through the patches) give
+an image fit's noise level: its robust standard deviation is then known to about 1.5 %."""
 
 _NORMAL_MAD = 0.6744897501960817
 """``scipy.special.ndtri(0.75)``: the median absolute deviation of a unit normal."""
