@@ -146,14 +146,19 @@ def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round
     ok = np.all(np.isfinite(positions), axis=1)
     if len(rows) == 0 or not ok.any():
         return owner
-    pred = _predict_all(dlfc, positions[ok], views).reshape(-1, 2)       # (P V, 2)
-    pred_view = np.tile(np.arange(len(views)), int(ok.sum()))
-    d = np.hypot(st[:, None, 0] - pred[None, :, 0], st[:, None, 1] - pred[None, :, 1])
-    inside = (d <= radius_px[:, None]) & (view[:, None] == pred_view[None, :])   # (M, P V)
-    near = np.where(inside, d, np.inf).min(axis=0)
-    claimed = (inside & (d <= 2.0 * near + tolerance_px)).any(axis=1)
+    pred = _predict_all(dlfc, positions[ok], views)                      # (P, V, 2)
+    claimed = np.zeros(len(owner), dtype=bool)
+    any_inside = np.zeros(len(owner), dtype=bool)
+    for v in range(len(views)):   # every region against every prediction, view by view
+        here = np.flatnonzero(view == v)
+        d = np.hypot(st[here, None, 0] - pred[None, :, v, 0],
+                     st[here, None, 1] - pred[None, :, v, 1])                # (M_v, P)
+        inside = d <= radius_px[here, None]
+        near = np.where(inside, d, np.inf).min(axis=0, initial=np.inf)
+        claimed[here] = (inside & (d <= 2.0 * near + tolerance_px)).any(axis=1)
+        any_inside[here] = inside.any(axis=1)
     release = np.zeros(len(owner), dtype=bool)
-    release[rows] = np.where(halves[rows], ~claimed[rows], ~inside[rows].any(axis=1))
+    release[rows] = np.where(halves[rows], ~claimed[rows], ~any_inside[rows])
     owner = owner.copy()
     owner[release] = -1
     return owner
