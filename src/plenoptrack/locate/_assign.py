@@ -224,7 +224,7 @@ def _absorb(order, start, partner, strength):  # pragma: no cover - compiled
 
 
 def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round_,
-                          halves=None, tolerance_px: float = 1.0):
+                       halves=None, tolerance_px: float = 1.0):
     """Return held regions that no located particle accounts for to the pool.
 
     A region taken for a merged image (owner ``_MERGED``) that is round and has no

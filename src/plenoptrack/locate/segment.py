@@ -560,8 +560,8 @@ def _region_stats(stack, use, mask, zero_invalid, b, rb, contrast, conn8, core_c
     args = (mask, zero_invalid, b, rb, contrast, core_contrast, min_core_ratio, conn8)
     probe = _n_chunks(len(views))
     first, first_counts = _segment_batch(stack, views[:probe], _INITIAL_CAPACITY, args)
-    peak = int(first_counts.max(initial=0))
-    capacity = max(_INITIAL_CAPACITY, 1 << max(int(math.ceil(1.5 * peak)) - 1, 0).bit_length())
+    wanted = math.ceil(1.5 * int(first_counts.max(initial=0)))
+    capacity = max(_INITIAL_CAPACITY, 1 << (wanted - 1).bit_length())   # a power of two
     rest, rest_counts = _segment_batch(stack, views[probe:], capacity, args)
     counts = np.concatenate([first_counts, rest_counts])
     return np.concatenate([first, rest]), np.repeat(views, counts)
