@@ -362,6 +362,32 @@ def test_calibration_file_round_trip(calibrated, tmp_path):
     assert doc["dlfc"]["order"] == 4 and doc["dlfc"]["fit"]["group_by"] == "z"
 
 
+def test_calibration_measures_the_views_edge_blur(calibrated, dataset, tmp_path):
+    calib, _ = calibrated
+    rows = calib.edge_blur_by_depth
+    cards = read_dotcards(dataset.out_dir / "dotcards")
+    # one row per card depth; a view's small aperture blurs an image away from focus
+    np.testing.assert_allclose(rows[:, 0], np.sort(cards.depths_mm))
+    assert np.all((rows[:, 1] > 0.3) & (rows[:, 1] < 1.0)), rows
+    focus = np.argmin(np.abs(rows[:, 0]))
+    assert rows[0, 1] > rows[focus, 1] + 0.1 and rows[-1, 1] > rows[focus, 1] + 0.1, rows
+    loaded = load_calibration(save_calibration(calib, tmp_path / "calib.json"))
+    np.testing.assert_array_equal(loaded.edge_blur_by_depth, rows)
+    assert Calibration(camera=calib.camera, grid=calib.grid).edge_blur_by_depth is None
+
+
+@pytest.mark.parametrize("rows", [[[0.0, -0.5]], [[0.0, 0.5, 1.0]], [[None, 0.5]], "x"])
+def test_corrupt_edge_blur_refused(calibrated, tmp_path, rows):
+    calib, _ = calibrated
+    path = save_calibration(calib, tmp_path / "calib.json")
+    doc = json.loads(path.read_text())
+    doc["edge_blur_by_depth_px"] = rows
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CalibrationError, match="corrupt edge blur table") as info:
+        load_calibration(path)
+    assert str(path) in str(info.value)
+
+
 def test_grid_only_calibration_has_no_dlfc(calibrated):
     calib, _ = calibrated
     grid_only = Calibration(camera=calib.camera, grid=calib.grid, vignetting=calib.vignetting)

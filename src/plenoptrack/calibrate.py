@@ -65,6 +65,7 @@ from .locate.cluster import ProjectionGeometry
 from .locate.dlfc import DLFC, INPUT_VARIABLES, FitReport, _check_order, fit_dlfc, n_monomials
 from .locate.dotcards import (CardLattice, OriginConsensus, card_lattice, consistent_origins,
                               dotcard_points)
+from .locate.opacity import edge_blur_by_depth
 
 __all__ = ["CARD_DEPTH_TOL", "CARD_DEPTH_TOL_MM", "DEFAULT_REJECT_K", "DEPTH_SCALE_RANGE",
            "DOTCARDS_FILE", "ORIGIN_TOL", "CalibrationReport", "CardDepthWarning", "DepthCheck",
@@ -814,7 +815,11 @@ def calibrate(white, dotcards, camera: CameraSpec, *, order: int = 4,
         grid=grid_measurement, fit=dlfc.report, cards=table, order=order,
         seconds={"grid": t_grid - t0, "dots": t_dots - t_grid, "fit": t_fit - t_dots,
                  "total": t_fit - t0}, depth_check=depth_check)
-    return calibration.with_dlfc(dlfc), report
+    calibration = calibration.with_dlfc(dlfc)
+    blur = edge_blur_by_depth(points)
+    if blur:
+        calibration = calibration.with_edge_blur(blur)
+    return calibration, report
 
 
 def _card_table(cards: DotCardSet, points: pd.DataFrame, dlfc: DLFC) -> pd.DataFrame:

@@ -32,6 +32,7 @@ __all__ = ["Calibration", "load_calibration", "save_calibration", "record_white"
 
 FORMAT = "plenoptrack-calibration"
 VERSION = 1
+EDGE_BLUR_KEY = "edge_blur_by_depth_px"
 
 
 @dataclass(frozen=True)
@@ -50,7 +51,9 @@ class Calibration:
     extra : dict
         Further sections, stored as JSON; ``extra["dlfc"]`` is the volumetric calibration
         (:meth:`DLFC.to_dict` output), read through :attr:`dlfc` and set with
-        :meth:`with_dlfc`.
+        :meth:`with_dlfc`; ``extra["edge_blur_by_depth_px"]`` the views' edge blur
+        measured on the dot cards, read through :attr:`edge_blur_by_depth` and set with
+        :meth:`with_edge_blur`.
     """
 
     camera: CameraSpec
@@ -88,6 +91,19 @@ class Calibration:
         if not isinstance(dlfc, DLFC):
             raise TypeError(f"dlfc must be a DLFC; got {type(dlfc).__name__}")
         return replace(self, extra={**self.extra, "dlfc": dlfc.to_dict()})
+
+    @property
+    def edge_blur_by_depth(self) -> np.ndarray | None:
+        """The views' edge blur per dot-card depth: (K, 2) rows ``(z mm, sigma px)``
+        (:func:`~plenoptrack.locate.opacity.edge_blur_by_depth`), or None when the
+        calibration has none (made without dot cards, or by an older version)."""
+        rows = self.extra.get(EDGE_BLUR_KEY)
+        return None if not rows else np.asarray(rows, dtype=float).reshape(-1, 2)
+
+    def with_edge_blur(self, rows) -> "Calibration":
+        """A copy of this calibration holding the edge blur ``rows`` ``(z, sigma_px)``."""
+        rows = _edge_blur_rows(rows, source="edge blur")
+        return replace(self, extra={**self.extra, EDGE_BLUR_KEY: rows.tolist()})
 
     def check_camera(self, camera: CameraSpec, *, source: str = "calibration") -> None:
         """Raise :class:`CalibrationError` if ``camera`` is not the camera calibrated."""
@@ -153,7 +169,23 @@ class Calibration:
         extra = {k: v for k, v in data.items() if k not in known}
         if "dlfc" in extra:  # validate now, so that a corrupt file is refused on load
             DLFC.from_dict(extra["dlfc"], source=f"{source} [dlfc]")
+        if EDGE_BLUR_KEY in extra:
+            _edge_blur_rows(extra[EDGE_BLUR_KEY], source=source)
         return cls(camera=camera, grid=grid, vignetting=vignetting, extra=extra)
+
+
+def _edge_blur_rows(rows, *, source: str) -> np.ndarray:
+    """``rows`` as a (K, 2) float array of ``(z, sigma)`` with finite values and positive
+    sigma; :class:`CalibrationError` otherwise."""
+    try:
+        out = np.asarray(rows, dtype=float)
+    except (TypeError, ValueError):
+        out = np.full((1, 2), np.nan)
+    if (out.ndim != 2 or out.shape[1] != 2 or not np.all(np.isfinite(out))
+            or not np.all(out[:, 1] > 0)):
+        raise CalibrationError(f"{source}: corrupt edge blur table ('{EDGE_BLUR_KEY}': rows "
+                               "of depth and positive blur); re-run the calibration")
+    return out
 
 
 def save_calibration(calibration: Calibration, path: str | Path) -> Path:

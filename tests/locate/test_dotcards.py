@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from plenoptrack.errors import CalibrationError
-from plenoptrack.locate.dotcards import (CardLattice, card_lattice, consistent_origins,
-                                         dotcard_points, fit_lattice, index_dotcard,
-                                         index_lattice)
+from plenoptrack.locate.dotcards import (DOTCARD_COLUMNS, CardLattice, card_lattice,
+                                         consistent_origins, dotcard_points, fit_lattice,
+                                         index_dotcard, index_lattice)
 from plenoptrack.locate.segment import segment_array, segment_view
 
 AXIS = (61.3, 40.6)        # (s, t) of the optical axis
@@ -64,7 +64,9 @@ def _check_against_truth(table, truth, spacing_mm):
 def test_dotcard_indices_and_world_positions(parallax):
     lf, truth = _card(parallax)
     table = dotcard_points(lf, spacing_mm=2.5, z_mm=-10.0, parallax_per_u=parallax)
-    assert list(table.columns) == ["u", "v", "s", "t", "x", "y", "z", "i", "j"]
+    assert list(table.columns) == list(DOTCARD_COLUMNS)
+    assert list(DOTCARD_COLUMNS) == ["u", "v", "s", "t", "x", "y", "z", "i", "j", "darkness",
+                                     "dark_area"]
     assert (table["z"] == -10.0).all()
     _check_against_truth(table, truth, 2.5)
     n_views = int(lf.view_mask.sum())

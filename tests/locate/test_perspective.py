@@ -4,6 +4,7 @@ One calibration (white image, lenslet grid, dot cards, DLFC) per camera is share
 scenes of a module: the optics seed is fixed, the scene and noise seeds vary.
 """
 
+import math
 import warnings
 
 import numpy as np
@@ -17,6 +18,7 @@ from plenoptrack.evaluate import evaluate_particles, match_particles
 from plenoptrack.lightfield import decode
 from plenoptrack.locate.dlfc import fit_dlfc
 from plenoptrack.locate.dotcards import dotcard_points
+from plenoptrack.locate.opacity import edge_blur_by_depth
 from plenoptrack.locate.perspective import PARTICLE_COLUMNS, PerspectiveLocator, locate_frame
 from plenoptrack.simulate import (default_dotcard, default_dotcard_depths, make_optics,
                                   make_scene, render_dotcard, render_frame, render_white)
@@ -35,8 +37,10 @@ def _calibrated(camera_name: str, depths=None):
         image = render_dotcard(optics, float(z), card=card, seed=np.random.default_rng([0, 4, k]))
         points.append(dotcard_points(decode(image, calib.grid), spacing_mm=card.spacing_mm,
                                      z_mm=float(z), camera=camera))
-    dlfc = fit_dlfc(pd.concat(points, ignore_index=True), order=4, group_by="z", reject_k=5)
-    return optics, calib.with_dlfc(dlfc)
+    points = pd.concat(points, ignore_index=True)
+    dlfc = fit_dlfc(points, order=4, group_by="z", reject_k=5)
+    # as plenoptrack.calibrate does: the views' edge blur from the dots
+    return optics, calib.with_dlfc(dlfc).with_edge_blur(edge_blur_by_depth(points))
 
 
 def _frame(optics, truth, seed: int) -> np.ndarray:
@@ -199,6 +203,29 @@ def test_particle_sizes_from_shadow_areas(small):
     scene = make_scene(calib.camera, n_particles=20, seed=1)
     result = locate_frame(_frame(optics, scene.truth, 1), calib)
     _assert_sizes(result.particles, scene.truth, rel=0.06)
+
+
+def test_translucent_particles_measured_by_their_body_not_their_shadow(small):
+    # particles passing 15 % of the light cast an opaque disc sqrt(0.85) = 0.92 of their
+    # diameter; their opacity, from their images' peak darkness against the calibrated
+    # edge blur, gives the body's diameter back
+    import dataclasses
+
+    optics, calib = small
+    scene = make_scene(calib.camera, n_particles=20, seed=4)
+    truth = scene.truth.assign(transmission=0.15)
+    raw = _frame(optics, truth, 4)
+    body = locate_frame(raw, calib)
+    _assert_sizes(body.particles, truth, rel=0.04)
+    shadow = locate_frame(raw, calib, locator=PerspectiveLocator().updated(
+        {"solve": {"opacity": False}}, source="test"))
+    no_blur = locate_frame(raw, dataclasses.replace(
+        calib, extra={k: v for k, v in calib.extra.items() if k != "edge_blur_by_depth_px"}))
+    for plain in (shadow, no_blur):
+        pairs = match_particles(plain.particles, truth, tolerance_mm=1.0)
+        ratio = (plain.particles.loc[pairs["measured_index"], "diameter"].to_numpy()
+                 / truth.loc[pairs["truth_index"], "diameter"].to_numpy())
+        assert abs(np.median(ratio) - math.sqrt(0.85)) < 0.03, np.median(ratio)
 
 
 def test_views_vignetted_in_the_white_image_are_not_searched(small):

@@ -78,16 +78,18 @@ def _region_shape(detections: pd.DataFrame, owner: np.ndarray, n: int) -> pd.Dat
     shadow, ``sqrt(4 dark_area / pi)`` (summed relative darkness: an opaque object's
     area, nearly independent of defocus blur and of the threshold); the axes are the
     members' second-moment axes scaled by the same shadow-to-threshold ratio; the
-    orientation is the axial mean of the members'. Whole regions are preferred over the
-    cores and halves that merged images were split into, which under-size a particle.
+    orientation is the axial mean of the members'; ``peak`` is the median of the members'
+    peak relative darkness. Whole regions are preferred over the cores and halves that
+    merged images were split into, which under-size a particle.
     """
     empty = pd.DataFrame({"diameter_px": np.full(n, np.nan), "major_px": np.full(n, np.nan),
-                          "minor_px": np.full(n, np.nan), "orientation": np.full(n, np.nan)})
+                          "minor_px": np.full(n, np.nan), "orientation": np.full(n, np.nan),
+                          "peak": np.full(n, np.nan)})
     mask = owner >= 0
     if not mask.any():
         return empty
     d = detections.loc[mask, ["diameter_px", "major_axis_px", "minor_axis_px", "orientation",
-                              "dark_area"]].copy()
+                              "dark_area", "darkness"]].copy()
     d["owner"] = owner[mask]
     d["whole"] = (detections.loc[mask, "whole"].to_numpy(bool) if "whole" in detections.columns
                   else True)
@@ -101,11 +103,12 @@ def _region_shape(detections: pd.DataFrame, owner: np.ndarray, n: int) -> pd.Dat
     d["s2"] = np.sin(2 * d["orientation"])
     has_whole = d.groupby("owner")["whole"].transform("any").to_numpy(bool)
     g = d[d["whole"].to_numpy(bool) | ~has_whole].groupby("owner")
-    med = g[["diameter_px", "major_axis_px", "minor_axis_px"]].median()
+    med = g[["diameter_px", "major_axis_px", "minor_axis_px", "darkness"]].median()
     out = empty.copy()
     idx = med.index.to_numpy()
     out.loc[idx, "diameter_px"] = med["diameter_px"].to_numpy()
     out.loc[idx, "major_px"] = med["major_axis_px"].to_numpy()
     out.loc[idx, "minor_px"] = med["minor_axis_px"].to_numpy()
     out.loc[idx, "orientation"] = 0.5 * np.arctan2(g["s2"].mean(), g["c2"].mean()).to_numpy()
+    out.loc[idx, "peak"] = med["darkness"].to_numpy()
     return out

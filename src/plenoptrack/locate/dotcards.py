@@ -34,7 +34,7 @@ from .segment import segment_array
 __all__ = ["DOTCARD_COLUMNS", "CardLattice", "OriginConsensus", "card_lattice",
            "consistent_origins", "dotcard_points", "fit_lattice", "index_dotcard", "index_lattice"]
 
-DOTCARD_COLUMNS = ("u", "v", "s", "t", "x", "y", "z", "i", "j")
+DOTCARD_COLUMNS = ("u", "v", "s", "t", "x", "y", "z", "i", "j", "darkness", "dark_area")
 """Columns of a dot-card table: view, dot centroid (view pixels), dot position (mm) and
 grid index."""
 
@@ -344,7 +344,11 @@ def dotcard_points(lf, *, spacing_mm: float, z_mm: float, camera=None,
     pandas.DataFrame
         Columns :data:`DOTCARD_COLUMNS`: ``u, v`` view; ``s, t`` dot centroid, view
         pixels; ``x = i * spacing_mm``, ``y = j * spacing_mm``, ``z = z_mm`` (mm, world
-        frame); ``i, j`` grid index (int). Sorted by view (v, u) and index (j, i).
+        frame); ``i, j`` grid index (int); ``darkness, dark_area`` the dot image's peak
+        and summed relative darkness (:func:`~plenoptrack.locate.segment.segment_array`),
+        from which the calibration measures the views' edge blur
+        (:func:`~plenoptrack.locate.opacity.edge_blur_by_depth`). Sorted by view (v, u)
+        and index (j, i).
     """
     if not spacing_mm > 0:
         raise SettingsError(f"spacing_mm must be positive; got {spacing_mm!r}")
@@ -373,7 +377,8 @@ def dotcard_points(lf, *, spacing_mm: float, z_mm: float, camera=None,
         "s": idx["s"].to_numpy(float), "t": idx["t"].to_numpy(float),
         "x": idx["i"].to_numpy(float) * spacing_mm, "y": idx["j"].to_numpy(float) * spacing_mm,
         "z": np.full(len(idx), float(z_mm)), "i": idx["i"].to_numpy(np.int64),
-        "j": idx["j"].to_numpy(np.int64)})
+        "j": idx["j"].to_numpy(np.int64), "darkness": idx["darkness"].to_numpy(float),
+        "dark_area": idx["dark_area"].to_numpy(float)})
     return table.sort_values(["v", "u", "j", "i"], kind="stable").reset_index(drop=True)
 
 

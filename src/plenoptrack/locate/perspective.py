@@ -64,6 +64,7 @@ from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_dupl
                       _predict_all, _release_unclaimed, _trim_refit)
 from ._nearby import pairs_within
 from ._regions import _region_shape, _single_image_area, _split_pairs
+from .opacity import blur_at, opacity
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
@@ -152,6 +153,10 @@ class FrameContext:
     tolerance_px : float
         How far a centroid may lie from a particle's prediction and still be its image
         (``grow.add_tolerance_px``), view pixels.
+    edge_blur : (K, 2) float ndarray or None
+        The views' edge blur per depth ``(z mm, sigma px)`` the calibration measured on
+        its dot cards (:attr:`~plenoptrack.calibration.Calibration.edge_blur_by_depth`);
+        None when it has none.
     """
 
     lf: LightField
@@ -169,6 +174,7 @@ class FrameContext:
     volume_depth_mm: float
     merge_px: float
     tolerance_px: float
+    edge_blur: np.ndarray | None = None
 
     @classmethod
     def build(cls, lf: LightField, calibration, detections: pd.DataFrame,
@@ -192,7 +198,8 @@ class FrameContext:
                    geometry=ProjectionGeometry.from_lightfield(lf, camera),
                    alphas=plane_alphas(camera, (z_lo, z_hi), locator.cluster.n_planes),
                    n_possible=int(lf.view_mask.sum()), volume_depth_mm=z_hi - z_lo,
-                   merge_px=merge_px, tolerance_px=locator.grow.add_tolerance_px)
+                   merge_px=merge_px, tolerance_px=locator.grow.add_tolerance_px,
+                   edge_blur=getattr(calibration, "edge_blur_by_depth", None))
 
 
 @dataclass(frozen=True)
@@ -937,9 +944,12 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     particles["chi2"] = np.where(split, np.nan, chi2)
     particles["travel_px"] = travel
     particles.insert(0, T_COLUMN, frame)
-    particles["diameter"] = shape.loc[keep, "diameter_px"].to_numpy() / mag
-    particles["major_axis"] = shape.loc[keep, "major_px"].to_numpy() / mag
-    particles["minor_axis"] = shape.loc[keep, "minor_px"].to_numpy() / mag
+    # the shadow's disc, or with solve.opacity the body's: shadow / sqrt(opacity)
+    scale = mag * np.sqrt(_opacity(ctx, shape.loc[keep], particles["z"].to_numpy(float))
+                          if solve.opacity else 1.0)
+    particles["diameter"] = shape.loc[keep, "diameter_px"].to_numpy() / scale
+    particles["major_axis"] = shape.loc[keep, "major_px"].to_numpy() / scale
+    particles["minor_axis"] = shape.loc[keep, "minor_px"].to_numpy() / scale
     particles["orientation"] = shape.loc[keep, "orientation"].to_numpy()
     if split.any():   # their regions are the merged pair's: size from the image fit
         fitted = 2.0 * table.loc[keep, _FIT_RADIUS].to_numpy(float)[split] / mag[split]
@@ -957,6 +967,17 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     particles["flags"] = particles["flags"].astype(np.uint8)
     detections = ctx.detections.assign(particle=particle_of, inlier=particle_of >= 0)
     return particles, detections
+
+
+def _opacity(ctx: FrameContext, shape: pd.DataFrame, z: np.ndarray) -> np.ndarray:
+    """Opacity of each particle from its images' median peak darkness and shadow radius
+    (:func:`~plenoptrack.locate.opacity.opacity`) against the calibration's edge blur at
+    its depth; 1 where it cannot be found (no edge blur in the calibration, no peak)."""
+    if ctx.edge_blur is None or len(shape) == 0:
+        return np.ones(len(shape))
+    c = opacity(shape["peak"].to_numpy(float), 0.5 * shape["diameter_px"].to_numpy(float),
+                blur_at(ctx.edge_blur, z))
+    return np.where(np.isfinite(c), c, 1.0)
 
 
 def _size_members(ctx: FrameContext, held_owner: np.ndarray, owner: np.ndarray,

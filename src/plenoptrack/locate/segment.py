@@ -39,9 +39,9 @@ DETECTION_COLUMNS = (T_COLUMN, "u", "v", "s", "t", "area", "diameter_px", "major
 _N, _SW, _SWS, _SWT, _SS, _ST, _SSS, _STT, _SST, _DARK, _EDGE, _S0, _T0, _SD, _PART, _PARENT_N = (
     range(16))
 _N_STATS = 16
-_OFFSET_STRIDE = 7
-"""Every this many'th background pixel of a view gives the median of its background's
-relative darkness (about 18,000 of a 400 x 300 view)."""
+_OFFSET_SAMPLES = 2000
+"""About this many background samples (on a grid of every k'th row and column) give the
+median of a view's background relative darkness (to about 3 % of the pixel noise)."""
 # Regions per view the kernel's buffer has room for at least (see _region_stats).
 _INITIAL_CAPACITY = 256
 
@@ -309,6 +309,25 @@ def _split_by_cores(reg, n_reg, rel_dark, core_contrast, min_core_ratio, conn8, 
 
 
 @numba.njit(cache=True)
+def _background_offset(rel_dark, valid, contrast):  # pragma: no cover - compiled
+    """Median relative darkness of the background (valid samples not darker than the
+    threshold) on a grid of every k'th row and column (about :data:`_OFFSET_SAMPLES`
+    samples), limited to +-0.5; 0 when there are none."""
+    h, w = rel_dark.shape
+    k = max(1, int(math.sqrt(h * w / _OFFSET_SAMPLES)))
+    sample = np.empty(((h + k - 1) // k) * ((w + k - 1) // k), dtype=np.float64)
+    n = 0
+    for i in range(0, h, k):
+        for j in range(0, w, k):
+            if valid[i, j] and rel_dark[i, j] <= contrast:
+                sample[n] = rel_dark[i, j]
+                n += 1
+    if n == 0:
+        return 0.0
+    return min(max(np.median(sample[:n]), -0.5), 0.5)
+
+
+@numba.njit(cache=True)
 def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_core_ratio,
                  conn8, out, work):  # pragma: no cover - compiled
     """Segment one view; write per-region sums into ``out``; return the region count.
@@ -364,8 +383,6 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
     parent[0] = 0
     n_lab = 0
     n_px = 0   # the foreground pixels in raster order: every later pass visits only them
-    sample = np.empty(h * w // _OFFSET_STRIDE + 1, dtype=np.float64)
-    n_sample = 0
     for i in range(h):
         _grid_row(bg, ilo, iw, i, row)
         for j in range(w):
@@ -374,9 +391,6 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
             bgv = _at(row, jlo, jw, j)
             rel_dark[i, j] = (bgv - img[i, j]) / bgv if bgv > 0.0 else 0.0
             if not (bgv > 0.0 and img[i, j] < bgv * scale):
-                if (i * w + j) % _OFFSET_STRIDE == 0:
-                    sample[n_sample] = rel_dark[i, j]
-                    n_sample += 1
                 continue
             weight[i, j] = bgv * scale - img[i, j]
             n_lab = _label_pixel(labels, parent, n_lab, i, j, conn8)
@@ -389,8 +403,7 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
     # below the true background and the bright background reads slightly negative in
     # rel_dark: its median ``o`` over the background. The summed shadow is taken as
     # (rel_dark - o) / (1 - o), the darkness against the background level itself.
-    offset = np.median(sample[:n_sample]) if n_sample > 0 else 0.0
-    offset = min(max(offset, -0.5), 0.5)
+    offset = _background_offset(rel_dark, valid, contrast)
     pi = pi[:n_px]
     pj = pj[:n_px]
     reg_n = np.zeros(n_lab + 1, dtype=np.float64)
