@@ -477,6 +477,27 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
     return n_row
 
 
+@numba.njit(cache=True, inline="always")
+def _add_unique(touched, n, value):  # pragma: no cover - compiled
+    """Append ``value`` to ``touched[:n]`` unless it is there; return the new length."""
+    for m in range(n):
+        if touched[m] == value:
+            return n
+    touched[n] = value
+    return n + 1
+
+
+@numba.njit(cache=True, inline="always")
+def _share_shadow(out, row_of, touched, n, darkness):  # pragma: no cover - compiled
+    """Add ``darkness`` to the summed shadow of the units ``touched[:n]``, in equal shares
+    (units beyond the buffer ``out`` are skipped)."""
+    share = darkness / n
+    for m in range(n):
+        k = row_of[touched[m]]
+        if 0 <= k < out.shape[0]:
+            out[k, _SD] += share
+
+
 @numba.njit(cache=True)
 def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, offset, out, pi, pj, near,
                     ring_region, ring_unit):  # pragma: no cover - compiled
@@ -501,7 +522,6 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, offset, out, pi, pj, nea
     the view's shape, left as they were found.
     """
     h, w = unit.shape
-    cap = out.shape[0]
     touched = np.empty(9, dtype=np.int64)
     # Mark the pixels within two pixels of a region first: regions are sparse, and only
     # those pixels need their 8 neighbours read. Raster order (and so every sum) is kept.
@@ -533,14 +553,7 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, offset, out, pi, pj, nea
                         region = reg[ii, jj]
                     elif reg[ii, jj] != region:
                         several = True
-                    un = unit[ii, jj]
-                    new = True
-                    for m in range(n_touched):
-                        if touched[m] == un:
-                            new = False
-                    if new:
-                        touched[n_touched] = un
-                        n_touched += 1
+                    n_touched = _add_unique(touched, n_touched, unit[ii, jj])
             if region < 0:
                 continue
             ring_region[i, j] = -2 if several else region
@@ -548,11 +561,8 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, offset, out, pi, pj, nea
                 continue
             if n_touched == 1:
                 ring_unit[i, j] = touched[0] + 1
-            share = (rel_dark[i, j] - offset) / (1.0 - offset) / n_touched
-            for m in range(n_touched):
-                k = row_of[touched[m]]
-                if 0 <= k < cap:
-                    out[k, _SD] += share
+            _share_shadow(out, row_of, touched, n_touched,
+                          (rel_dark[i, j] - offset) / (1.0 - offset))
     # second ring
     for i in range(h):
         if not row_near[i]:
@@ -573,23 +583,12 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, offset, out, pi, pj, nea
                     if rr == -2 or (region >= 0 and rr != region):
                         several = True
                     region = rr
-                    un = ring_unit[ii, jj] - 1
-                    if un < 0:
-                        continue
-                    new = True
-                    for m in range(n_touched):
-                        if touched[m] == un:
-                            new = False
-                    if new:
-                        touched[n_touched] = un
-                        n_touched += 1
+                    if ring_unit[ii, jj] > 0:
+                        n_touched = _add_unique(touched, n_touched, ring_unit[ii, jj] - 1)
             if region < 0 or several or n_touched == 0:
                 continue
-            share = (rel_dark[i, j] - offset) / (1.0 - offset) / n_touched
-            for m in range(n_touched):
-                k = row_of[touched[m]]
-                if 0 <= k < cap:
-                    out[k, _SD] += share
+            _share_shadow(out, row_of, touched, n_touched,
+                          (rel_dark[i, j] - offset) / (1.0 - offset))
     for p in range(pi.shape[0]):
         i, j = pi[p], pj[p]
         for ii in range(max(i - 2, 0), min(i + 3, h)):
