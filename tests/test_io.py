@@ -191,6 +191,35 @@ def test_interrupts_are_deferred_to_the_end_of_the_block():
     assert done == ["finished the block first"]
 
 
+def test_ctrl_c_while_the_temporaries_are_made_leaves_none_behind(tmp_path, monkeypatch):
+    # Ctrl-C arriving right after the second temporary file was created, before the
+    # staging had recorded it, used to leave an empty ".b.parquet.*.tmp.parquet" behind
+    import signal
+
+    import plenoptrack.io as pio
+
+    made = []
+    original = pio._temporary_beside
+
+    def temporary_then_ctrl_c(path):
+        tmp = original(path)
+        made.append(tmp)
+        if len(made) == 2:
+            signal.raise_signal(signal.SIGINT)
+        return tmp
+
+    monkeypatch.setattr(pio, "_temporary_beside", temporary_then_ctrl_c)
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        with pytest.raises(KeyboardInterrupt), \
+                pio.staged_outputs(tmp_path / "a.parquet", tmp_path / "b.parquet"):
+            pass
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    assert len(made) == 2
+    assert list(tmp_path.iterdir()) == []
+
+
 def test_a_ctrl_c_swallowed_by_a_c_callback_stops_the_next_commit(tmp_path, monkeypatch):
     """A KeyboardInterrupt raised in a ctypes callback is dropped by C (as llvmlite's are
     while numba compiles); the command line's hook records it and no output is committed."""

@@ -281,10 +281,13 @@ def staged_outputs(*targets: str | Path | None) -> Iterator[list[Path | None]]:
     created: list[Path] = []
     temporaries: list[Path] = []
     try:
-        for path in paths:
-            if path is not None:
-                created += _make_parents(path)
-                temporaries.append(_temporary_beside(path))
+        # held back so that Ctrl-C cannot land between a temporary's creation and its
+        # entry in the list the cleanup below removes
+        with interrupts_deferred():
+            for path in paths:
+                if path is not None:
+                    created += _make_parents(path)
+                    temporaries.append(_temporary_beside(path))
         staged = iter(temporaries)
         with _staging_level() as outermost:
             yield [None if p is None else next(staged) for p in paths]
