@@ -57,6 +57,8 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
     "dlfc_eval_serial": ("plenoptrack.locate.dlfc", "_eval_serial",
                          (_F2, _I1r, _I1r, _F2r, _b1)),
     "dlfc_design": ("plenoptrack.locate.dlfc", "_design_kernel", (_F2, _I1r, _I1r)),
+    "dlfc_views": ("plenoptrack.locate.dlfc", "_views_kernel",
+                   (_F2, _F2, _I2r, _F3r, _F1r, _F1r, _b1)),
     "kmeans_lloyd": ("plenoptrack.locate.cluster", "_lloyd", (_F2, _F2, _i8)),
     "kmeans_topup": ("plenoptrack.locate.cluster", "_kmeanspp_topup", (_F2, _F2, _i8, _F1)),
     "kmeans_evaluate": ("plenoptrack.locate.cluster", "_evaluate",
@@ -90,10 +92,10 @@ STEPS: dict[str, tuple[str, ...]] = {
     "calibrate": ("grid", "decode", "segment", "dlfc_eval", "dlfc_design",
                   # the dots' position errors through the fitted DLFC (its model error)
                   "robust_thresholds", "normal", "lm", "moments", "residual"),
-    "locate": ("decode", "segment", "dlfc_eval", "dlfc_eval_serial", "kmeans_lloyd", "kmeans_topup",
-               "kmeans_evaluate", "robust_thresholds", "normal", "lm", "moments", "residual",
-               "nearby_bucket", "nearby_scan", "first_untaken", "absorb", "refine_gather",
-               "refine_masks", "refine_normal"),
+    "locate": ("decode", "segment", "dlfc_eval", "dlfc_eval_serial", "dlfc_views", "kmeans_lloyd",
+               "kmeans_topup", "kmeans_evaluate", "robust_thresholds", "normal", "lm", "moments",
+               "residual", "nearby_bucket", "nearby_scan", "first_untaken", "absorb",
+               "refine_gather", "refine_masks", "refine_normal"),
 }
 """The kernels each step needs (``calibrate``: lenslet grid and DLFC fit from a white image
 and dot cards; ``locate``: decoding and the perspective-shift locator)."""
@@ -103,6 +105,7 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.lightfield.decode._corner", "plenoptrack.lightfield.grid._symmetry_step",
     "plenoptrack.lightfield.grid._bilinear", "plenoptrack.lightfield.grid._reflected_step",
     "plenoptrack.locate.cluster._centre_grid", "plenoptrack.locate.cluster._nearest_two",
+    "plenoptrack.locate.cluster._local_max_shift",
     "plenoptrack.locate.segment._find", "plenoptrack.locate.segment._union",
     "plenoptrack.locate.segment._block_mean", "plenoptrack.locate.segment._fill_nan",
     "plenoptrack.locate.segment._interp_axis", "plenoptrack.locate.segment._grid_row",
@@ -112,7 +115,7 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate.segment._reset", "plenoptrack.locate.segment._work_arrays",
     "plenoptrack.locate._order._before",
     "plenoptrack.locate._order.median", "plenoptrack.locate._order.stable_argsort",
-    "plenoptrack.locate.triangulate._coefficients_one",
+    "plenoptrack.locate.dlfc._coefficients_one",
     "plenoptrack.locate.triangulate._normal_one", "plenoptrack.locate.triangulate._solve3",
     "plenoptrack.locate.refine._half_erfc", "plenoptrack.locate.dlfc._eval_block",
 })

@@ -253,6 +253,21 @@ def test_grid_search_kernels_match_all_pairs_search(block):
                               previous._kmeanspp_topup(pts, centres[:k0].copy(), 10, uniforms))
 
 
+def test_lloyd_with_local_bounds_matches_plain_lloyd_on_a_crowded_plane():
+    """Many centres, most settling at once and a few travelling far: the lower bounds
+    drop by the moves of nearby centres only, and the labels stay plain Lloyd's."""
+    rng = np.random.default_rng(3)
+    blobs = rng.uniform(0, 100, (400, 2))
+    pts = np.concatenate([np.repeat(blobs, 8, axis=0) + rng.normal(0, 0.3, (3200, 2)),
+                          rng.uniform(-50, 150, (300, 2))])
+    for k in (50, 400, 700):
+        start = pts[rng.choice(len(pts), k, replace=False)].copy()
+        want_c, got_c = start.copy(), start.copy()
+        want = previous._lloyd(pts, want_c, 50)
+        assert np.array_equal(_lloyd(pts, got_c, 50), want), k
+        assert np.array_equal(got_c, want_c), k
+
+
 def test_clustering_unchanged_by_grid_search(monkeypatch):
     import plenoptrack.locate.cluster as cluster_module
 

@@ -190,6 +190,23 @@ def test_few_points_on_one_thread_match_many_in_parallel(dlfc4):
         assert np.array_equal(few_jac, many_jac[part])
 
 
+def test_view_factorised_prediction_matches_the_full_basis(dlfc4):
+    """predict_in_views regroups the same polynomials: same (s, t) and derivatives."""
+    rng = np.random.default_rng(5)
+    p = rng.uniform(-20, 20, (6, 3))
+    u, v = rng.uniform(-6, 6, (2, 40))
+    basis = dlfc4.view_basis(u, v)
+    st, jac = dlfc4.predict_in_views(p, basis, jacobian=True)
+    assert st.shape == (6, 40, 2) and jac.shape == (6, 40, 2, 3)
+    full_st, full_jac = dlfc4.predict_with_jacobian(p[:, None, 0], p[:, None, 1],
+                                                    p[:, None, 2], u[None], v[None])
+    scale = np.abs(full_st).max()
+    np.testing.assert_allclose(st, full_st, rtol=0, atol=1e-12 * scale)
+    np.testing.assert_allclose(jac, full_jac, rtol=1e-9, atol=1e-12 * np.abs(full_jac).max())
+    assert np.array_equal(dlfc4.predict_in_views(p, basis), st)
+    assert dlfc4.predict_in_views(np.empty((0, 3)), basis).shape == (0, 40, 2)
+
+
 def test_jacobian_matches_finite_differences(dlfc4):
     rng = np.random.default_rng(0)
     p = rng.uniform(-20, 20, (50, 3))

@@ -108,6 +108,14 @@ class _ShiftModel:
     def predict(self, x, y, z, u, v):
         return x + u * z, y + v * z
 
+    def view_basis(self, u, v):
+        return np.c_[u, v].astype(float)
+
+    def predict_in_views(self, xyz, basis):
+        xyz = np.reshape(xyz, (-1, 3))
+        return np.stack(self.predict(xyz[:, None, 0], xyz[:, None, 1], xyz[:, None, 2],
+                                     basis[None, :, 0], basis[None, :, 1]), axis=-1)
+
 
 def test_release_unclaimed_matches_all_pairs():
     released = 0

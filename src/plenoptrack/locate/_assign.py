@@ -34,11 +34,7 @@ def _predict_all(dlfc, positions: np.ndarray, views: np.ndarray) -> np.ndarray:
     out = np.full((len(positions), len(views), 2), np.nan)
     ok = np.all(np.isfinite(positions), axis=1)
     if ok.any() and len(views):
-        p = positions[ok]
-        s, t = dlfc.predict(p[:, None, 0], p[:, None, 1], p[:, None, 2],
-                            views[None, :, 0], views[None, :, 1])
-        out[ok, :, 0] = s
-        out[ok, :, 1] = t
+        out[ok] = dlfc.predict_in_views(positions[ok], dlfc.view_basis(views[:, 0], views[:, 1]))
     return out
 
 

@@ -356,7 +356,11 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
     centres runs only for points whose bounds no longer prove the assignment, so the
     labels are those of plain Lloyd iterations at a fraction of the cost. Nearest
     centres come from a grid over the centres (:func:`_nearest_two`), rebuilt when they
-    move, so an iteration costs O(n + k), not O(n k).
+    move, so an iteration costs O(n + k), not O(n k). When the centres move, a point's
+    lower bound drops by the largest move among the centres that could be its second
+    nearest (those of the grid cells around it, :func:`_local_max_shift`), not by the
+    largest move of all: a few centres that travel far elsewhere in the plane then do
+    not send every point back to the search.
     """
     n = points.shape[0]
     k = centres.shape[0]
@@ -407,14 +411,58 @@ def _lloyd(points, centres, max_iter):  # pragma: no cover - compiled
                 centres[c, 1] = ny
             if shift[c] > max_shift:
                 max_shift = shift[c]
+        # Every other centre was at least lower[i] away, and one that moved by s is now
+        # at least lower[i] - s away. Only those that were within lower[i] + max_shift
+        # can now be nearer than lower[i], and the cells around the point (on the grid
+        # of the centres' positions before this move) hold all of them.
+        near_shift = _local_max_shift(grid, shift)
+        start, items, lo_x, lo_y, h, gx, gy, slack = grid
+        for i in range(n):
+            upper[i] += shift[labels[i]]
+            reach = lower[i] + max_shift + slack
+            drop = max_shift
+            if reach <= 2.0 * h:
+                ci = int(min(max((points[i, 0] - lo_x) / h, 0.0), gx - 1.0))
+                cj = int(min(max((points[i, 1] - lo_y) / h, 0.0), gy - 1.0))
+                drop = near_shift[0 if reach <= h else 1, cj * gx + ci]
+            lower[i] -= drop
         grid = _centre_grid(centres)
         for c in range(k):
             g = _nearest_two(centres[c, 0], centres[c, 1], centres, grid, c)[1]
             half_gap[c] = 0.5 * math.sqrt(g)
-        for i in range(n):
-            upper[i] += shift[labels[i]]
-            lower[i] -= max_shift
     return labels
+
+
+@numba.njit(cache=True)
+def _local_max_shift(grid, shift):  # pragma: no cover - compiled
+    """(2, cells) largest ``shift`` of the centres within one and within two cells
+    (3 x 3 and 5 x 5 blocks) of each cell of ``grid`` (:func:`_centre_grid`).
+
+    A point in cell ``q`` has every centre within ``r * h`` of it (``h`` the cell side,
+    ``r`` = 1 or 2) inside the block of radius ``r`` around ``q``, also when the point
+    lies beyond the grid (its cell is the nearest edge cell).
+    """
+    start, items, lo_x, lo_y, h, nx, ny, slack = grid
+    cell = np.zeros(nx * ny)
+    for q in range(nx * ny):
+        for a in range(start[q], start[q + 1]):
+            cell[q] = max(cell[q], shift[items[a]])
+    out = np.zeros((2, nx * ny))
+    rows = np.empty(nx * ny)
+    for r in range(1, 3):   # separable maximum filter: along x, then along y
+        for iy in range(ny):
+            for ix in range(nx):
+                m = 0.0
+                for jx in range(max(ix - r, 0), min(ix + r, nx - 1) + 1):
+                    m = max(m, cell[iy * nx + jx])
+                rows[iy * nx + ix] = m
+        for iy in range(ny):
+            for ix in range(nx):
+                m = 0.0
+                for jy in range(max(iy - r, 0), min(iy + r, ny - 1) + 1):
+                    m = max(m, rows[jy * nx + ix])
+                out[r - 1, iy * nx + ix] = m
+    return out
 
 
 @numba.njit(cache=True)

@@ -245,6 +245,80 @@ def _eval_serial(q, parent, var, coef, with_jac):  # pragma: no cover - compiled
     return out, jac
 
 
+def _powers(values: np.ndarray, top: int) -> np.ndarray:
+    """``values ** j`` for ``j = 0 .. top`` along a new last axis, by repeated products."""
+    out = np.empty((*values.shape, top + 1))
+    out[..., 0] = 1.0
+    for j in range(1, top + 1):
+        out[..., j] = out[..., j - 1] * values
+    return out
+
+
+@numba.njit(cache=True)
+def _coefficients_one(pos, xyz_e, tensor, centre, scale, powers, c, dc):  # pragma: no cover
+    """``C = X(p) G`` (B, 2) and ``dC/d(x, y, z)`` (3, B, 2) at one position, into ``c``
+    and ``dc`` (``dc`` with a zero first axis skips the derivatives)."""
+    n_a, n_b = tensor.shape[0], tensor.shape[1]
+    with_deriv = dc.shape[0] == 3
+    top = powers.shape[1] - 1
+    for j in range(3):
+        qn = (pos[j] - centre[j]) / scale[j]
+        powers[j, 0] = 1.0
+        for e in range(1, top + 1):
+            powers[j, e] = powers[j, e - 1] * qn
+    c[:, :] = 0.0
+    if with_deriv:
+        dc[:, :, :] = 0.0
+    for a in range(n_a):
+        e0, e1, e2 = xyz_e[a, 0], xyz_e[a, 1], xyz_e[a, 2]
+        f0, f1, f2 = powers[0, e0], powers[1, e1], powers[2, e2]
+        xm = f0 * f1 * f2
+        if with_deriv:
+            d0 = e0 * powers[0, e0 - 1] / scale[0] if e0 > 0 else 0.0
+            d1 = e1 * powers[1, e1 - 1] / scale[1] if e1 > 0 else 0.0
+            d2 = e2 * powers[2, e2 - 1] / scale[2] if e2 > 0 else 0.0
+            g0, g1, g2 = d0 * f1 * f2, f0 * d1 * f2, f0 * f1 * d2
+        for b in range(n_b):
+            for ch in range(2):
+                coef = tensor[a, b, ch]
+                if coef == 0.0:
+                    continue
+                c[b, ch] += xm * coef
+                if with_deriv:
+                    dc[0, b, ch] += g0 * coef
+                    dc[1, b, ch] += g1 * coef
+                    dc[2, b, ch] += g2 * coef
+
+
+@numba.njit(cache=True)
+def _views_kernel(positions, w, xyz_e, tensor, centre, scale,
+                  with_jac):  # pragma: no cover - compiled
+    """``(s, t)`` (K, M, 2) and, with ``with_jac``, ``d(s, t)/d(x, y, z)`` (K, M, 2, 3) of
+    positions (K, 3) in the views of the basis ``w`` (M, B): ``C = X(p) G`` once per
+    position, then one ``B``-term product per view."""
+    n_k, n_m, n_b = positions.shape[0], w.shape[0], w.shape[1]
+    powers = np.empty((3, xyz_e.max() + 1))
+    c = np.empty((n_b, 2))
+    dc = np.empty((3 if with_jac else 0, n_b, 2))
+    st = np.empty((n_k, n_m, 2))
+    jac = np.empty((n_k, n_m if with_jac else 0, 2, 3))
+    for k in range(n_k):
+        _coefficients_one(positions[k], xyz_e, tensor, centre, scale, powers, c, dc)
+        for m in range(n_m):
+            for ch in range(2):
+                acc = 0.0
+                for b in range(n_b):
+                    acc += w[m, b] * c[b, ch]
+                st[k, m, ch] = acc
+                if with_jac:
+                    for d in range(3):
+                        acc = 0.0
+                        for b in range(n_b):
+                            acc += w[m, b] * dc[d, b, ch]
+                        jac[k, m, ch, d] = acc
+    return st, jac
+
+
 def _evaluate(q, parent, var, coef, with_jac):
     """The polynomials (and their derivatives) at ``q`` (5, N), on one thread for small N."""
     kernel = _eval_serial if q.shape[1] <= _SERIAL_POINTS else _eval_kernel
@@ -470,6 +544,73 @@ class DLFC:
         for arr in (xyz_e, uv_e, tensor):
             arr.setflags(write=False)
         return xyz_e, uv_e, tensor
+
+    @cached_property
+    def _view_tables(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:attr:`view_factorisation` as the kernels take it: ``xyz_e`` (A, 3) int64,
+        ``uv_e`` (B, 2) int64 and ``tensor`` (A, B, 2), contiguous and read-only."""
+        xyz_e, uv_e, tensor = self.view_factorisation
+        return tuple(_readonly(np.ascontiguousarray(a, dtype=dt)) for a, dt in
+                     ((xyz_e, np.int64), (uv_e, np.int64), (tensor, np.float64)))
+
+    def view_basis(self, u, v) -> np.ndarray:
+        """Monomials ``V_b`` of :attr:`view_factorisation` for a set of views.
+
+        Parameters
+        ----------
+        u, v : (M,) array_like, float
+            Views, sensor pixels from the microlens-image centre.
+
+        Returns
+        -------
+        (M, B) float ndarray
+            ``V_b(u_m, v_m)`` of the normalised ``(u, v)``; pass it to
+            :meth:`predict_in_views`.
+        """
+        _, uv_e, _ = self._view_tables
+        un = (np.asarray(u, dtype=float).ravel() - self.centre[3]) / self.scale[3]
+        vn = (np.asarray(v, dtype=float).ravel() - self.centre[4]) / self.scale[4]
+        top = int(uv_e.max())
+        return np.ascontiguousarray(_powers(un, top)[:, uv_e[:, 0]]
+                                    * _powers(vn, top)[:, uv_e[:, 1]])
+
+    def predict_in_views(self, xyz, basis, *, jacobian: bool = False):
+        """:meth:`predict` (and :meth:`jacobian_xyz`) of many positions in one set of views.
+
+        The same polynomials in their view-factorised form: a position costs one
+        evaluation of its ``(x, y, z)`` monomials and a ``B``-term product per view, far
+        less than the full basis per view when the same views serve many calls.
+
+        Parameters
+        ----------
+        xyz : (K, 3) array_like, float
+            Object-space positions, mm.
+        basis : (M, B) float ndarray
+            :meth:`view_basis` of the views.
+        jacobian : bool
+            Also return ``d(s, t) / d(x, y, z)``.
+
+        Returns
+        -------
+        st : (K, M, 2) float ndarray
+            ``(s, t)``, view pixels.
+        jac : (K, M, 2, 3) float ndarray
+            Only with ``jacobian``: view pixels per mm.
+        """
+        xyz_e, _, tensor = self._view_tables
+        positions = np.ascontiguousarray(np.reshape(xyz, (-1, 3)), dtype=np.float64)
+        st, jac = _views_kernel(positions, np.ascontiguousarray(basis, dtype=np.float64),
+                                xyz_e, tensor, self._centre_xyz, self._scale_xyz,
+                                bool(jacobian))
+        return (st, jac) if jacobian else st
+
+    @cached_property
+    def _centre_xyz(self) -> np.ndarray:
+        return _readonly(np.ascontiguousarray(self.centre[:3], dtype=np.float64))
+
+    @cached_property
+    def _scale_xyz(self) -> np.ndarray:
+        return _readonly(np.ascontiguousarray(self.scale[:3], dtype=np.float64))
 
     # --- evaluation ---------------------------------------------------------------
     def _normalised(self, x, y, z, u, v) -> tuple[np.ndarray, tuple[int, ...]]:

@@ -527,6 +527,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     keep &= np.isfinite(radius)
     lf = ctx.lf
     views_uv, view_rc = _fit_views(ctx)
+    basis = ctx.dlfc.view_basis(views_uv[:, 0], views_uv[:, 1])
     # The image model's disc starts at (and a neighbour never fitted is drawn with) the
     # particle's shadow; the thresholded regions, larger by their blurred edge, decide
     # which images overlap.
@@ -552,7 +553,8 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
                 fitted_pairs.add((a, b))
             held = np.setdiff1d(np.flatnonzero(nearby[free].any(axis=0) & keep), free)
             fitted = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, pos[free], rc[free],
-                                pos[held], rc[held], max_depth_shift=max_shift)
+                                pos[held], rc[held], max_depth_shift=max_shift,
+                                view_basis=basis)
             if fitted is None or not np.all(np.isfinite(fitted.params)):
                 continue
             theta = fitted.params

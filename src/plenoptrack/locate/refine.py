@@ -149,7 +149,8 @@ def _gather_patches(data, view_rc, s0, t0, n):  # pragma: no cover - compiled
 
 def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixed_rc, *,
                margin_px: float = 3.0, max_iter: int = 30, xyz_tol: float = 1e-4,
-               step_sigma: float = 0.05, max_depth_shift: float = math.inf):
+               step_sigma: float = 0.05, max_depth_shift: float = math.inf,
+               view_basis: np.ndarray | None = None):
     """Fit ``k`` free particles to the view pixels around them, neighbours held fixed.
 
     Parameters
@@ -184,6 +185,9 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
         Give up, returning None, as soon as an accepted step has moved a particle's depth
         by more than this from its start (mm): a fit the caller would discard anyway
         stops paying for its remaining iterations.
+    view_basis : (V, B) float ndarray, optional
+        ``dlfc.view_basis`` of ``views_uv``, for a caller that fits many particles in the
+        same views (computed here when not given).
 
     Returns
     -------
@@ -195,19 +199,18 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     """
     k = len(free_xyz)
     u, v = views_uv[:, 0], views_uv[:, 1]
-    st_free = np.stack(dlfc.predict(free_xyz[:, None, 0], free_xyz[:, None, 1],
-                                    free_xyz[:, None, 2], u[None, :], v[None, :]), axis=-1)
+    # every prediction below is in these views
+    basis = dlfc.view_basis(u, v) if view_basis is None else view_basis
+    st_free = dlfc.predict_in_views(free_xyz, basis)
     centre = st_free.mean(axis=0)
     reach = np.max(np.hypot(*(st_free - centre[None]).transpose(2, 0, 1)))
     half = int(math.ceil(reach + free_rc[:, 0].max() + margin_px))
     keep, origin, values, inside = _patches(data, view_rc, centre, half)
     if keep.sum() < 6:
         return None
-    uk, vk = u[keep], v[keep]
-    st_held = dlfc.predict(fixed_xyz[:, None, 0], fixed_xyz[:, None, 1], fixed_xyz[:, None, 2],
-                           uk[None, :], vk[None, :])
-    fixed, near, fit = _patch_masks(origin, values.shape[1],
-                                    np.ascontiguousarray(np.stack(st_held, axis=-1)),
+    basis = basis[keep]
+    st_held = dlfc.predict_in_views(fixed_xyz, basis)
+    fixed, near, fit = _patch_masks(origin, values.shape[1], st_held,
                                     np.ascontiguousarray(fixed_rc, dtype=np.float64),
                                     np.ascontiguousarray(st_free[:, keep]),
                                     np.ascontiguousarray(free_rc[:, 0], dtype=np.float64),
@@ -224,15 +227,13 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     far = far[::max(1, far.size // _NOISE_SAMPLES)]
     noise = _robust_sd(far) if far.size else math.nan
     origin, fixed, fit = origin[use], fixed[use], fit[use]
-    uk, vk = uk[use], vk[use]
+    basis = basis[use]
     theta = np.concatenate([free_xyz, free_rc], axis=1).astype(float)
 
     def normal_equations(th):
-        st, jac = dlfc.predict_with_jacobian(th[:, None, 0], th[:, None, 1], th[:, None, 2],
-                                             uk[None, :], vk[None, :])
-        return _normal_equations(origin, y, fixed, fit, np.ascontiguousarray(st),
-                                 np.ascontiguousarray(jac), np.ascontiguousarray(th[:, 3:]),
-                                 EDGE_PX)
+        st, jac = dlfc.predict_in_views(th[:, :3], basis, jacobian=True)
+        return _normal_equations(origin, y, fixed, fit, st, jac,
+                                 np.ascontiguousarray(th[:, 3:]), EDGE_PX)
 
     lam = 1e-3
     cost, jtj, grad, meat = normal_equations(theta)

@@ -39,7 +39,7 @@ from scipy.optimize import least_squares
 from .._columns import LF_COLUMNS, POS_COLUMNS
 from ..errors import NoParticlesWarning, SettingsError
 from ._order import median
-from .dlfc import DLFC
+from .dlfc import DLFC, _coefficients_one
 
 __all__ = [
     "Triangulation", "TriangulationFlag", "FLAG_DESCRIPTIONS", "triangulate_cluster",
@@ -461,51 +461,6 @@ def _outliers(err, model, keep, clusters, rows, reject_k, min_views,
     return cand[rank < allowed[cl]]
 
 
-def _powers(values: np.ndarray, top: int) -> np.ndarray:
-    """``values ** j`` for ``j = 0 .. top`` along a new last axis, by repeated products."""
-    out = np.empty((*values.shape, top + 1))
-    out[..., 0] = 1.0
-    for j in range(1, top + 1):
-        out[..., j] = out[..., j - 1] * values
-    return out
-
-
-@numba.njit(cache=True)
-def _coefficients_one(pos, xyz_e, tensor, centre, scale, powers, c, dc):  # pragma: no cover
-    """``C = X(p) G`` (B, 2) and ``dC/d(x, y, z)`` (3, B, 2) at one position, into ``c``
-    and ``dc`` (``dc`` with a zero first axis skips the derivatives)."""
-    n_a, n_b = tensor.shape[0], tensor.shape[1]
-    with_deriv = dc.shape[0] == 3
-    top = powers.shape[1] - 1
-    for j in range(3):
-        qn = (pos[j] - centre[j]) / scale[j]
-        powers[j, 0] = 1.0
-        for e in range(1, top + 1):
-            powers[j, e] = powers[j, e - 1] * qn
-    c[:, :] = 0.0
-    if with_deriv:
-        dc[:, :, :] = 0.0
-    for a in range(n_a):
-        e0, e1, e2 = xyz_e[a, 0], xyz_e[a, 1], xyz_e[a, 2]
-        f0, f1, f2 = powers[0, e0], powers[1, e1], powers[2, e2]
-        xm = f0 * f1 * f2
-        if with_deriv:
-            d0 = e0 * powers[0, e0 - 1] / scale[0] if e0 > 0 else 0.0
-            d1 = e1 * powers[1, e1 - 1] / scale[1] if e1 > 0 else 0.0
-            d2 = e2 * powers[2, e2 - 1] / scale[2] if e2 > 0 else 0.0
-            g0, g1, g2 = d0 * f1 * f2, f0 * d1 * f2, f0 * f1 * d2
-        for b in range(n_b):
-            for ch in range(2):
-                coef = tensor[a, b, ch]
-                if coef == 0.0:
-                    continue
-                c[b, ch] += xm * coef
-                if with_deriv:
-                    dc[0, b, ch] += g0 * coef
-                    dc[1, b, ch] += g1 * coef
-                    dc[2, b, ch] += g2 * coef
-
-
 @numba.njit(cache=True)
 def _normal_one(pos, k, mom, wo, oo, ref, xyz_e, tensor, centre, scale, powers, c, dc, mdc,
                 jtj, jtr):  # pragma: no cover - compiled
@@ -713,16 +668,12 @@ class _ClusterModel:
     def __init__(self, dlfc: DLFC, u, v, obs, labels, n_k):
         self.dlfc, self.labels, self.n_k = dlfc, labels, n_k
         self.u, self.v, self.raw_obs = u, v, obs
-        xyz_e, uv_e, tensor = dlfc.view_factorisation
+        xyz_e, _, tensor = dlfc.view_factorisation
         self.xyz_e = np.ascontiguousarray(xyz_e, dtype=np.int64)
         self.tensor = np.ascontiguousarray(tensor, dtype=np.float64)
         self.centre = np.ascontiguousarray(dlfc.centre[:3], dtype=np.float64)
         self.scale = np.ascontiguousarray(dlfc.scale[:3], dtype=np.float64)
-        un = (u - dlfc.centre[3]) / dlfc.scale[3]
-        vn = (v - dlfc.centre[4]) / dlfc.scale[4]
-        top = int(uv_e.max())
-        self.w = np.ascontiguousarray(_powers(un, top)[:, uv_e[:, 0]]
-                                      * _powers(vn, top)[:, uv_e[:, 1]])           # (M, B)
+        self.w = dlfc.view_basis(u, v)                                     # (M, B)
         counts = np.bincount(labels, minlength=n_k)
         self.ref = np.stack([np.bincount(labels, obs[:, c], minlength=n_k) for c in (0, 1)],
                             axis=1) / np.maximum(counts, 1)[:, None]
