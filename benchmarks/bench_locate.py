@@ -40,9 +40,10 @@ peak MB (largest over the seeds), the per-stage seconds of both, and the ratio b
 over plenoptrack.
 
 ``--kernels`` times single kernels (:data:`KERNELS_TIMED`: the decode's gather, the
-segmentation of every view, the refinement's patch masks) on the calls one locate of the
-image makes, recorded and replayed, against the same functions of
-:data:`KERNEL_BASELINE_REV` (read with ``git show`` and imported beside the current
+segmentation of every view, the refinement's patch masks, the k-means Lloyd iterations,
+the refinement's image fits) on the calls one locate of the image makes, recorded and
+replayed, against the same functions of a baseline revision (:data:`KERNEL_BASELINE_REV`
+or :data:`VIEWS_BASELINE_REV`, read with ``git show`` and imported beside the current
 modules), alternating, best of ``--repeat`` each, with ``--threads`` numba threads
 (default 1), and says whether the outputs are identical.
 """
@@ -53,6 +54,7 @@ import argparse
 import contextlib
 import functools
 import importlib.util
+import inspect
 import sys
 import subprocess
 import tempfile
@@ -242,13 +244,30 @@ def _fitted_part(out):
     return np.where(fit, fixed, 1.0), near, fit
 
 
-KERNELS_TIMED = (("decode gather", "lightfield.decode", "_gather", None),
-                 ("segmentation", "locate.segment", "_region_stats", None),
-                 ("refinement patch masks", "locate.refine", "_patch_masks", _fitted_part))
-"""``(label, module under plenoptrack, function, what to compare)`` timed by
-``--kernels``; ``what to compare`` maps an output to the part the locator reads (None:
-all of it). A function that fills an output argument (the decode's ``_gather``) is
-compared on that argument."""
+def _fit_params(out):
+    """What the locator reads of an image fit: its parameters and sigmas (None: no fit)."""
+    return (np.full(1, np.nan),) * 2 if out is None else (out.params, out.sigma)
+
+
+VIEWS_BASELINE_REV = "8d3ba72"
+"""Revision before the k-means lower bounds dropped by the moves of nearby centres only
+and before the image fits predicted in the DLFC's view-factorised form."""
+
+KERNELS_TIMED = (("decode gather", "lightfield.decode", "_gather", None, None),
+                 ("segmentation", "locate.segment", "_region_stats", None, None),
+                 ("refinement patch masks", "locate.refine", "_patch_masks", _fitted_part, None),
+                 ("k-means Lloyd", "locate.cluster", "_lloyd", None, VIEWS_BASELINE_REV),
+                 ("refinement image fits", "locate.refine", "fit_images", _fit_params,
+                  VIEWS_BASELINE_REV))
+"""``(label, module under plenoptrack, function, what to compare, baseline revision)``
+timed by ``--kernels``; ``what to compare`` maps an output to the part the locator reads
+(None: all of it); the baseline revision is :data:`KERNEL_BASELINE_REV` when None. A
+function that fills an output argument (the decode's ``_gather``) is compared on that
+argument. The calls of a function in :data:`MOVES_ARGUMENTS` are recorded and replayed
+on copies of their array arguments."""
+
+MOVES_ARGUMENTS = frozenset({"k-means Lloyd"})
+"""Functions that change an argument in place (the k-means moves its centres)."""
 
 
 def _baseline_module(name: str, rev: str = KERNEL_BASELINE_REV):
@@ -267,6 +286,25 @@ def _baseline_module(name: str, rev: str = KERNEL_BASELINE_REV):
     sys.modules[spec.name] = module
     spec.loader.exec_module(module)
     return module
+
+
+def _without_new_keywords(fn):
+    """``fn``, ignoring keyword arguments it does not take (options added since its
+    revision, e.g. a value computed once by the caller instead of in every call)."""
+    if hasattr(fn, "py_func"):   # a compiled kernel: positional arguments only
+        return fn
+    names = set(inspect.signature(fn).parameters)
+
+    @functools.wraps(fn)
+    def call(*a, **k):
+        return fn(*a, **{key: v for key, v in k.items() if key in names})
+
+    return call
+
+
+def _copied(args: tuple) -> tuple:
+    """``args`` with every array copied."""
+    return tuple(a.copy() if isinstance(a, np.ndarray) else a for a in args)
 
 
 def _same(a, b) -> bool:
@@ -294,29 +332,29 @@ def bench_kernels(args) -> None:
     calib, raw, _ = _prepare(args.preset, args.particles, args.seed, args.workdir, args.diameter)
     numba.set_num_threads(args.threads)
     modules = {name: importlib.import_module(f"plenoptrack.{name}")
-               for _, name, _, _ in KERNELS_TIMED}
-    calls = {label: [] for label, _, _, _ in KERNELS_TIMED}
+               for _, name, _, _, _ in KERNELS_TIMED}
+    calls = {label: [] for label, *_ in KERNELS_TIMED}
     originals = {}
-    for label, name, func, _ in KERNELS_TIMED:
+    for label, name, func, _, _ in KERNELS_TIMED:
         current = getattr(modules[name], func)
         originals[label] = current
 
-        def spy(*a, _current=current, _calls=calls[label], **k):
-            _calls.append((a, k))
+        def spy(*a, _current=current, _calls=calls[label], _copy=label in MOVES_ARGUMENTS, **k):
+            _calls.append((_copied(a) if _copy else a, k))
             return _current(*a, **k)
 
         setattr(modules[name], func, spy)
     try:
         locate_frame(raw, calib)
     finally:
-        for label, name, func, _ in KERNELS_TIMED:
+        for label, name, func, _, _ in KERNELS_TIMED:
             setattr(modules[name], func, originals[label])
     print(f"{args.preset}: {args.particles} particles (seed {args.seed}), {args.threads} "
-          f"thread(s); the calls of one locate replayed, best of {args.repeat}, alternating; "
-          f"baseline {KERNEL_BASELINE_REV[:10]}")
-    for label, name, func, part in KERNELS_TIMED:
+          f"thread(s); the calls of one locate replayed, best of {args.repeat}, alternating")
+    for label, name, func, part, rev in KERNELS_TIMED:
+        rev = rev or KERNEL_BASELINE_REV
         now = originals[label]
-        base = getattr(_baseline_module(name), func)
+        base = _without_new_keywords(getattr(_baseline_module(name, rev), func))
         replay = calls[label]
         part = part or (lambda out: out)
         fills = label == "decode gather"          # writes into its last argument
@@ -326,7 +364,7 @@ def bench_kernels(args) -> None:
             if fills:
                 fn(*a[:-1], buffers[i], **k)
                 return buffers[i].copy() if keep else None
-            return fn(*a, **k)
+            return fn(*(_copied(a) if label in MOVES_ARGUMENTS else a), **k)
 
         outs = [(part(run(now, i, a, k, True)), part(run(base, i, a, k, True)))  # compiles
                 for i, (a, k) in enumerate(replay)]
@@ -339,7 +377,7 @@ def bench_kernels(args) -> None:
             t_base.append(_best(lambda: [run(base, i, a, k) for i, (a, k) in enumerate(replay)],
                                 1)[0])
         print(f"  {label:<24} {len(replay):4d} calls: now {min(t_now):.3f} s, baseline "
-              f"{min(t_base):.3f} s, speed-up {min(t_base) / min(t_now):.2f}x; "
+              f"({rev[:7]}) {min(t_base):.3f} s, speed-up {min(t_base) / min(t_now):.2f}x; "
               + ("identical outputs" if same else f"outputs differ by at most {diff:.2g}"))
 
 

@@ -12,8 +12,8 @@ import pytest
 from plenoptrack.errors import InputFileError, SettingsError
 from plenoptrack.evaluate import evaluate_tracks
 from plenoptrack.simulate.scenes import FragmentField, VortexRing, fragment_field_scene, vortex_ring_scene
-from plenoptrack.track import (TrackSettings, estimate_drift, link_particles, smooth_tracks,
-                               track_particles, track_statistics)
+from plenoptrack.track import (TrackSettings, estimate_drift, extend_tracks, link_particles,
+                               smooth_tracks, track_particles, track_statistics)
 
 VEL = ["velocity_x", "velocity_y", "velocity_z"]
 
@@ -154,6 +154,42 @@ def test_an_expanding_ring_is_linked_from_its_first_frame(seed):
     st = res.statistics
     assert len(st) == truth["particle"].nunique() == 24
     assert (st["n_frames"] == 6).all()
+
+
+def test_tracks_are_continued_at_both_ends_along_their_own_velocity():
+    rows, ids = [], []
+
+    def add(track, frame, x, y, z=0.0):
+        rows.append((frame, x, y, z))
+        ids.append(track)
+
+    for f in range(1, 6):                 # A: 2 mm per frame along x, frames 1-5 ...
+        add(0, f, 2.0 * f, 0.0)
+    add(1, 0, 0.1, 0.0, 0.5)              # ... its first point went to a ghost's track
+    add(1, 1, 1.0, 0.8)                   # (the ghost, frame 1)
+    add(2, 0, 50.0, 0.0)                  # a point far from every track
+    for f in range(2, 6):                 # C: frames 2-5, its point of frame 0 alone
+        add(3, f, 1.5 * f, 30.0, -0.5 * f)
+    add(4, 0, 0.0, 30.0, 0.0)
+    for f in range(6):                    # D and E: one particle cut in two tracks of 3
+        add(5 if f < 3 else 6, f, 3.0 * f, 60.0)
+    add(7, 6, 1.0, 100.0)                 # one frame beyond all of A-E, nowhere near
+    p = pd.DataFrame(rows, columns=["frame", "x", "y", "z"])
+    ids = np.array(ids)
+    before = ids.copy()
+
+    got = extend_tracks(p, ids, TrackSettings(search_range_mm=(1.0, 3.0), memory=1, order=1))
+    assert got[5] == 0                    # A's first point joins A
+    assert got[6] == 1 and got[7] == 2    # the ghost and the far point stay alone
+    assert got[12] == 3                   # C continued back over a missed frame (memory 1)
+    assert np.array_equal(got[13:19], ids[13:19])   # only loose points move
+    assert got[19] == 7
+    assert np.array_equal(ids, before)              # the input is not changed
+    no_memory = extend_tracks(p, ids, TrackSettings(search_range_mm=(1.0, 3.0), memory=0, order=1))
+    assert no_memory[12] == 4 and no_memory[5] == 0
+    narrow = extend_tracks(p, ids, TrackSettings(search_range_mm=(0.05, 3.0), memory=1, order=1))
+    assert narrow[5] == 1                 # 0.1 mm off the prediction: outside 0.05 mm
+    assert TrackSettings().extend
 
 
 def test_anisotropic_search_range_and_memory():

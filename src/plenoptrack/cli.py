@@ -930,6 +930,7 @@ def track(
     order: int = typer.Option(2, "--order", min=0, max=3, help="Degree of the local fit: 1 constant velocity (ballistic), 2 constant acceleration."),
     frame_interval: Optional[float] = typer.Option(None, "--frame-interval", callback=_finite(positive=True), help="Time between frames, s (adds speeds in m/s); a simulated data set's scene.toml gives it."),
     no_predict: bool = typer.Option(False, "--no-predict", help="Link without the velocity predictor."),
+    no_extend: bool = typer.Option(False, "--no-extend", help="Do not continue tracks at both ends along their own velocity after linking (a lone point or a track of one or two points that fits a track's extrapolation joins it)."),
 ) -> None:
     """Link particles over frames into 3D tracks; velocities, accelerations, track-refined depth."""
     from .io import read_table, write_table
@@ -942,7 +943,7 @@ def track(
     settings = TrackSettings(search_range_mm=(search_range, search_depth), memory=memory,
                              min_length=min_length, window=window, order=order,
                              frame_interval_s=frame_interval, predict=not no_predict,
-                             passes=1 if no_predict else 2)
+                             passes=1 if no_predict else 2, extend=not no_extend)
     with _outputs({"--out": out_file, "--stats": stats_file},
                   {"PARTICLES": particles_file}) as (out_tmp, stats_tmp):
         t0 = time.perf_counter()

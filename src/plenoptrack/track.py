@@ -47,7 +47,7 @@ from .io import METADATA_KEY
 __all__ = ["TrackSettings", "TrackVelocityPredict", "link_particles", "smooth_tracks",
            "track_statistics", "track_particles", "TrackResult", "SIGMA_COLUMNS",
            "SMOOTH_COLUMNS", "VELOCITY_COLUMNS", "ACCELERATION_COLUMNS", "depth_scatter_ratio",
-           "estimate_drift", "tracking_record"]
+           "estimate_drift", "extend_tracks", "tracking_record"]
 
 SMOOTH_COLUMNS = ("x_smooth", "y_smooth", "z_smooth")
 """Track-smoothed position, mm."""
@@ -77,6 +77,11 @@ class TrackSettings:
         only to measure the velocity field (new tracks start along the field's most
         common displacement, or at rest if that links more particles); the second starts
         new tracks with the velocity measured near them in the first.
+    extend : bool
+        After linking, continue every track of at least :data:`EXTEND_MIN_POINTS` points
+        at both ends along its own velocity (:func:`extend_tracks`): a point the linking
+        left alone or in a track of one or two points joins the track it fits, within
+        the search range, ``memory`` frames included.
     min_length : int
         Tracks with fewer points are dropped from the output.
     window : int
@@ -96,6 +101,7 @@ class TrackSettings:
     memory: int = 2
     predict: bool = True
     passes: int = 2
+    extend: bool = True
     min_length: int = 3
     window: int = 7
     order: int = 2
@@ -391,6 +397,8 @@ def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSetti
             guess[int(t)] = (grp.loc[ok, list(POS_COLUMNS)].to_numpy(float),
                              grp.loc[ok, list(VELOCITY_COLUMNS)].to_numpy(float))
         ids = _link_once(particles, settings, guess)
+    if settings.extend:
+        ids = extend_tracks(particles, ids, settings)
     # renumber in order of first appearance
     order = pd.DataFrame({"id": ids, "f": particles[T_COLUMN].to_numpy()}).groupby("id")["f"].min()
     first_seen = order.sort_values(kind="stable").index.to_numpy()
@@ -398,6 +406,97 @@ def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSetti
     remap[first_seen] = np.arange(len(first_seen))
     out = particles.assign(**{ID_COLUMN: remap[ids]})
     return out.sort_values([ID_COLUMN, T_COLUMN], kind="stable").reset_index(drop=True)
+
+
+EXTEND_MIN_POINTS = 3
+"""Points a track needs before :func:`extend_tracks` continues it: two points give a
+velocity but no check of it (one of them may be a ghost)."""
+
+
+def _end_prediction(frames, xyz, at_start: bool, degree: int, window: int, gap: int):
+    """Position a track's fit over its ``window`` points nearest one end predicts ``gap``
+    frames beyond that end (before the first point when ``at_start``)."""
+    take = slice(0, window) if at_start else slice(-window, None)
+    f, p = frames[take], xyz[take]
+    target = f[0] - gap if at_start else f[-1] + gap
+    deg = min(degree, len(f) - 2)
+    coef = np.polynomial.polynomial.polyfit(f - target, p, deg)
+    return coef[0]
+
+
+def extend_tracks(particles: pd.DataFrame, ids: np.ndarray,
+                  settings: TrackSettings = TrackSettings()) -> np.ndarray:
+    """Continue tracks at both ends along their own velocity.
+
+    Linking predicts a new track's first step from the velocity field around it; where
+    that guess is wrong (a ghost took the first link, particles fly apart in every
+    direction) a particle's first or last point ends up alone or in a track of one or
+    two points beside its real track. Here every track of at least
+    :data:`EXTEND_MIN_POINTS` points is extrapolated from the fit over its ``window``
+    points nearest each end (degree ``order``, at most the points minus two), up to
+    ``memory + 1`` frames beyond it; points of tracks shorter than that within the
+    search range of a prediction (the ellipsoid of :attr:`TrackSettings.search_range_mm`)
+    are candidates. The closest pairs (normalised distance) are joined first, one point
+    per track end and one track end per point, and the ends are extended again until no
+    point joins.
+
+    Parameters
+    ----------
+    particles : DataFrame
+        Columns ``frame`` and ``x, y, z`` (mm); one row per particle and frame.
+    ids : (n,) int ndarray
+        Track id of every row, as linking gave it.
+    settings : TrackSettings
+        ``search_range_mm``, ``memory``, ``window`` and ``order``.
+
+    Returns
+    -------
+    (n,) int ndarray
+        Track ids with the joined points moved to the tracks they continue; a short
+        track that gave up a point keeps the rest.
+    """
+    ids = np.asarray(ids, dtype=np.int64).copy()
+    frames = particles[T_COLUMN].to_numpy(np.int64)
+    xyz = particles[list(POS_COLUMNS)].to_numpy(float)
+    scale = np.array([settings.search_range_mm[0]] * 2 + [settings.search_range_mm[1]])
+    degree = max(1, settings.order)
+    window = max(settings.window, EXTEND_MIN_POINTS)
+    for _ in range(int(frames.max(initial=0) - frames.min(initial=0)) + 1):
+        sizes = np.bincount(ids)
+        loose = np.flatnonzero(sizes[ids] < EXTEND_MIN_POINTS)
+        if len(loose) == 0:
+            break
+        trees = {int(f): (loose[frames[loose] == f],
+                          cKDTree(xyz[loose[frames[loose] == f]] / scale))
+                 for f in np.unique(frames[loose])}
+        pairs = []   # (distance, track end, row)
+        order = np.lexsort((frames, ids))
+        bounds = np.searchsorted(ids[order], np.flatnonzero(sizes >= EXTEND_MIN_POINTS))
+        for track, lo in zip(np.flatnonzero(sizes >= EXTEND_MIN_POINTS), bounds, strict=True):
+            rows = order[lo:lo + sizes[track]]
+            for at_start in (True, False):
+                end = frames[rows[0]] if at_start else frames[rows[-1]]
+                for gap in range(1, settings.memory + 2):
+                    tree = trees.get(int(end - gap if at_start else end + gap))
+                    if tree is None:
+                        continue
+                    pred = _end_prediction(frames[rows], xyz[rows], at_start, degree, window,
+                                           gap)
+                    dist, k = tree[1].query(pred / scale, distance_upper_bound=1.0)
+                    if np.isfinite(dist):
+                        pairs.append((float(dist), 2 * int(track) + int(at_start),
+                                      int(tree[0][k])))
+        joined, ends_used, rows_used = 0, set(), set()
+        for dist, end, row in sorted(pairs):
+            if end in ends_used or row in rows_used:
+                continue
+            ends_used.add(end)
+            rows_used.add(row)
+            ids[row] = end // 2
+            joined += 1
+        if joined == 0:
+            break
+    return ids
 
 
 # --------------------------------------------------------------------------------------
