@@ -1,5 +1,7 @@
 """Image-model refinement of overlapping particles (plenoptrack.locate.refine)."""
 
+import math
+
 import numpy as np
 import pytest
 
@@ -159,6 +161,39 @@ def test_a_crossing_pair_is_recovered_from_biased_starts():
                        np.zeros((0, 3)), np.zeros((0, 2))).params
     assert np.abs(theta[:, :3] - truth).max() < 0.02
     assert np.allclose(theta[:, 3:], rc, atol=0.1)
+
+
+def test_a_reference_model_is_scored_on_the_fits_own_pixels():
+    """Two images crossing over, fitted as one and as two. An image nobody located next
+    to them adds the same residual to both models: the ratio of their model errors
+    collapses towards 1, their difference in mean square hardly moves."""
+    dlfc = LinearCalibration()
+    views_uv, view_rc = _views()
+    truth = np.array([[0.0, 0.0, 2.0], [0.08, 0.0, -3.0]])
+    rc = np.array([[2.0, 0.95], [2.0, 0.95]])
+    start = truth + np.array([[0.03, -0.02, -1.2], [-0.03, 0.02, 1.0]])
+    none = (np.zeros((0, 3)), np.zeros((0, 2)))
+    scores = {}
+    for unseen in (False, True):
+        xyz = np.vstack([truth, [0.6, 0.1, 1.0]]) if unseen else truth
+        data = _render(dlfc, xyz, np.vstack([rc, rc[:1]]) if unseen else rc, views_uv, view_rc,
+                       noise=0.01)
+        one = fit_images(dlfc, views_uv, view_rc, data, truth.mean(axis=0)[None],
+                         np.array([[2.0, 0.9]]), *none)
+        pair = fit_images(dlfc, views_uv, view_rc, data, start, np.array([[1.6, 0.8]] * 2),
+                          *none, reference=one.params)
+        assert np.isnan(fit_images(dlfc, views_uv, view_rc, data, start,
+                                   np.array([[1.6, 0.8]] * 2), *none).reference_error)
+        assert np.abs(pair.params[:, :3] - truth).max() < 0.03
+        scores[unseen] = (one.model_error / max(pair.model_error, 1e-9),
+                          math.sqrt(pair.reference_error ** 2 - pair.model_error ** 2))
+        # restarted at its own solution, the fit scores its start as the reference: the
+        # cost it ends with, at most a hair lower
+        again = fit_images(dlfc, views_uv, view_rc, data, pair.params[:, :3],
+                           pair.params[:, 3:], *none, reference=pair.params)
+        assert again.cost <= again.reference_cost <= again.cost * 1.01
+    assert scores[False][0] > 10 and scores[True][0] < 2.5
+    assert scores[True][1] > 0.7 * scores[False][1] > 0.2
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

@@ -607,15 +607,16 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     far enough apart in depth) give one merged region per view; the clustering takes
     them for one particle between them, and the refinement cannot explain its pixels
     with one disc (``UNEXPLAINED``); when no neighbour overlaps the pair, the refinement
-    never fits it at all. Each such particle, unexplained or never fitted, whose regions'
-    length changes across its views by at least a view pixel (two images sliding over
-    each other; a single elongated image keeps its length) is refitted as two (a never
-    fitted one only once a one-image fit has failed to explain its pixels)
+    never fits it at all. Each such particle, unexplained or never fitted, is refitted as
+    two (a never fitted one only once a one-image fit has failed to explain its pixels)
     (:func:`~plenoptrack.locate.refine.fit_images`, its neighbours held), started on the
     line of sight of its central-view image one view pixel of image travel either side
     of it in depth (:func:`_line_of_sight_pair`). The two are kept when both images are
     opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
-    (model error at most ``1 / settings.split_min_gain`` of the single fit's), their
+    (model error at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
+    pair's own pixels, a mean-square residual lower than the single image's by at least
+    ``settings.refine_max_model_error**2``: images of particles never located add to
+    both alike, and cancel in the difference but not in the ratio), their
     images move apart across the views by at least one view pixel and either stand apart
     by the smaller radius in some view or are two bodies apart in space
     (:func:`_apart_in_space`; only parallax tells two particles from one elongated
@@ -637,17 +638,15 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     pos = state.positions.copy()
     single_error = table[_FIT_ERROR].to_numpy(float).copy()
     # Candidates: the particles the refinement could not explain, and those it never
-    # fitted (no neighbour overlaps them; a one-image fit must fail first), whose regions'
-    # length changes across the views by a view pixel: two images sliding over each other
-    # make such a region (their parallax must reach a view pixel for a split to be kept);
-    # a single elongated image keeps its length.
+    # fitted (no neighbour overlaps them; a one-image fit must fail first). Whether two
+    # images slide over each other is decided on the fit (their parallax, distinct()),
+    # not on the regions: a pair whose images merge in every view can keep its regions'
+    # length across the views.
     unexplained, refined = int(TriangulationFlag.UNEXPLAINED), int(TriangulationFlag.REFINED)
     never_fitted = ((flags & (unexplained | refined)) == 0) & ~np.isfinite(single_error)
     candidates = np.flatnonzero((((flags & unexplained) > 0) & np.isfinite(single_error)
                                  | never_fitted)
-                                & np.all(np.isfinite(pos), axis=1)
-                                & (_length_spread(ctx.detections, state.owner,
-                                                  state.n_particles) >= 1.0))
+                                & np.all(np.isfinite(pos), axis=1))
     if len(candidates) == 0:
         return state
     views_uv, view_rc = _fit_views(ctx)
@@ -695,12 +694,23 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                                              & np.all(np.isfinite(pos), axis=1)), [m])
         return not _coincides(group_pred, fit.params[:, 3], pred[others], radius[others])
 
-    def split(m, held, held_rc, start, error):
+    def explains_more(fit, error) -> bool:
+        """Whether one more image explains the pixels better than the model it splits:
+        ``split_min_gain`` times better than ``error``, or, on the fit's own pixels
+        against that model (``fit.reference_error``), by a mean square of at least
+        ``refine_max_model_error**2``. Images of particles never located add to both
+        costs alike: they cancel in the difference, not in the ratio."""
+        if fit.model_error * settings.split_min_gain <= error:
+            return True
+        gained = fit.reference_error ** 2 - fit.model_error ** 2
+        return bool(gained >= settings.refine_max_model_error ** 2)
+
+    def split(m, held, held_rc, start, error, reference):
         """The best fit of one more image than ``start`` (k, 5) on the trial views, each
         image in turn replaced by a pair on its line of sight, when it explains the
-        pixels ``split_min_gain`` times better than ``error`` (model error on the trial
-        views) and passes :func:`distinct`: ``(fit refitted on every view, its model
-        error on the trial views)``; else None."""
+        pixels better than the ``reference`` model (k, 5) with model error ``error`` on
+        the trial views (:func:`explains_more`) and passes :func:`distinct`: ``(fit
+        refitted on every view, its model error on the trial views)``; else None."""
         best = None
         for j in range(len(start)):
             xyz = np.vstack([np.delete(start[:, :3], j, axis=0),
@@ -708,8 +718,9 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             rc = np.vstack([np.delete(start[:, 3:], j, axis=0),
                             np.tile([start[j, 3], 0.9], (2, 1))])
             fit = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, xyz, rc, pos[held],
-                             held_rc, max_depth_shift=ctx.volume_depth_mm)
-            if (fit is not None and fit.model_error * settings.split_min_gain <= error
+                             held_rc, max_depth_shift=ctx.volume_depth_mm,
+                             reference=reference)
+            if (fit is not None and explains_more(fit, error)
                     and (best is None or fit.model_error < best.model_error)
                     and distinct(fit, m)):
                 best = fit
@@ -727,6 +738,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         held = neighbours(m, pred)
         held_rc = np.c_[radius[held], contrast[held]]
         # one image and two, fitted to the same pixels
+        start = np.array([[*pos[m], radius[m], 0.9]])
+        reference = None                   # a fitted single image, when there is one
         if never_fitted[m] or not all_views:
             # no limit on its depth: only its model error is used, and one image that
             # wanders off in depth is one that does not explain the pixels
@@ -737,13 +750,13 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             if never_fitted[m] and one.model_error <= settings.refine_max_model_error:
                 continue                   # one image explains it: left as it is
             single_error[m] = one.model_error
-        found = split(m, held, held_rc, np.array([[*pos[m], radius[m], 0.9]]),
-                      single_error[m])
+            reference = one.params
+        found = split(m, held, held_rc, start, single_error[m], reference)
         # Three or more particles on one line of sight: split an image of the group
         # again while the group leaves the pixels unexplained.
         while (found is not None and len(found[0].params) < settings.split_max_images
                and found[0].model_error > settings.refine_max_model_error):
-            more = split(m, held, held_rc, found[0].params, found[1])
+            more = split(m, held, held_rc, found[0].params, found[1], found[0].params)
             if more is None:
                 break
             found = more
@@ -806,18 +819,6 @@ def _view_subgrid(view_rc: np.ndarray, stride: int, *, min_views: int = 12) -> n
     centre = np.round(np.median(view_rc, axis=0)).astype(np.int64)
     keep = np.all((view_rc - centre) % stride == 0, axis=1)
     return keep if keep.sum() >= min_views else np.ones(len(view_rc), dtype=bool)
-
-
-def _length_spread(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
-    """(n,) how much the length (major axis) of each particle's regions changes across
-    its views: 90th minus 10th percentile, view pixels; NaN for particles without
-    regions."""
-    mine = owner >= 0
-    length = pd.Series(detections["major_axis_px"].to_numpy(float)[mine]).groupby(owner[mine])
-    spread = length.quantile(0.9) - length.quantile(0.1)
-    out = np.full(n, np.nan)
-    out[spread.index.to_numpy()] = spread.to_numpy()
-    return out
 
 
 def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray) -> np.ndarray:

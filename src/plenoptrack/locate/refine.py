@@ -56,6 +56,9 @@ class ImageFit:
         Robust standard deviation (1.4826 MAD) of the normalised background pixels of
         the patches (at most about :data:`_NOISE_SAMPLES` of them, evenly spaced): the
         pixel noise the fit would leave if its model were exact.
+    reference_cost : float
+        Sum of squared residuals of the ``reference`` model given to :func:`fit_images`
+        on the same pixels (NaN without one).
     """
 
     params: np.ndarray
@@ -64,6 +67,7 @@ class ImageFit:
     n_views: int
     cost: float
     noise: float
+    reference_cost: float = math.nan
 
     @property
     def model_error(self) -> float:
@@ -75,6 +79,16 @@ class ImageFit:
         if not np.isfinite(self.noise):
             return math.inf
         return math.sqrt(max(self.cost / max(self.n_pixels, 1) - self.noise ** 2, 0.0))
+
+    @property
+    def reference_error(self) -> float:
+        """:attr:`model_error` of the ``reference`` model on the fit's own pixels (NaN
+        without a reference): two models compared on the same pixels, where images that
+        neither draws add the same to both."""
+        if not np.isfinite(self.noise):
+            return math.inf if np.isfinite(self.reference_cost) else math.nan
+        return math.sqrt(max(self.reference_cost / max(self.n_pixels, 1) - self.noise ** 2,
+                             0.0))
 
 
 def disc_image(rho: np.ndarray, radius, contrast, edge: float = EDGE_PX):
@@ -150,7 +164,7 @@ def _gather_patches(data, view_rc, s0, t0, n):  # pragma: no cover - compiled
 def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixed_rc, *,
                margin_px: float = 3.0, max_iter: int = 30, xyz_tol: float = 1e-4,
                step_sigma: float = 0.05, max_depth_shift: float = math.inf,
-               view_basis: np.ndarray | None = None):
+               view_basis: np.ndarray | None = None, reference: np.ndarray | None = None):
     """Fit ``k`` free particles to the view pixels around them, neighbours held fixed.
 
     Parameters
@@ -188,6 +202,10 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     view_basis : (V, B) float ndarray, optional
         ``dlfc.view_basis`` of ``views_uv``, for a caller that fits many particles in the
         same views (computed here when not given).
+    reference : (j, 5) float ndarray, optional
+        Another model of the same place, ``(x, y, z, r, c)`` per image (e.g. one image
+        where the fit has two): its residuals on the fitted pixels give
+        :attr:`ImageFit.reference_cost`.
 
     Returns
     -------
@@ -272,8 +290,14 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
             lam *= 4.0
             if lam > 1e8:
                 break
+    reference_cost = math.nan
+    if reference is not None:
+        ref = np.asarray(reference, dtype=float).reshape(-1, 5)
+        st, jac = dlfc.predict_in_views(ref[:, :3], basis, jacobian=True)
+        reference_cost = _normal_equations(origin, y, fixed, fit, st, jac,
+                                           np.ascontiguousarray(ref[:, 3:]), EDGE_PX)[0]
     return ImageFit(theta, _view_robust_sigma(jtj, meat, len(y))[:, :3], int(fit.sum()),
-                    len(y), cost, noise)
+                    len(y), cost, noise, reference_cost)
 
 
 def _robust_sd(values: np.ndarray) -> float:
