@@ -433,12 +433,12 @@ def extend_tracks(particles: pd.DataFrame, ids: np.ndarray,
     direction) a particle's first or last point ends up alone or in a track of one or
     two points beside its real track. Here every track of at least
     :data:`EXTEND_MIN_POINTS` points is extrapolated from the fit over its ``window``
-    points nearest each end (degree ``order``, at most the points minus two), up to
-    ``memory + 1`` frames beyond it; points of tracks shorter than that within the
-    search range of a prediction (the ellipsoid of :attr:`TrackSettings.search_range_mm`)
-    are candidates. The closest pairs (normalised distance) are joined first, one point
-    per track end and one track end per point, and the ends are extended again until no
-    point joins.
+    points nearest each end (degree ``order``, at least 1 and at most the points minus
+    two), up to ``memory + 1`` frames beyond it; points of tracks shorter than that
+    within the search range of a prediction (the ellipsoid of
+    :attr:`TrackSettings.search_range_mm`) are candidates. The closest pairs (normalised
+    distance) are joined first, one point per track end and one track end per point,
+    and the ends are extended again until no point joins.
 
     Parameters
     ----------
