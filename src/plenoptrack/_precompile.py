@@ -117,7 +117,8 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate._order.median", "plenoptrack.locate._order.stable_argsort",
     "plenoptrack.locate.dlfc._coefficients_one",
     "plenoptrack.locate.triangulate._normal_one", "plenoptrack.locate.triangulate._solve3",
-    "plenoptrack.locate.refine._half_erfc", "plenoptrack.locate.dlfc._eval_block",
+    "plenoptrack.locate.refine._half_erfc", "plenoptrack.locate.refine._box",
+    "plenoptrack.locate.dlfc._eval_block",
 })
 """Jitted functions called only from other kernels: compiled into their callers' cache
 entries, never needed on their own."""

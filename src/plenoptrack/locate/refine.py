@@ -369,42 +369,54 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
     the background) and the pixels ``fit`` (within ``margin`` px of a free image) of
     patches with pixel ``[0, 0]`` at ``origin`` (K, 2). ``st_held`` (m, K, 2) and
     ``rc_held`` (m, 2) are the held particles' image centres, radii and contrasts;
-    ``st_free`` (k, K, 2) and ``r_free`` (k,) the free particles' centres and radii."""
+    ``st_free`` (k, K, 2) and ``r_free`` (k,) the free particles' centres and radii.
+    Each image is visited only over the pixels it can reach (its box of the patch)."""
     n_views = origin.shape[0]
     fixed = np.ones((n_views, n, n))
     near = np.zeros((n_views, n, n), dtype=np.bool_)
     fit = np.zeros((n_views, n, n), dtype=np.bool_)
     inv = 1.0 / (math.sqrt(2.0) * edge)
-    half = 0.5 * (n - 1)
-    reaches = np.empty(st_held.shape[0], dtype=np.bool_)
+    tail = 6.0 / inv            # beyond this from its rim a held image is 1 to 1e-17
     for view in range(n_views):
-        # a held image wholly outside the patch (by 6 edge widths) leaves it unchanged
-        for q in range(st_held.shape[0]):
-            gap = max(abs(st_held[q, view, 0] - origin[view, 0] - half),
-                      abs(st_held[q, view, 1] - origin[view, 1] - half)) - half
-            reaches[q] = gap < rc_held[q, 0] + 6.0 * edge * math.sqrt(2.0) + 2.0
-        for i in range(n):
-            t = origin[view, 1] + i
-            for j in range(n):
-                s = origin[view, 0] + j
-                for q in range(st_free.shape[0]):
-                    ds = s - st_free[q, view, 0]
-                    dt = t - st_free[q, view, 1]
+        s0, t0 = origin[view, 0], origin[view, 1]
+        for q in range(st_free.shape[0]):
+            cs, ct = st_free[q, view, 0], st_free[q, view, 1]
+            reach = r_free[q] + max(margin, 2.0)
+            i0, i1, j0, j1 = _box(ct - t0, cs - s0, reach, n)
+            for i in range(i0, i1):
+                dt = t0 + i - ct
+                for j in range(j0, j1):
+                    ds = s0 + j - cs
                     rho = math.sqrt(ds * ds + dt * dt)
                     near[view, i, j] |= rho < r_free[q] + 2.0
                     fit[view, i, j] |= rho <= r_free[q] + margin
-                in_fit = fit[view, i, j]
-                for q in range(st_held.shape[0]):
-                    if not reaches[q]:
-                        continue
-                    ds = s - st_held[q, view, 0]
-                    dt = t - st_held[q, view, 1]
+        for q in range(st_held.shape[0]):
+            cs, ct = st_held[q, view, 0], st_held[q, view, 1]
+            radius, contrast = rc_held[q, 0], rc_held[q, 1]
+            i0, i1, j0, j1 = _box(ct - t0, cs - s0, radius + max(tail, 2.0), n)
+            for i in range(i0, i1):
+                dt = t0 + i - ct
+                for j in range(j0, j1):
+                    ds = s0 + j - cs
                     rho = math.sqrt(ds * ds + dt * dt)
-                    near[view, i, j] |= rho < rc_held[q, 0] + 2.0
-                    x = (rho - rc_held[q, 0]) * inv
-                    if in_fit and x < 6.0:   # the model reads the held image only there
-                        fixed[view, i, j] *= 1.0 - rc_held[q, 1] * _half_erfc(x, math.exp(-x * x))
+                    near[view, i, j] |= rho < radius + 2.0
+                    x = (rho - radius) * inv
+                    if fit[view, i, j] and x < 6.0:   # the model reads the held image only there
+                        fixed[view, i, j] *= 1.0 - contrast * _half_erfc(x, math.exp(-x * x))
     return fixed, near, fit
+
+
+@numba.njit(cache=True, nogil=True)
+def _box(ci, cj, reach, n):  # pragma: no cover - compiled
+    """Row and column ranges ``[i0, i1) x [j0, j1)`` of an ``n x n`` patch within
+    ``reach`` of the point ``(ci, cj)`` (patch pixel coordinates); empty when none."""
+    if not (math.isfinite(ci) and math.isfinite(cj)):
+        return 0, 0, 0, 0
+    i0 = max(int(math.floor(ci - reach)), 0)
+    i1 = min(int(math.ceil(ci + reach)) + 1, n)
+    j0 = max(int(math.floor(cj - reach)), 0)
+    j1 = min(int(math.ceil(cj + reach)) + 1, n)
+    return i0, max(i1, i0), j0, max(j1, j0)
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
