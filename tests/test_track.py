@@ -244,6 +244,25 @@ def test_smoother_rejects_outliers_and_keeps_a_smoothed_value():
     assert s["track_length"].eq(30).all()
 
 
+def test_two_neighbouring_outliers_near_a_track_end_are_the_ones_rejected():
+    """Two neighbouring points far off in depth near the end of a track (another particle
+    or a ghost on the line of sight) would pull a least-squares start onto them; the good
+    points around them would be rejected instead and the smoothed track bent onto them."""
+    rng = np.random.default_rng(7)
+    f = np.arange(12)
+    true_z = -9.6 - 0.03 * f
+    z = true_z + rng.normal(0, 0.05, 12)
+    z[[8, 9]] -= 1.4
+    t = pd.DataFrame({"frame": f, "particle": 0, "x": 3.0 * f, "y": 8.4 + 0.0 * f, "z": z,
+                      "sigma_x": 0.005, "sigma_y": 0.005, "sigma_z": 0.15})
+    s = smooth_tracks(t, TrackSettings())
+    rejected = (s["z"] - s["z_smooth"]).abs() > 1.0
+    assert rejected.to_numpy().nonzero()[0].tolist() == [8, 9]
+    assert s["outlier"].to_numpy()[[8, 9]].all()
+    # every point, the two far-off ones included, is smoothed onto the track
+    assert np.max(np.abs(s["z_smooth"] - true_z)) < 0.15
+
+
 def test_drift_estimate_and_statistics():
     rng = np.random.default_rng(5)
     a = rng.uniform(-10, 10, (80, 3))

@@ -592,6 +592,36 @@ def _local_fit(t: np.ndarray, y: np.ndarray, w: np.ndarray, idx: np.ndarray, ord
     return coef, smoother, slope_row
 
 
+def _robust_line(t: np.ndarray, y: np.ndarray, idx: np.ndarray, order: int) -> np.ndarray:
+    """(n,) residual of each row from a robust line through its window (mm): the
+    Theil-Sen line (median of the slopes between every two points of the window,
+    intercept the median of the points less that slope), or the window's median for
+    ``order`` 0. Unlike a least-squares fit it follows the majority of the window even
+    when several neighbouring points lie far off. NaN where the window has fewer than
+    two points at distinct times."""
+    n, k = idx.shape
+    valid = idx >= 0
+    safe = np.where(valid, idx, 0)
+    dt = np.where(valid, t[safe] - t[:, None], np.nan)
+    yy = np.where(valid, y[safe], np.nan)
+    if order == 0 or n == 0:
+        slope = np.zeros(n)
+    else:
+        a, b = np.triu_indices(k, 1)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            pair = (yy[:, b] - yy[:, a]) / (dt[:, b] - dt[:, a])
+        pair[~np.isfinite(pair)] = np.nan
+        usable = np.isfinite(pair).any(axis=1)
+        slope = np.full(n, np.nan)
+        slope[usable] = np.nanmedian(pair[usable], axis=1)
+    with np.errstate(invalid="ignore"):
+        line = yy - slope[:, None] * dt
+    has = np.isfinite(line).sum(axis=1) >= 2
+    intercept = np.full(n, np.nan)
+    intercept[has] = np.nanmedian(line[has], axis=1)
+    return y - intercept
+
+
 def _smoothed_sigma(L: np.ndarray, sigma_window: np.ndarray, scale: float, *,
                     measured: bool = True) -> np.ndarray:
     """(n,) standard error of each smoothed value (mm) from the fit's weights ``L`` (n, k)
@@ -665,7 +695,11 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     With ``clip > 0`` the residuals of each coordinate, normalised by
     ``sigma sqrt(1 - h)`` (``h`` the point's weight in its own fit), are compared with
     ``clip`` times their robust scale ``s`` (1.4826 MAD over all rows); points beyond are
-    given weight 0 and the fits repeated (three rounds); at most a third of a track's
+    given weight 0 and the fits repeated (three rounds). The rounds start from the points
+    beyond ``clip`` times the robust scale of their residuals from a Theil-Sen line through
+    their window (:func:`_robust_line`), not from an unweighted least-squares fit, which
+    two neighbouring far-off points (another particle's, a ghost on the line of sight) can
+    pull onto them so that their good neighbours are rejected instead; at most a third of a track's
     points are rejected (the worst), and tracks shorter than ``order + 4`` points keep
     every point. The smoothed sigma is ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's
     weights) when ``s >= 1``: ``s`` rescales the locator's sigmas to the scatter the
@@ -702,6 +736,18 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
         w0 = 1.0 / sigma ** 2
         w = w0.copy()
         scale = 1.0
+        if settings.clip > 0:
+            # Start from a fit that far-off points cannot pull: two neighbouring points on
+            # another particle would drag a least-squares start onto them, and their good
+            # neighbours would then be the ones rejected.
+            start = _robust_line(t, y, idx, settings.order) / sigma
+            ok = np.isfinite(start)
+            if ok.sum() >= 3:
+                s0 = float(1.4826 * np.median(np.abs(start[ok])))
+                if s0 > 0:
+                    bad = ok & (np.abs(start) > settings.clip * s0) & long_track
+                    bad = _worst_third(bad, np.abs(np.nan_to_num(start)), pid, lengths)
+                    w = np.where(bad, 0.0, w0)
         for _round in range(3 if settings.clip > 0 else 1):
             coef, L, _ = _local_fit(t, y, w, idx, settings.order)
             h = np.where(idx == np.arange(n)[:, None], L, 0.0).sum(axis=1)
