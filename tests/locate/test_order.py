@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from plenoptrack.locate._order import median, stable_argsort
+from plenoptrack.locate._order import median, stable_argsort, unique_rows
 
 
 @pytest.mark.parametrize("n", [0, 1, 2, 3, 7, 64, 1000, 1001])
@@ -25,3 +25,23 @@ def test_median_is_numpys_median(n):
     x[n // 2] = np.nan
     assert np.isnan(median(x))
     assert np.isnan(median(np.zeros(0)))
+
+
+@pytest.mark.parametrize("shuffled", [False, True])
+def test_unique_rows_is_numpys_unique_over_rows(shuffled):
+    """The detections of a frame come ordered by view (runs of equal rows); any order
+    must give numpy's answer."""
+    rng = np.random.default_rng(3)
+    views = rng.integers(-7, 8, size=(40, 2)).astype(float) * 1.5
+    a = np.repeat(views, rng.integers(1, 30, size=40), axis=0)
+    if shuffled:
+        a = a[rng.permutation(len(a))]
+    rows, inverse, counts = unique_rows(a)
+    want_rows, want_inverse, want_counts = np.unique(a, axis=0, return_inverse=True,
+                                                     return_counts=True)
+    np.testing.assert_array_equal(rows, want_rows)
+    np.testing.assert_array_equal(inverse, want_inverse.ravel())
+    np.testing.assert_array_equal(counts, want_counts)
+    np.testing.assert_array_equal(rows[inverse], a)
+    empty = unique_rows(np.zeros((0, 2)))
+    assert empty[0].shape == (0, 2) and len(empty[1]) == 0 and len(empty[2]) == 0

@@ -26,7 +26,7 @@ import numpy as np
 import pandas as pd
 
 from ..errors import NoParticlesWarning, SettingsError
-from ._order import median, stable_argsort
+from ._order import median, stable_argsort, unique_rows
 
 __all__ = ["ProjectionGeometry", "Clustering", "plane_alphas", "size_thresholds",
            "project", "cluster_detections"]
@@ -824,8 +824,7 @@ def cluster_detections(detections: pd.DataFrame, geometry: ProjectionGeometry, a
     thresholds = thresholds + noise_floor_samples * g.mm_per_sample * alphas
     plane_order = np.argsort(thresholds, kind="stable")
     area = (detections["area"].to_numpy(float) if area_factor > 0 else np.ones(n))
-    uv, view_all = np.unique(np.column_stack([u, v]), axis=0, return_inverse=True)
-    view_all = view_all.ravel().astype(np.int64)
+    uv, view_all, _ = unique_rows(np.column_stack([u, v]))
     n_views = len(uv)
     view_r2 = (uv ** 2).sum(axis=1)
     aperture = np.column_stack([u, v]) * g.aperture_mm_per_u

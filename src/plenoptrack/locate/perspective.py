@@ -63,6 +63,7 @@ from ..lightfield.decode import LightField, decode
 from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_duplicates,
                       _predict_all, _release_unclaimed, _trim_refit)
 from ._nearby import pairs_within
+from ._order import unique_rows
 from ._regions import _region_shape, _single_image_area, _split_pairs
 from .opacity import blur_at, opacity
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
@@ -359,11 +360,10 @@ def segment_frame(lf: LightField, settings: SegmentSettings, *, frame: int = 0) 
         # A view with far more regions than the typical view is dominated by noise (a
         # dim, partly vignetted rim view): its regions would only inflate k and the
         # pool of false centroids.
-        _, view_of, counts = np.unique(detections[["v", "u"]].to_numpy(float), axis=0,
-                                       return_inverse=True, return_counts=True)
+        _, view_of, counts = unique_rows(detections[["v", "u"]].to_numpy(float))
         noisy = counts > settings.max_view_ratio * np.median(counts)
         if noisy.any():
-            detections = detections[~noisy[view_of.ravel()]]
+            detections = detections[~noisy[view_of]]
     if len(detections) and settings.split_pairs:
         detections = _split_pairs(detections, settings.max_area_ratio,
                                   settings.merged_elongation)
@@ -1078,9 +1078,8 @@ def _initial_positions(clusters: pd.DataFrame, camera) -> pd.DataFrame:
 
 def _view_index(detections: pd.DataFrame) -> tuple[np.ndarray, np.ndarray]:
     """Index of each detection's view and the (n_views, 2) table of view ``(u, v)``."""
-    uv = detections[["u", "v"]].to_numpy(float)
-    views, idx = np.unique(uv, axis=0, return_inverse=True)
-    return idx.ravel().astype(np.int64), views.reshape(-1, 2)
+    views, idx, _ = unique_rows(detections[["u", "v"]].to_numpy(float))
+    return idx, views.reshape(-1, 2)
 
 
 class _StageClock:
