@@ -17,12 +17,12 @@ coverage with the DLFC model error in place; claims are made on the validation s
 On development seeds 100-102 it was 2.21 for ideal optics before the shared sampling term
 (``SolveSettings.sampling_error``). The pairs record the model error the locator used
 for each particle (the DLFC's at the particle's measured depth; before 2026-12-02 they
-recorded the RMS over all calibration dots, about three times larger laterally, and the
-fit wrongly reported that the model error alone covered 68 %). On 2026-12-02 the fit
-gave 0.58 for ideal optics, and for realistic optics the model error alone covers more
-than 68 % laterally (the floor): the realistic dot cards' print error (5 um per dot) is
-in the dots' lateral error and so in the model error. The scale would trade the core
-for the tails (3 % to 5 % of errors beyond 3 sigma), so the default 2.3 of
+recorded the RMS over all calibration dots, with ideal optics about three times larger
+laterally, and the fit wrongly reported that the model error alone covered 68 %). On
+2026-12-02 the fit gave 0.58 for ideal optics, and for realistic optics the model error
+alone covers more than 68 % laterally (the floor): the realistic dot cards' print error
+(5 um per dot) is in the dots' lateral error and so in the model error. The scale would
+trade the core for the tails (3 % to 5 % of errors beyond 3 sigma), so the default 2.3 of
 :class:`~plenoptrack.locate.settings.SolveSettings` stays.
 
 The per-particle pairs are written to ``benchmarks/results/uncertainty/pairs_<seeds>.parquet``
