@@ -82,8 +82,9 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
                       (_a(_f4, 4), _I2, _I1, _I1, _i8)),
     "refine_masks": ("plenoptrack.locate.refine", "_patch_masks",
                      (_F2, _i8, _F3, _F2, _F3, _F1, _f8, _f8)),
-    "refine_normal": ("plenoptrack.locate.refine", "_normal_equations",
-                      (_F2, _F3, _F3, _a(_b1, 3), _F3, _a(_f8, 4), _F2, _f8)),
+    "refine_lm": ("plenoptrack.locate.refine", "_levenberg_marquardt",
+                  (_F2, _F3, _F3, _a(_b1, 3), _F2, _I2r, _F3r, _F1r, _F1r, _F2, _F2, _F2, _F2,
+                   _f8, _i8, _f8, _f8, _F2)),
 }
 """Every kernel signature that calibrating and locating a frame compile, by short name.
 Pinned by ``tests/test_precompile.py`` against the signatures a real run compiles."""
@@ -95,7 +96,7 @@ STEPS: dict[str, tuple[str, ...]] = {
     "locate": ("decode", "segment", "dlfc_eval", "dlfc_eval_serial", "dlfc_views", "kmeans_lloyd",
                "kmeans_topup", "kmeans_evaluate", "robust_thresholds", "normal", "lm", "moments",
                "residual", "nearby_bucket", "nearby_scan", "first_untaken", "absorb",
-               "refine_gather", "refine_masks", "refine_normal"),
+               "refine_gather", "refine_masks", "refine_lm"),
 }
 """The kernels each step needs (``calibrate``: lenslet grid and DLFC fit from a white image
 and dot cards; ``locate``: decoding and the perspective-shift locator)."""
@@ -118,6 +119,10 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate.dlfc._coefficients_one",
     "plenoptrack.locate.triangulate._normal_one", "plenoptrack.locate.triangulate._solve3",
     "plenoptrack.locate.refine._half_erfc", "plenoptrack.locate.refine._box",
+    "plenoptrack.locate.refine._model_normal_equations",
+    "plenoptrack.locate.refine._normal_equations",
+    "plenoptrack.locate.refine._step_tolerance",
+    "plenoptrack.locate.refine._robust_sigma_compiled",
     "plenoptrack.locate.dlfc._eval_block",
 })
 """Jitted functions called only from other kernels: compiled into their callers' cache

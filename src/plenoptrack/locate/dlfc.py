@@ -604,6 +604,16 @@ class DLFC:
                                 bool(jacobian))
         return (st, jac) if jacobian else st
 
+    @property
+    def view_model(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """What a compiled kernel needs to evaluate :meth:`predict_in_views` itself:
+        ``(xyz_e, tensor, centre, scale)``, the ``(x, y, z)`` exponents (A, 3) int64 and
+        coefficients ``G`` (A, B, 2) of :attr:`view_factorisation`, and the centre and
+        scale (3,) that normalise ``(x, y, z)``; with :meth:`view_basis` ``W``,
+        ``(s, t) = W X(p) G`` (``plenoptrack.locate.dlfc._views_kernel``)."""
+        xyz_e, _, tensor = self._view_tables
+        return xyz_e, tensor, self._centre_xyz, self._scale_xyz
+
     @cached_property
     def _centre_xyz(self) -> np.ndarray:
         return _readonly(np.ascontiguousarray(self.centre[:3], dtype=np.float64))

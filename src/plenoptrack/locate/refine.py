@@ -27,6 +27,8 @@ import numba
 import numpy as np
 from scipy.special import erfc
 
+from .dlfc import _views_kernel
+
 EDGE_PX = 0.6
 """Width (standard deviation, view pixels) of the blurred edge of a particle image."""
 
@@ -59,6 +61,9 @@ class ImageFit:
     reference_cost : float
         Sum of squared residuals of the ``reference`` model given to :func:`fit_images`
         on the same pixels (NaN without one).
+    n_evaluations : int
+        Evaluations of the model and its normal equations the fit took (the start
+        included, the reference not).
     """
 
     params: np.ndarray
@@ -68,6 +73,7 @@ class ImageFit:
     cost: float
     noise: float
     reference_cost: float = math.nan
+    n_evaluations: int = 0
 
     @property
     def model_error(self) -> float:
@@ -247,57 +253,19 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     origin, fixed, fit = origin[use], fixed[use], fit[use]
     basis = basis[use]
     theta = np.concatenate([free_xyz, free_rc], axis=1).astype(float)
-
-    def normal_equations(th):
-        st, jac = dlfc.predict_in_views(th[:, :3], basis, jacobian=True)
-        return _normal_equations(origin, y, fixed, fit, st, jac,
-                                 np.ascontiguousarray(th[:, 3:]), EDGE_PX)
-
-    lam = 1e-3
-    cost, jtj, grad, meat = normal_equations(theta)
     lo, hi = np.tile(_BOUNDS[0], (k, 1)), np.tile(_BOUNDS[1], (k, 1))
     absolute = np.tile([xyz_tol, xyz_tol, xyz_tol, 1e-3, 1e-3], (k, 1))
-
-    def tolerance(jtj, meat):
-        with np.errstate(invalid="ignore"):
-            return np.fmax(absolute, step_sigma * _view_robust_sigma(jtj, meat, len(y)))
-
-    tol = tolerance(jtj, meat)
-    for _ in range(max_iter):
-        try:
-            step = np.linalg.solve(jtj + lam * np.diag(np.diag(jtj) + 1e-12), -grad)
-        except np.linalg.LinAlgError:
-            lam *= 4.0
-            if lam > 1e8:
-                break
-            continue
-        trial = np.clip(theta + step.reshape(k, 5), lo, hi)
-        if np.all(np.abs(trial - theta) < tol):
-            # At the minimum a rejected step only raises the damping until the steps
-            # are this small; stop there instead of paying for ever smaller trials.
-            break
-        cost_new, jtj_new, grad_new, meat_new = normal_equations(trial)
-        if cost_new < cost:
-            converged = cost - cost_new < 1e-9 * cost or np.all(np.abs(trial - theta) < tol)
-            theta, jtj, grad, cost, meat = trial, jtj_new, grad_new, cost_new, meat_new
-            tol = tolerance(jtj, meat)
-            if np.any(np.abs(theta[:, 2] - free_xyz[:, 2]) > max_depth_shift):
-                return None
-            lam = max(lam / 3.0, 1e-9)
-            if converged:
-                break
-        else:
-            lam *= 4.0
-            if lam > 1e8:
-                break
-    reference_cost = math.nan
-    if reference is not None:
-        ref = np.asarray(reference, dtype=float).reshape(-1, 5)
-        st, jac = dlfc.predict_in_views(ref[:, :3], basis, jacobian=True)
-        reference_cost = _normal_equations(origin, y, fixed, fit, st, jac,
-                                           np.ascontiguousarray(ref[:, 3:]), EDGE_PX)[0]
+    xyz_e, tensor, centre_xyz, scale_xyz = dlfc.view_model
+    ref = (np.zeros((0, 5)) if reference is None
+           else np.ascontiguousarray(np.asarray(reference, dtype=float).reshape(-1, 5)))
+    theta, jtj, meat, cost, within, n_evaluations, reference_cost = _levenberg_marquardt(
+        origin, np.ascontiguousarray(y), fixed, fit, np.ascontiguousarray(basis), xyz_e,
+        tensor, centre_xyz, scale_xyz, theta, lo, hi, absolute, float(step_sigma),
+        int(max_iter), float(max_depth_shift), EDGE_PX, ref)
+    if not within:
+        return None
     return ImageFit(theta, _view_robust_sigma(jtj, meat, len(y))[:, :3], int(fit.sum()),
-                    len(y), cost, noise, reference_cost)
+                    len(y), cost, noise, reference_cost, int(n_evaluations))
 
 
 def _robust_sd(values: np.ndarray) -> float:
@@ -333,6 +301,126 @@ def _view_robust_sigma(jtj, meat, n_views):
     with np.errstate(invalid="ignore", over="ignore"):   # a nearly singular J^T J
         cov = n_views / (n_views - n_par) * inv @ meat @ inv
         return np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(-1, 5)
+
+
+@numba.njit(cache=True, nogil=True)
+def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, theta,
+                         lo, hi, absolute, step_sigma, max_iter, max_depth_shift, edge,
+                         reference):  # pragma: no cover - compiled
+    """The damped Gauss-Newton iterations of :func:`fit_images`, compiled: from
+    ``theta`` (k, 5), steps ``(J^T J + lam diag(J^T J)) d = -J^T r`` within the bounds
+    ``lo, hi`` (k, 5); a step that lowers the cost is taken and the damping divided by 3,
+    otherwise the damping is multiplied by 4 (stop above 1e8). Stops when a proposed or
+    taken step moves every parameter by less than ``max(absolute, step_sigma * sigma)``
+    (sigma the view-robust standard errors at the current fit), when the cost falls by
+    less than 1e-9 of itself, or after ``max_iter`` steps. Returns ``(theta, J^T J, meat,
+    cost, within)``; ``within`` is False as soon as a taken step has moved a depth by more
+    than ``max_depth_shift`` from the start; the number of model evaluations; and the
+    cost of the ``reference`` parameters (j, 5) on the same pixels (NaN for j = 0)."""
+    k = theta.shape[0]
+    n_views = y.shape[0]
+    z0 = theta[:, 2].copy()
+    theta = theta.copy()
+    cost, jtj, grad, meat = _model_normal_equations(origin, y, fixed, fit, basis, xyz_e,
+                                                    tensor, centre, scale, theta, edge)
+    tol = _step_tolerance(absolute, step_sigma, jtj, meat, n_views)
+    n_eval = 1
+    lam = 1e-3
+    for _ in range(max_iter):
+        damped = jtj + lam * np.diag(np.diag(jtj) + 1e-12)
+        solved = True
+        try:
+            step = np.linalg.solve(damped, -grad)
+        except Exception:
+            solved = False
+        if not solved:
+            lam *= 4.0
+            if lam > 1e8:
+                break
+            continue
+        trial = np.empty_like(theta)
+        small = True
+        for q in range(k):
+            for a in range(5):
+                v = theta[q, a] + step[5 * q + a]
+                if v < lo[q, a]:
+                    v = lo[q, a]
+                if v > hi[q, a]:
+                    v = hi[q, a]
+                trial[q, a] = v
+                if not abs(v - theta[q, a]) < tol[q, a]:
+                    small = False
+        if small:
+            # At the minimum a rejected step only raises the damping until the steps
+            # are this small; stop there instead of paying for ever smaller trials.
+            break
+        cost_new, jtj_new, grad_new, meat_new = _model_normal_equations(
+            origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, trial, edge)
+        n_eval += 1
+        if cost_new < cost:
+            converged = cost - cost_new < 1e-9 * cost
+            theta, jtj, grad, cost, meat = trial, jtj_new, grad_new, cost_new, meat_new
+            tol = _step_tolerance(absolute, step_sigma, jtj, meat, n_views)
+            for q in range(k):
+                if abs(theta[q, 2] - z0[q]) > max_depth_shift:
+                    return theta, jtj, meat, cost, False, n_eval, math.nan
+            lam = max(lam / 3.0, 1e-9)
+            if converged:
+                break
+        else:
+            lam *= 4.0
+            if lam > 1e8:
+                break
+    reference_cost = math.nan
+    if reference.shape[0] > 0:
+        reference_cost = _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor,
+                                                 centre, scale, reference, edge)[0]
+    return theta, jtj, meat, cost, True, n_eval, reference_cost
+
+
+@numba.njit(cache=True, nogil=True)
+def _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale,
+                            theta, edge):  # pragma: no cover - compiled
+    """:func:`_normal_equations` at parameters ``theta`` (k, 5), the image centres and
+    their derivatives from the DLFC's view model."""
+    st, jac = _views_kernel(np.ascontiguousarray(theta[:, :3]), basis, xyz_e, tensor,
+                            centre, scale, True)
+    return _normal_equations(origin, y, fixed, fit, st, jac,
+                             np.ascontiguousarray(theta[:, 3:]), edge)
+
+
+@numba.njit(cache=True, nogil=True)
+def _step_tolerance(absolute, step_sigma, jtj, meat, n_views):  # pragma: no cover - compiled
+    """``fmax(absolute, step_sigma * sigma)`` (k, 5) with sigma :func:`_view_robust_sigma`
+    (a NaN sigma leaves ``absolute``)."""
+    sigma = _robust_sigma_compiled(jtj, meat, n_views)
+    out = absolute.copy()
+    for q in range(out.shape[0]):
+        for a in range(5):
+            v = step_sigma * sigma[q, a]
+            if v > out[q, a]:          # False for NaN: fmax keeps the other
+                out[q, a] = v
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _robust_sigma_compiled(jtj, meat, n_views):  # pragma: no cover - compiled
+    """:func:`_view_robust_sigma` in a kernel (the inverse by solving against the
+    identity, as :func:`numpy.linalg.inv` does)."""
+    n_par = jtj.shape[0]
+    out = np.full((n_par // 5, 5), np.nan)
+    if n_views <= n_par:
+        return out
+    try:
+        inv = np.linalg.solve(jtj, np.eye(n_par))
+    except Exception:
+        return out
+    cov = (n_views / (n_views - n_par) * inv) @ meat @ inv
+    for i in range(n_par):
+        v = cov[i, i]
+        if v == v:                     # NaN stays NaN, as np.sqrt(np.clip(v, 0, None))
+            out[i // 5, i % 5] = math.sqrt(max(v, 0.0))
+    return out
 
 
 def _masked_row_percentile(values, exclude, q, *, min_count):
