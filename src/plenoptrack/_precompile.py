@@ -82,9 +82,6 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
                       (_a(_f4, 4), _I2, _I1, _I1, _i8)),
     "refine_masks": ("plenoptrack.locate.refine", "_patch_masks",
                      (_F2, _i8, _F3, _F2, _F3, _F1, _f8, _f8)),
-    "refine_background": ("plenoptrack.locate.refine", "_row_percentile",
-                          (_F2, _a(_b1, 2), _f8, _i8)),
-    "refine_noise": ("plenoptrack.locate.refine", "_mad", (_F1,)),
     "refine_lm": ("plenoptrack.locate.refine", "_levenberg_marquardt",
                   (_F2, _F3, _F3, _a(_b1, 3), _F2, _I2r, _F3r, _F1r, _F1r, _F2, _F2, _F2, _F2,
                    _f8, _i8, _f8, _f8, _F2)),
@@ -99,8 +96,7 @@ STEPS: dict[str, tuple[str, ...]] = {
     "locate": ("decode", "segment", "dlfc_eval", "dlfc_eval_serial", "dlfc_views", "kmeans_lloyd",
                "kmeans_topup", "kmeans_evaluate", "robust_thresholds", "normal", "lm", "moments",
                "residual", "nearby_bucket", "nearby_scan", "first_untaken", "absorb",
-               "refine_gather", "refine_masks", "refine_background", "refine_noise",
-               "refine_lm"),
+               "refine_gather", "refine_masks", "refine_lm"),
 }
 """The kernels each step needs (``calibrate``: lenslet grid and DLFC fit from a white image
 and dot cards; ``locate``: decoding and the perspective-shift locator)."""
@@ -121,8 +117,6 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate.segment._background_offset",
     "plenoptrack.locate._order._before",
     "plenoptrack.locate._order.median", "plenoptrack.locate._order.stable_argsort",
-    "plenoptrack.locate._order.select", "plenoptrack.locate._order.least",
-    "plenoptrack.locate._order.greatest", "plenoptrack.locate.refine._median_in_place",
     "plenoptrack.locate.dlfc._coefficients_one",
     "plenoptrack.locate.triangulate._normal_one", "plenoptrack.locate.triangulate._solve3",
     "plenoptrack.locate.refine._half_erfc", "plenoptrack.locate.refine._box",

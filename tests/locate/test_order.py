@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from plenoptrack.locate._order import greatest, least, median, select, stable_argsort, unique_rows
+from plenoptrack.locate._order import median, stable_argsort, unique_rows
 
 
 @pytest.mark.parametrize("n", [0, 1, 2, 3, 7, 64, 1000, 1001])
@@ -45,26 +45,3 @@ def test_unique_rows_is_numpys_unique_over_rows(shuffled):
     np.testing.assert_array_equal(rows[inverse], a)
     empty = unique_rows(np.zeros((0, 2)))
     assert empty[0].shape == (0, 2) and len(empty[1]) == 0 and len(empty[2]) == 0
-
-
-@pytest.mark.parametrize("seed", range(4))
-def test_select_gives_numpys_order_statistics(seed):
-    """select(a, k) is np.sort(a)[k] (NaN last), and leaves a[:k] at or before it and
-    a[k + 1:] at or after it, so least() and greatest() give its neighbours."""
-    rng = np.random.default_rng(seed)
-    for _ in range(300):
-        n = int(rng.integers(1, 80))
-        a = (rng.integers(0, 6, n).astype(float) if rng.random() < 0.5
-             else rng.normal(size=n))               # ties, or none
-        if rng.random() < 0.3:
-            a[rng.random(n) < 0.2] = np.nan
-        k = int(rng.integers(0, n))
-        ordered = np.sort(a)
-        work = a.copy()
-        got = select(work, k)
-        assert np.array_equal([got], [ordered[k]], equal_nan=True)
-        assert np.array_equal(np.sort(work), ordered, equal_nan=True)   # a permutation
-        if k + 1 < n:
-            assert np.array_equal([least(work, k + 1)], [ordered[k + 1]], equal_nan=True)
-        if k > 0:
-            assert np.array_equal([greatest(work, k)], [ordered[k - 1]], equal_nan=True)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["stable_argsort", "median", "unique_rows", "select", "least", "greatest"]
+__all__ = ["stable_argsort", "median", "unique_rows"]
 
 
 def unique_rows(a: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -96,60 +96,3 @@ def median(x):  # pragma: no cover - compiled
     if n % 2 == 1:
         return x[order[h]]
     return (x[order[h - 1]] + x[order[h]]) / 2
-
-
-@numba.njit(cache=True, nogil=True)
-def select(a, k):  # pragma: no cover - compiled
-    """The ``k``-th smallest value (0-based) of the 1-D float array ``a``, NaN after every
-    number, found by partitioning ``a`` in place (Hoare's selection, median-of-three
-    pivots; O(n) on average): afterwards ``a[:k]`` holds no value after it and
-    ``a[k + 1:]`` none before it, so the next order statistic is the least of
-    ``a[k + 1:]``."""
-    lo, hi = 0, len(a) - 1
-    while hi > lo:
-        mid = (lo + hi) // 2
-        # median of three to a[mid], then use it as the pivot
-        if _before(a[mid], a[lo]):
-            a[mid], a[lo] = a[lo], a[mid]
-        if _before(a[hi], a[lo]):
-            a[hi], a[lo] = a[lo], a[hi]
-        if _before(a[hi], a[mid]):
-            a[hi], a[mid] = a[mid], a[hi]
-        pivot = a[mid]
-        i, j = lo, hi
-        while i <= j:
-            while _before(a[i], pivot):
-                i += 1
-            while _before(pivot, a[j]):
-                j -= 1
-            if i <= j:
-                a[i], a[j] = a[j], a[i]
-                i += 1
-                j -= 1
-        if k <= j:
-            hi = j
-        elif k >= i:
-            lo = i
-        else:
-            break
-    return a[k]
-
-
-@numba.njit(cache=True, nogil=True)
-def least(a, start):  # pragma: no cover - compiled
-    """The smallest value of ``a[start:]`` (NaN after every number)."""
-    best = a[start]
-    for i in range(start + 1, len(a)):
-        if _before(a[i], best):
-            best = a[i]
-    return best
-
-
-@numba.njit(cache=True, nogil=True)
-def greatest(a, stop):  # pragma: no cover - compiled
-    """The largest value of ``a[:stop]`` (NaN after every number)."""
-    best = a[0]
-    for i in range(1, stop):
-        if _before(best, a[i]):
-            best = a[i]
-    return best

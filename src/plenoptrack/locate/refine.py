@@ -27,7 +27,6 @@ import numba
 import numpy as np
 from scipy.special import erfc
 
-from ._order import greatest, least, select
 from .dlfc import _views_kernel
 
 EDGE_PX = 0.6
@@ -272,33 +271,8 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
 def _robust_sd(values: np.ndarray) -> float:
     """``median(|x - median(x)|) / 0.6745`` of a 1-D array: the standard deviation of a
     normal sample, robust to outliers (scipy's ``median_abs_deviation(x, scale="normal")``
-    to the last digit, by selection instead of numpy's partitions and its per-call
-    overhead, which are most of the cost on patch-sized arrays); NaN if any value is."""
-    return float(_mad(np.ascontiguousarray(values, dtype=np.float64)) / _NORMAL_MAD)
-
-
-@numba.njit(cache=True, nogil=True)
-def _mad(values):  # pragma: no cover - compiled
-    """``median(|x - median(x)|)`` of a 1-D array, as numpy's medians (the mean of the two
-    middle values of an even count); NaN if any value is NaN."""
-    for v in values:
-        if v != v:
-            return np.nan
-    work = values.copy()
-    centre = _median_in_place(work)
-    for i in range(len(values)):
-        work[i] = abs(values[i] - centre)
-    return _median_in_place(work)
-
-
-@numba.njit(cache=True, nogil=True)
-def _median_in_place(a):  # pragma: no cover - compiled
-    """Median of a non-empty 1-D array without NaN, reordering it."""
-    half = len(a) // 2
-    upper = select(a, half)
-    if len(a) % 2:
-        return upper
-    return (greatest(a, half) + upper) / 2.0
+    without its per-call overhead, which is most of the cost on patch-sized arrays)."""
+    return float(np.median(np.abs(values - np.median(values))) / _NORMAL_MAD)
 
 
 _NOISE_SAMPLES = 8192
@@ -454,36 +428,18 @@ def _robust_sigma_compiled(jtj, meat, n_views):  # pragma: no cover - compiled
 
 def _masked_row_percentile(values, exclude, q, *, min_count):
     """Percentile ``q`` (linear interpolation, as :func:`numpy.percentile`) of each row's
-    ``values[k]`` outside ``exclude[k]``; NaN for rows with fewer than ``min_count``. The
-    two order statistics each row needs are found by selection, not by sorting the row."""
-    n = len(values)
-    return _row_percentile(np.ascontiguousarray(values, dtype=np.float64).reshape(n, -1),
-                           np.ascontiguousarray(exclude, dtype=np.bool_).reshape(n, -1),
-                           float(q), int(min_count))
-
-
-@numba.njit(cache=True, nogil=True)
-def _row_percentile(values, exclude, q, min_count):  # pragma: no cover - compiled
-    n_rows, m = values.shape
-    out = np.full(n_rows, np.nan)
-    buf = np.empty(m)
-    for r in range(n_rows):
-        n = 0
-        for j in range(m):
-            if not exclude[r, j]:
-                buf[n] = values[r, j]
-                n += 1
-        if n < min_count or n == 0:
-            continue
-        row = buf[:n]
-        pos = q / 100.0 * (n - 1)
-        lo = int(math.floor(pos))
-        a = select(row, lo)
-        if lo + 1 <= n - 1:
-            out[r] = a + (pos - lo) * (least(row, lo + 1) - a)
-        else:
-            out[r] = a + (pos - lo) * 0.0
-    return out
+    ``values[k]`` outside ``exclude[k]``; NaN for rows with fewer than ``min_count``."""
+    flat = np.where(exclude, np.inf, values).reshape(len(values), -1)
+    count = (~exclude).reshape(len(values), -1).sum(axis=1)
+    ordered = np.sort(flat, axis=1)
+    pos = q / 100.0 * np.maximum(count - 1, 0)
+    lo = np.floor(pos).astype(np.int64)
+    hi = np.minimum(lo + 1, np.maximum(count - 1, 0))
+    rows = np.arange(len(values))
+    a, b = ordered[rows, lo], ordered[rows, hi]
+    with np.errstate(invalid="ignore"):   # rows with nothing left hold inf - inf
+        out = a + (pos - lo) * np.where(hi > lo, b - a, 0.0)
+    return np.where(count >= min_count, out, np.nan)
 
 
 @numba.njit(cache=True, nogil=True)
