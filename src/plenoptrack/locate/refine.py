@@ -12,9 +12,9 @@ particle's ``(x, y, z)``::
 
 each patch divided by its local background (the 60th percentile of its pixels more than
 2 pixels outside every predicted image). The particle's ``(x, y, z, r, c)`` are fitted by
-Levenberg-Marquardt with analytic derivatives
-(:meth:`~plenoptrack.locate.dlfc.DLFC.predict_with_jacobian`), its neighbours held at
-their current positions; a particle whose strongest neighbour
+Levenberg-Marquardt with analytic derivatives (the DLFC's view-factorised form,
+:attr:`~plenoptrack.locate.dlfc.DLFC.view_model`, in one compiled loop), its neighbours
+held at their current positions; a particle whose strongest neighbour
 overlaps it in most views is fitted jointly with that neighbour.
 """
 
@@ -314,9 +314,9 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
     taken step moves every parameter by less than ``max(absolute, step_sigma * sigma)``
     (sigma the view-robust standard errors at the current fit), when the cost falls by
     less than 1e-9 of itself, or after ``max_iter`` steps. Returns ``(theta, J^T J, meat,
-    cost, within)``; ``within`` is False as soon as a taken step has moved a depth by more
-    than ``max_depth_shift`` from the start; the number of model evaluations; and the
-    cost of the ``reference`` parameters (j, 5) on the same pixels (NaN for j = 0)."""
+    cost, within, n_evaluations, reference_cost)``: ``within`` is False once a taken step
+    has moved a depth by more than ``max_depth_shift`` from the start; ``reference_cost``
+    is the cost of the ``reference`` parameters (j, 5) on the same pixels (NaN if j = 0)."""
     k = theta.shape[0]
     n_views = y.shape[0]
     z0 = theta[:, 2].copy()
