@@ -123,7 +123,7 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate.refine._model_normal_equations",
     "plenoptrack.locate.refine._normal_equations",
     "plenoptrack.locate.refine._step_tolerance",
-    "plenoptrack.locate.refine._robust_sigma_compiled",
+    "plenoptrack.locate.refine._view_robust_sigma",
     "plenoptrack.locate.dlfc._eval_block",
 })
 """Jitted functions called only from other kernels: compiled into their callers' cache

@@ -258,13 +258,13 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     xyz_e, tensor, centre_xyz, scale_xyz = dlfc.view_model
     ref = (np.zeros((0, 5)) if reference is None
            else np.ascontiguousarray(np.asarray(reference, dtype=float).reshape(-1, 5)))
-    theta, jtj, meat, cost, within, n_evaluations, reference_cost = _levenberg_marquardt(
+    theta, sigma, cost, within, n_evaluations, reference_cost = _levenberg_marquardt(
         origin, np.ascontiguousarray(y), fixed, fit, np.ascontiguousarray(basis), xyz_e,
         tensor, centre_xyz, scale_xyz, theta, lo, hi, absolute, float(step_sigma),
         int(max_iter), float(max_depth_shift), EDGE_PX, ref)
     if not within:
         return None
-    return ImageFit(theta, _view_robust_sigma(jtj, meat, len(y))[:, :3], int(fit.sum()),
+    return ImageFit(theta, sigma[:, :3], int(fit.sum()),
                     len(y), cost, noise, reference_cost, int(n_evaluations))
 
 
@@ -283,26 +283,6 @@ _NORMAL_MAD = 0.6744897501960817
 """``scipy.special.ndtri(0.75)``: the median absolute deviation of a unit normal."""
 
 
-def _view_robust_sigma(jtj, meat, n_views):
-    """(k, 5) standard errors of the parameters, robust to any correlation of the pixel
-    errors within a view (views as independent clusters)::
-
-        cov = V / (V - p) (J^T J)^-1 [sum_v J_v^T r_v r_v^T J_v] (J^T J)^-1
-
-    NaN where ``J^T J`` is singular (or too nearly so for its inverse to be finite) or
-    there are no more views than parameters."""
-    n_par = len(jtj)
-    if n_views <= n_par:
-        return np.full((n_par // 5, 5), np.nan)
-    try:
-        inv = np.linalg.inv(jtj)
-    except np.linalg.LinAlgError:
-        return np.full((n_par // 5, 5), np.nan)
-    with np.errstate(invalid="ignore", over="ignore"):   # a nearly singular J^T J
-        cov = n_views / (n_views - n_par) * inv @ meat @ inv
-        return np.sqrt(np.clip(np.diag(cov), 0.0, None)).reshape(-1, 5)
-
-
 @numba.njit(cache=True, nogil=True)
 def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, theta,
                          lo, hi, absolute, step_sigma, max_iter, max_depth_shift, edge,
@@ -313,10 +293,12 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
     otherwise the damping is multiplied by 4 (stop above 1e8). Stops when a proposed or
     taken step moves every parameter by less than ``max(absolute, step_sigma * sigma)``
     (sigma the view-robust standard errors at the current fit), when the cost falls by
-    less than 1e-9 of itself, or after ``max_iter`` steps. Returns ``(theta, J^T J, meat,
-    cost, within, n_evaluations, reference_cost)``: ``within`` is False once a taken step
-    has moved a depth by more than ``max_depth_shift`` from the start; ``reference_cost``
-    is the cost of the ``reference`` parameters (j, 5) on the same pixels (NaN if j = 0)."""
+    less than 1e-9 of itself, or after ``max_iter`` steps. Returns ``(theta, sigma, cost,
+    within, n_evaluations, reference_cost)``: ``sigma`` (k, 5) the view-robust standard
+    errors at the final ``theta`` (:func:`_view_robust_sigma`); ``within`` is False once a
+    taken step has moved a depth by more than ``max_depth_shift`` from the start;
+    ``reference_cost`` is the cost of the ``reference`` parameters (j, 5) on the same
+    pixels (NaN if j = 0)."""
     k = theta.shape[0]
     n_views = y.shape[0]
     z0 = theta[:, 2].copy()
@@ -363,7 +345,7 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
             tol = _step_tolerance(absolute, step_sigma, jtj, meat, n_views)
             for q in range(k):
                 if abs(theta[q, 2] - z0[q]) > max_depth_shift:
-                    return theta, jtj, meat, cost, False, n_eval, math.nan
+                    return theta, np.full((k, 5), np.nan), cost, False, n_eval, math.nan
             lam = max(lam / 3.0, 1e-9)
             if converged:
                 break
@@ -375,7 +357,8 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
     if reference.shape[0] > 0:
         reference_cost = _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor,
                                                  centre, scale, reference, edge)[0]
-    return theta, jtj, meat, cost, True, n_eval, reference_cost
+    return (theta, _view_robust_sigma(jtj, meat, n_views), cost, True, n_eval,
+            reference_cost)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -396,7 +379,7 @@ def _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor, centre,
 def _step_tolerance(absolute, step_sigma, jtj, meat, n_views):  # pragma: no cover - compiled
     """``fmax(absolute, step_sigma * sigma)`` (k, 5) with sigma :func:`_view_robust_sigma`
     (a NaN sigma leaves ``absolute``)."""
-    sigma = _robust_sigma_compiled(jtj, meat, n_views)
+    sigma = _view_robust_sigma(jtj, meat, n_views)
     out = absolute.copy()
     for q in range(out.shape[0]):
         for a in range(5):
@@ -407,9 +390,14 @@ def _step_tolerance(absolute, step_sigma, jtj, meat, n_views):  # pragma: no cov
 
 
 @numba.njit(cache=True, nogil=True)
-def _robust_sigma_compiled(jtj, meat, n_views):  # pragma: no cover - compiled
-    """:func:`_view_robust_sigma` in a kernel (the inverse by solving against the
-    identity, as :func:`numpy.linalg.inv` does)."""
+def _view_robust_sigma(jtj, meat, n_views):  # pragma: no cover - compiled
+    """(k, 5) standard errors of the parameters, robust to any correlation of the pixel
+    errors within a view (views as independent clusters)::
+
+        cov = V / (V - p) (J^T J)^-1 [sum_v J_v^T r_v r_v^T J_v] (J^T J)^-1
+
+    NaN where ``J^T J`` is singular (its inverse found by solving against the identity,
+    as :func:`numpy.linalg.inv` does) or there are no more views than parameters."""
     n_par = jtj.shape[0]
     out = np.full((n_par // 5, 5), np.nan)
     if n_views <= n_par:
