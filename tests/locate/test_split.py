@@ -179,3 +179,50 @@ def test_three_large_particles_in_line_are_all_found(small_calibrated):
     pairs_only = PerspectiveLocator.from_dict({"check": {"split_max_images": 2}})
     found = locate_frame(raw, calib, locator=pairs_only).particles
     assert len(match_particles(found, truth, tolerance_mm=0.3)) == 2
+
+
+def test_unexplained_pixels_widen_sigma_and_split_halves_carry_their_group_error(
+        small_calibrated, monkeypatch):
+    """Every half of a split is judged by its group's fit (the same model error on each
+    row); particles whose pixels their image fit leaves unexplained get their sigma
+    scaled by ``e / refine_max_model_error`` (here the triple on one line of sight,
+    which the split cannot resolve in this noise draw), the others keep theirs, and no
+    position moves (``solve.unexplained_error``)."""
+    import plenoptrack.locate.perspective as perspective
+
+    optics, calib = small_calibrated
+    seen = []
+    original = perspective.with_unexplained_pixels
+
+    def spy(sigma_stat, fit_model_error, max_model_error):
+        seen.append(np.asarray(fit_model_error, dtype=float).copy())
+        return original(sigma_stat, fit_model_error, max_model_error)
+
+    monkeypatch.setattr(perspective, "with_unexplained_pixels", spy)
+    off = PerspectiveLocator.from_dict({"solve": {"unexplained_error": False}})
+    pair = _truth([(-2.2, 0.9, -3.0), (2.2, -0.9, 4.0), (0.0, 0.0, -4.0), (0.15, 0.12, 4.0)],
+                  1.6)
+    raw = render_frame(optics, pair, seed=np.random.default_rng([0, 3, 0]))
+    found = locate_frame(raw, calib).particles
+    halves = (found["flags"].to_numpy() & SPLIT) > 0
+    assert halves.sum() == 2
+    error = seen[-1][halves]
+    threshold = PerspectiveLocator().check.refine_max_model_error
+    # the two-image fit explains the pixels the one-image fit could not
+    assert error[0] == error[1] and error[0] <= threshold
+
+    triple = _truth([(-2.5, 1.2, -3.0), (2.5, -1.2, 4.0), (0.06, 0.04, -6.92),
+                     (-0.43, -0.24, 0.06), (-0.03, -0.33, 5.92)], 1.6)
+    raw = render_frame(optics, triple, seed=np.random.default_rng([1, 3, 0]))
+    on = locate_frame(raw, calib).particles
+    error = seen[-1]
+    plain = locate_frame(raw, calib, locator=off).particles
+    assert len(seen) == 2                                  # not called when switched off
+    np.testing.assert_array_equal(on[["x", "y", "z"]].to_numpy(), plain[["x", "y", "z"]].to_numpy())
+    wider = np.nan_to_num(error, nan=0.0) > threshold
+    assert wider.any() and not wider.all()
+    ratio = on["sigma_z"].to_numpy() / plain["sigma_z"].to_numpy()
+    # sigma_z is almost all statistical: it scales by e / threshold
+    np.testing.assert_allclose(ratio[wider], error[wider] / threshold, rtol=0.02)
+    np.testing.assert_array_equal(on.loc[~wider, ["sigma_x", "sigma_y", "sigma_z"]].to_numpy(),
+                                  plain.loc[~wider, ["sigma_x", "sigma_y", "sigma_z"]].to_numpy())

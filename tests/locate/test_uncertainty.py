@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 
 from plenoptrack.locate.uncertainty import (image_travel_px, model_error_mm, reduced_chi2,
-                                           sampling_groups, total_sigma)
+                                           sampling_groups, total_sigma,
+                                           with_unexplained_pixels)
 
 
 class _Report:
@@ -187,6 +188,17 @@ def test_image_fit_sigma_keeps_the_excess_scatter_but_not_the_typical_scale():
     cent = total_sigma(stat, None, from_centroids=np.array([True, True]), **kw)
     np.testing.assert_allclose(cent[:, 0], 0.01 * np.sqrt([4.0 + 4.0, (4.0 + 0.25) / 4 + 75.0]))
     np.testing.assert_allclose(total_sigma(stat, None, **kw), cent)
+
+
+def test_unexplained_pixels_scale_sigma_by_the_model_error_beyond_an_explained_fit():
+    """A fit leaving twice the model error of an explained one doubles sigma_stat on
+    every axis; explained fits (at or below the threshold) and particles never fitted
+    (NaN) keep theirs."""
+    stat = np.array([[0.001, 0.002, 0.02]] * 4)
+    error = np.array([0.16, 0.08, 0.03, np.nan])
+    out = with_unexplained_pixels(stat, error, 0.08)
+    np.testing.assert_allclose(out[0], 2.0 * stat[0])
+    np.testing.assert_array_equal(out[1:], stat[1:])
 
 
 def test_sampling_error_covers_particles_near_the_focal_plane():

@@ -71,7 +71,8 @@ from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings)
 from .triangulate import TriangulationFlag, triangulate_clusters
-from .uncertainty import image_travel_px, reduced_chi2, total_sigma, with_shape_error
+from .uncertainty import (image_travel_px, reduced_chi2, total_sigma, with_shape_error,
+                          with_unexplained_pixels)
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
@@ -309,7 +310,9 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
             if locator.check.split_merged:
                 state = split_merged_particles(ctx, state, locator.check)
     with clock("checks"):
-        particles, detections = measure_particles(ctx, state, locator.solve, frame=frame)
+        particles, detections = measure_particles(
+            ctx, state, locator.solve, frame=frame,
+            max_model_error=locator.check.refine_max_model_error)
     if len(particles) == 0:
         return _finish_empty(detections, frame, clock.seconds)
     return LocateResult(particles=particles, detections=detections,
@@ -658,6 +661,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
     parent, n_views = [], []           # of each appended particle
     pred = _predict_all(ctx.dlfc, pos, views_uv)     # kept current as particles change
+    group_error = []                   # (particle, model error of its split group)
 
     def neighbours(i, pred):
         """Particles whose images come within 4 view pixels of particle i's in a view."""
@@ -763,6 +767,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         if found is None or not np.all(np.isfinite(found[0].sigma)):
             continue                       # no split, or one the pixels do not determine
         group = found[0]
+        group_error.append((m, group.model_error))
         # the image nearer the merged solution in depth keeps the particle's row
         k = len(group.params)
         first = int(np.argmin(np.abs(group.params[:, 2] - pos[m, 2])))
@@ -808,6 +813,13 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     table[list(POS_COLUMNS)] = pos
     table[list(SIGMA_COLUMNS)] = sigma
     table[_FIT_RADIUS] = radius
+    # how well each particle's last fit explains its pixels: a split group's own error
+    fit_error = np.append(single_error, np.full(len(parent), np.nan))
+    parent = np.asarray(parent)
+    for m, error in group_error:
+        fit_error[m] = error
+        fit_error[state.n_particles + np.flatnonzero(parent == m)] = error
+    table[_FIT_ERROR] = fit_error
     initial = np.vstack([state.initial, pos[len(state.initial):]])
     return dataclasses.replace(state, initial=initial, positions=pos, table=table)
 
@@ -897,14 +909,19 @@ def _member_diameter(detections: pd.DataFrame, owner: np.ndarray, n: int, *,
 
 
 def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSettings, *,
-                      frame: int) -> tuple[pd.DataFrame, pd.DataFrame]:
+                      frame: int, max_model_error: float = math.inf
+                      ) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Stage 6: the particle table (positions, uncertainties, size and shape in mm).
 
     Particles with at least ``solve.min_views`` centroids and a finite position are kept
     and renumbered 0..n-1; their uncertainties are the least-squares ones scaled for
     view-correlated errors (with ``solve.excess_scatter``, scatter beyond the frame's
-    typical scatter counted as shared by all views) plus the DLFC's model error
-    (:func:`~plenoptrack.locate.uncertainty.total_sigma`) and, with ``solve.shape_error``,
+    typical scatter counted as shared by all views; with ``solve.unexplained_error``
+    scaled first where the particle's image fit left its pixels unexplained, model error
+    above ``max_model_error``,
+    :func:`~plenoptrack.locate.uncertainty.with_unexplained_pixels`) plus the DLFC's model
+    error (:func:`~plenoptrack.locate.uncertainty.total_sigma`) and, with
+    ``solve.shape_error``,
     the uncertainty of an irregular body's centre
     (:func:`~plenoptrack.locate.uncertainty.with_shape_error`); size and shape come from their
     member regions (:func:`~plenoptrack.locate._regions._region_shape`) divided by the
@@ -937,7 +954,11 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     # that is not a disc) that the fit's residuals within each view do not reveal. A
     # split particle's is that of the merged pair's centroids (both halves), shown as NaN.
     refined = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.REFINED)) > 0
-    particles[sigma] = total_sigma(particles[sigma].to_numpy(float), ctx.dlfc,
+    sigma_stat = particles[sigma].to_numpy(float)
+    if solve.unexplained_error and _FIT_ERROR in table.columns:
+        sigma_stat = with_unexplained_pixels(
+            sigma_stat, table.loc[keep, _FIT_ERROR].to_numpy(float), max_model_error)
+    particles[sigma] = total_sigma(sigma_stat, ctx.dlfc,
                                    error_scale=solve.error_scale,
                                    include_model_error=solve.model_error,
                                    chi2=chi2 if solve.excess_scatter else None,

@@ -227,6 +227,12 @@ class SolveSettings:
         Count the sampling error that views share when a particle's image moves by less
         than a few view pixels across them (near the focal plane the views see it through
         the same microlenses; :mod:`~plenoptrack.locate.uncertainty`).
+    unexplained_error : bool
+        Scale the statistical uncertainty of a particle whose image fit leaves its pixels
+        unexplained (model error ``e`` above ``check.refine_max_model_error``: a split
+        group the pixels still do not fit, or an image fit given up for the centroid
+        solution) by ``e / check.refine_max_model_error``
+        (:func:`~plenoptrack.locate.uncertainty.with_unexplained_pixels`).
     shape_error : float
         Standard uncertainty of where an irregular particle's centre of mass lies relative
         to the centre its silhouettes show, per axis, as a fraction of its measured
@@ -250,6 +256,7 @@ class SolveSettings:
     model_error: bool = True
     excess_scatter: bool = True
     sampling_error: bool = True
+    unexplained_error: bool = True
     shape_error: float = 0.0
     opacity: bool = True
 
