@@ -623,14 +623,16 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     images move apart across the views by at least one view pixel and either stand apart
     by the smaller radius in some view or are two bodies apart in space
     (:func:`_apart_in_space`; only parallax tells two particles from one elongated
-    image), and neither is a particle already located. While the two still leave the
+    image), and neither is a particle already located whose pixels are explained (an
+    unexplained one can be the merged image of a particle of the group and another). While the two still leave the
     pixels unexplained (model error above ``settings.refine_max_model_error``), one of
     them is split again under the same tests, up to ``settings.split_max_images``
     images. The image nearer the merged solution in depth takes the particle's row, the
     others are appended; all carry ``REFINED`` and ``SPLIT`` and their position, sigma
     and image radius come from the fit. The unexplained neighbours of a split particle
     are then refitted beside the group and become ``REFINED`` where that explains their
-    pixels.
+    pixels; one that stays unexplained and is one with an image of the group
+    (:func:`_coincides`) is dropped, the group's image taking its place.
     """
     from .refine import fit_images
 
@@ -678,7 +680,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
 
     def distinct(fit, m) -> bool:
         """Whether the fit shows ``k`` opaque particles where m was, each two apart by
-        their parallax, none of them one already located."""
+        their parallax, none of them one already located whose pixels are explained."""
         if (fit is None or not np.all(np.isfinite(fit.params))
                 or fit.params[:, 4].min() < settings.split_min_contrast):
             return False
@@ -694,8 +696,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                     and (np.nanmax(np.hypot(*offset.T)) >= fit.params[[a, b], 3].min()
                          or _apart_in_space(ctx.dlfc, fit.params[[a, b]]))):
                 return False
+        # an unexplained particle can be a merged image the split is taking apart
         others = np.setdiff1d(np.flatnonzero(np.isfinite(radius)
-                                             & np.all(np.isfinite(pos), axis=1)), [m])
+                                             & np.all(np.isfinite(pos), axis=1)
+                                             & ((flags & unexplained) == 0)), [m])
         return not _coincides(group_pred, fit.params[:, 3], pred[others], radius[others])
 
     def explains_more(fit, error) -> bool:
@@ -739,6 +743,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     for m in candidates:
         if flags[m] & refined and not flags[m] & unexplained:
             continue                       # explained beside a neighbour's split meanwhile
+        if not np.all(np.isfinite(pos[m])):
+            continue                       # taken over by a neighbour's split meanwhile
         held = neighbours(m, pred)
         held_rc = np.c_[radius[held], contrast[held]]
         # one image and two, fitted to the same pixels
@@ -802,6 +808,12 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 radius[q], contrast[q] = one.params[0, 3:]
                 flags[q] = (flags[q] & ~unexplained) | refined
                 pred[q] = _predict_all(ctx.dlfc, pos[[q]], views_uv)[0]
+        # One that is still unexplained and one with an image of the group was a merged
+        # image the group took apart: the group's image replaces it.
+        group_pred = _predict_all(ctx.dlfc, group.params[:, :3], views_uv)
+        for q in held[(flags[held] & unexplained) > 0]:
+            if _coincides(group_pred, group.params[:, 3], pred[[q]], radius[[q]]):
+                pos[q] = radius[q] = pred[q] = np.nan
     if not parent:
         return state
     extra = table.loc[parent].copy()
