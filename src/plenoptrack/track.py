@@ -647,6 +647,14 @@ def _smoothed_sigma(L: np.ndarray, sigma_window: np.ndarray, scale: float, *,
     return np.sqrt(var)
 
 
+def _rejected(resid: np.ndarray, limit: float, eligible: np.ndarray, pid: np.ndarray,
+              lengths: np.ndarray) -> np.ndarray:
+    """Rows of ``eligible`` whose finite ``|resid|`` exceeds ``limit``, at most the worst
+    third of each track (:func:`_worst_third`)."""
+    bad = eligible & np.isfinite(resid) & (np.abs(resid) > limit)
+    return _worst_third(bad, np.abs(np.nan_to_num(resid)), pid, lengths)
+
+
 def _worst_third(bad: np.ndarray, score: np.ndarray, pid: np.ndarray,
                  lengths: np.ndarray) -> np.ndarray:
     """``bad`` limited to the ``floor(n / 3)`` highest-``score`` rows of each track of
@@ -745,8 +753,7 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
             if ok.sum() >= 3:
                 s0 = float(1.4826 * np.median(np.abs(start[ok])))
                 if s0 > 0:
-                    bad = ok & (np.abs(start) > settings.clip * s0) & long_track
-                    bad = _worst_third(bad, np.abs(np.nan_to_num(start)), pid, lengths)
+                    bad = _rejected(start, settings.clip * s0, long_track, pid, lengths)
                     w = np.where(bad, 0.0, w0)
         for _round in range(3 if settings.clip > 0 else 1):
             coef, L, _ = _local_fit(t, y, w, idx, settings.order)
@@ -758,8 +765,7 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
                 scale = scale if scale > 0 else 1.0
             if settings.clip <= 0:
                 break
-            bad = np.isfinite(resid) & (np.abs(resid) > settings.clip * scale) & long_track
-            bad = _worst_third(bad, np.abs(np.nan_to_num(resid)), pid, lengths)
+            bad = _rejected(resid, settings.clip * scale, long_track, pid, lengths)
             new_w = np.where(bad, 0.0, w0)
             if np.array_equal(new_w, w):
                 break
