@@ -19,7 +19,7 @@ On development seeds 100-102 it was 2.21 for ideal optics before the shared samp
 for each particle (the DLFC's at the particle's measured depth; before 2026-12-02 they
 recorded the RMS over all calibration dots, with ideal optics about three times larger
 laterally, and the fit wrongly reported that the model error alone covered 68 %). On
-2026-12-02 the fit gave 0.58 for ideal optics (0.31 once ``solve.unexplained_error``
+2026-12-02 the fit gave 0.58 for ideal optics (0.31-0.33 once ``solve.unexplained_error``
 widened the unexplained particles' sigma, the same day), and for realistic optics the model error
 alone covers more than 68 % laterally (the floor): the realistic dot cards' print error
 (5 um per dot) is in the dots' lateral error and so in the model error. The scale would
