@@ -624,7 +624,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     by the smaller radius in some view or are two bodies apart in space
     (:func:`_apart_in_space`; only parallax tells two particles from one elongated
     image), and neither is a particle already located whose pixels are explained (an
-    unexplained one can be the merged image of a particle of the group and another). While the two still leave the
+    unexplained one at most twice the size of the split's images can be the merged image
+    of a particle of the group and another). While the two still leave the
     pixels unexplained (model error above ``settings.refine_max_model_error``), one of
     them is split again under the same tests, up to ``settings.split_max_images``
     images. The image nearer the merged solution in depth takes the particle's row, the
@@ -696,10 +697,13 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                     and (np.nanmax(np.hypot(*offset.T)) >= fit.params[[a, b], 3].min()
                          or _apart_in_space(ctx.dlfc, fit.params[[a, b]]))):
                 return False
-        # an unexplained particle can be a merged image the split is taking apart
+        # An unexplained particle can be a merged image the split is taking apart, one
+        # at most twice the size of the split's images; a larger one is a particle
+        # whose image a small disc of the split would only nibble at.
+        merged_image = ((flags & unexplained) > 0) & (radius <= 2.0 * fit.params[:, 3].max())
         others = np.setdiff1d(np.flatnonzero(np.isfinite(radius)
                                              & np.all(np.isfinite(pos), axis=1)
-                                             & ((flags & unexplained) == 0)), [m])
+                                             & ~merged_image), [m])
         return not _coincides(group_pred, fit.params[:, 3], pred[others], radius[others])
 
     def explains_more(fit, error) -> bool:
