@@ -814,9 +814,9 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 pred[q] = _predict_all(ctx.dlfc, pos[[q]], views_uv)[0]
         # One that is still unexplained and one with an image of the group was a merged
         # image the group took apart: the group's image replaces it.
-        group_pred = _predict_all(ctx.dlfc, group.params[:, :3], views_uv)
+        rows = np.r_[m, np.arange(len(pos) - (k - 1), len(pos))]     # the group's
         for q in held[(flags[held] & unexplained) > 0]:
-            if _coincides(group_pred, group.params[:, 3], pred[[q]], radius[[q]]):
+            if _coincides(pred[rows], radius[rows], pred[[q]], radius[[q]]):
                 pos[q] = radius[q] = pred[q] = np.nan
     if not parent:
         return state
