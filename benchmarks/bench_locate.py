@@ -42,10 +42,11 @@ over plenoptrack.
 ``--kernels`` times single kernels (:data:`KERNELS_TIMED`: the decode's gather, the
 segmentation of every view, the refinement's patch masks, the k-means Lloyd iterations,
 the refinement's image fits) on the calls one locate of the image makes, recorded and
-replayed, against the same functions of a baseline revision (:data:`KERNEL_BASELINE_REV`
-or :data:`VIEWS_BASELINE_REV`, read with ``git show`` and imported beside the current
-modules), alternating, best of ``--repeat`` each, with ``--threads`` numba threads
-(default 1), and says whether the outputs are identical.
+replayed, against the same functions of a baseline revision
+(:data:`KERNEL_BASELINE_REV`, :data:`VIEWS_BASELINE_REV` or :data:`DECODE_BASELINE_REV`,
+read with ``git show`` and imported beside the current modules), alternating, best of
+``--repeat`` each, with ``--threads`` numba threads (default 1), and says whether the
+outputs are identical.
 """
 
 from __future__ import annotations
@@ -253,7 +254,11 @@ VIEWS_BASELINE_REV = "8d3ba72"
 """Revision before the k-means lower bounds dropped by the moves of nearby centres only
 and before the image fits predicted in the DLFC's view-factorised form."""
 
-KERNELS_TIMED = (("decode gather", "lightfield.decode", "_gather", None, None),
+DECODE_BASELINE_REV = "a24c564"
+"""Revision before the decode's gather computed each lens's interpolated image once
+for the (about two) samples that blend it, instead of once per sample."""
+
+KERNELS_TIMED = (("decode gather", "lightfield.decode", "_gather", None, DECODE_BASELINE_REV),
                  ("segmentation", "locate.segment", "_region_stats", None, None),
                  ("refinement patch masks", "locate.refine", "_patch_masks", _fitted_part, None),
                  ("k-means Lloyd", "locate.cluster", "_lloyd", None, VIEWS_BASELINE_REV),

@@ -331,6 +331,12 @@ def test_exposure_problem():
     dark_particles = lit.copy()
     dark_particles[:, :30] = 0  # a third of the frame shadowed is still a usable frame
     assert exposure_problem(dark_particles, 4095) is None
+    # black means 99 % of the (sampled) pixels below 2 % of full scale, not fewer
+    frame = np.zeros((300, 300), np.uint16)
+    frame[:6] = 2000                    # 2 % of the rows lit
+    assert exposure_problem(frame, 4095) is None
+    frame[3:] = 0                       # 1 % lit, 99 % black
+    assert exposure_problem(frame, 4095) == "black"
 
 
 # --------------------------------------------------------------------------- fuzzed readers

@@ -215,12 +215,31 @@ def _corner(pos, hi):  # pragma: no cover - compiled
     return i, pos - i
 
 
+@numba.njit(inline="always")
+def _lens_block(raw, pr, pc, n_ang, rows, block):  # pragma: no cover - compiled
+    """``block[v, u]`` = the raw image bilinearly interpolated at ``(pr + v, pc + u)``
+    (every tap on the sensor): rows first into ``rows``, then columns."""
+    r0 = int(math.floor(pr))
+    c0 = int(math.floor(pc))
+    fr = pr - r0
+    fc = pc - c0
+    for iv in range(n_ang):
+        for k in range(n_ang + 1):
+            rows[iv, k] = (1.0 - fr) * raw[r0 + iv, c0 + k] + fr * raw[r0 + iv + 1, c0 + k]
+    for iv in range(n_ang):
+        for iu in range(n_ang):
+            block[iv, iu] = (1.0 - fc) * rows[iv, iu] + fc * rows[iv, iu + 1]
+
+
 @numba.njit(parallel=True, cache=True, nogil=True)
 def _gather(raw, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - compiled
     """out[v, u, t, s] = (1-w) * bilin(raw, c0 + (v, u)) + w * bilin(raw, c1 + (v, u)).
 
     ``c0, c1`` are the centres of lenses ``j0`` and ``j0 + 1`` of lens row ``t``; taps
-    beyond the sensor edge replicate the edge pixels.
+    beyond the sensor edge replicate the edge pixels. A lens's interpolated image is the
+    same for every sample that blends it, so it is computed once and held while the
+    samples of its row pass it (``j0`` never decreases along a row): on a hexagonal grid
+    about 1.15 samples per lens each blend two lenses.
     """
     n_ang = 2 * rad + 1
     n_s = out.shape[3]
@@ -228,8 +247,9 @@ def _gather(raw, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - comp
     hi_r = raw.shape[0] - 2
     hi_c = raw.shape[1] - 2
     for t in numba.prange(t_lo, t_hi):
-        row0 = np.empty((n_ang, n_ang + 1))
-        row1 = np.empty((n_ang, n_ang + 1))
+        rows = np.empty((n_ang, n_ang + 1))
+        blocks = np.empty((2, n_ang, n_ang))   # two lens images held ...
+        held = np.full(2, -1, dtype=np.int64)  # ... and the lenses they are of
         for s in range(n_s):
             j0 = j0s[t, s]
             w1 = ws[t, s]
@@ -241,34 +261,27 @@ def _gather(raw, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - comp
             pc1 = cen[t, j1, 1] - rad
             inside = (min(pr0, pr1) >= 0.0 and max(pr0, pr1) + 2 * rad <= hi_r
                       and min(pc0, pc1) >= 0.0 and max(pc0, pc1) + 2 * rad <= hi_c)
-            if inside:  # fast path: no clamping; bilinear taps split into rows, then columns
-                r0 = int(math.floor(pr0))
-                c0 = int(math.floor(pc0))
-                r1 = int(math.floor(pr1))
-                c1 = int(math.floor(pc1))
-                fr0 = pr0 - r0
-                fc0 = pc0 - c0
-                fr1 = pr1 - r1
-                fc1 = pc1 - c1
-                for iv in range(n_ang):
-                    for k in range(n_ang + 1):
-                        row0[iv, k] = ((1.0 - fr0) * raw[r0 + iv, c0 + k]
-                                       + fr0 * raw[r0 + iv + 1, c0 + k])
+            if inside:  # fast path: no clamping
+                if held[0] == j0:
+                    k0 = 0
+                elif held[1] == j0:
+                    k0 = 1
+                else:  # not into the slot that holds j1
+                    k0 = 1 if held[0] == j1 else 0
+                    _lens_block(raw, pr0, pc0, n_ang, rows, blocks[k0])
+                    held[k0] = j0
                 if w1 == 0.0:  # on a lens centre (every sample of a rectangular grid)
                     for iv in range(n_ang):
                         for iu in range(n_ang):
-                            out[iv, iu, t, s] = w0 * ((1.0 - fc0) * row0[iv, iu]
-                                                      + fc0 * row0[iv, iu + 1])
+                            out[iv, iu, t, s] = w0 * blocks[k0, iv, iu]
                     continue
-                for iv in range(n_ang):
-                    for k in range(n_ang + 1):
-                        row1[iv, k] = ((1.0 - fr1) * raw[r1 + iv, c1 + k]
-                                       + fr1 * raw[r1 + iv + 1, c1 + k])
+                k1 = 1 - k0
+                if held[k1] != j1:
+                    _lens_block(raw, pr1, pc1, n_ang, rows, blocks[k1])
+                    held[k1] = j1
                 for iv in range(n_ang):
                     for iu in range(n_ang):
-                        out[iv, iu, t, s] = (
-                            w0 * ((1.0 - fc0) * row0[iv, iu] + fc0 * row0[iv, iu + 1])
-                            + w1 * ((1.0 - fc1) * row1[iv, iu] + fc1 * row1[iv, iu + 1]))
+                        out[iv, iu, t, s] = w0 * blocks[k0, iv, iu] + w1 * blocks[k1, iv, iu]
             else:  # lens image reaches past the sensor edge: clamp every tap
                 for iv in range(n_ang):
                     ra, fra = _corner(pr0 + iv, hi_r)
