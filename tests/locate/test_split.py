@@ -186,6 +186,27 @@ def test_three_large_particles_in_line_are_all_found(small_calibrated):
     assert len(match_particles(found, truth, tolerance_mm=0.3)) == 2
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_three_large_particles_whose_images_all_merge_are_found(small_calibrated, seed):
+    """Three 2 mm particles 0.8-1.4 mm apart laterally and 5-6 mm apart in depth (like
+    the scenes of the accuracy matrix's 2 mm cell): their images merge into one region
+    in most views and the centroids find one particle among them. No pair explains the
+    merged image better and passes the split's tests; three images started on the line
+    of sight (the pair's starts and the merged particle itself) find all three."""
+    optics, calib = small_calibrated
+    truth = _truth([(-0.77, 0.48, -7.22), (0.42, -0.27, -0.98), (-0.65, 0.93, 4.06)], 2.0)
+    raw = render_frame(optics, truth, seed=np.random.default_rng([seed, 5, 0]))
+    found = locate_frame(raw, calib).particles
+    pairs = match_particles(found, truth, tolerance_mm=0.3)
+    assert len(found) == 3 and len(pairs) == 3
+    assert np.all((found["flags"].to_numpy() & SPLIT) > 0)
+    m = found.loc[pairs["measured_index"]].reset_index(drop=True)
+    t = truth.loc[pairs["truth_index"]].reset_index(drop=True)
+    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.2)
+    assert np.all(np.abs(m["diameter"] / 2.0 - 1) < 0.1)
+
+
 def test_unexplained_pixels_widen_sigma_and_split_halves_carry_their_group_error(
         small_calibrated, monkeypatch):
     """Every half of a split is judged by its group's fit (the same model error on each

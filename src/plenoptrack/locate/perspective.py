@@ -625,10 +625,13 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     (:func:`_apart_in_space`; only parallax tells two particles from one elongated
     image), and neither is a particle already located whose pixels are explained (an
     unexplained one at most twice the size of the split's images can be the merged image
-    of a particle of the group and another). While the two still leave the
-    pixels unexplained (model error above ``settings.refine_max_model_error``), one of
-    them is split again under the same tests, up to ``settings.split_max_images``
-    images. The image nearer the merged solution in depth takes the particle's row, the
+    of a particle of the group and another). When no pair passes, or the best pair still
+    leaves the pixels unexplained (model error above
+    ``settings.refine_max_model_error``), three images are tried under the same tests,
+    started at the pair's starts and the image itself: a pair cannot explain three
+    particles whose images all merge and can settle between them with one faint image.
+    While the group still leaves the pixels unexplained, one of its images is split
+    again under the same tests, up to ``settings.split_max_images`` images. The image nearer the merged solution in depth takes the particle's row, the
     others are appended; all carry ``REFINED`` and ``SPLIT`` and their position, sigma
     and image radius come from the fit. The unexplained neighbours of a split particle
     are then refitted beside the group and become ``REFINED`` where that explains their
@@ -717,18 +720,19 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         gained = fit.reference_error ** 2 - fit.model_error ** 2
         return bool(gained >= settings.refine_max_model_error ** 2)
 
-    def split(m, held, held_rc, start, error, reference):
-        """The best fit of one more image than ``start`` (k, 5) on the trial views, each
-        image in turn replaced by a pair on its line of sight, when it explains the
-        pixels better than the ``reference`` model (k, 5) with model error ``error`` on
-        the trial views (:func:`explains_more`) and passes :func:`distinct`: ``(fit
-        refitted on every view, its model error on the trial views)``; else None."""
+    def best_replacement(m, held, held_rc, start, error, reference, n):
+        """The best fit on the trial views of ``start`` (k, 5) with one image replaced
+        by ``n`` (2: the line-of-sight pair of :func:`_line_of_sight_pair`; 3: the pair
+        and the image itself) that explains the pixels better than the ``reference``
+        model with model error ``error`` (:func:`explains_more`) and passes
+        :func:`distinct`; None if no replacement does."""
         best = None
         for j in range(len(start)):
+            pair = _line_of_sight_pair(ctx.dlfc, start[j, :3], views_uv)
             xyz = np.vstack([np.delete(start[:, :3], j, axis=0),
-                             _line_of_sight_pair(ctx.dlfc, start[j, :3], views_uv)])
+                             pair if n == 2 else [pair[0], start[j, :3], pair[1]]])
             rc = np.vstack([np.delete(start[:, 3:], j, axis=0),
-                            np.tile([start[j, 3], 0.9], (2, 1))])
+                            np.tile([start[j, 3], 0.9], (n, 1))])
             fit = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, xyz, rc, pos[held],
                              held_rc, max_depth_shift=ctx.volume_depth_mm,
                              reference=reference)
@@ -736,6 +740,26 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                     and (best is None or fit.model_error < best.model_error)
                     and distinct(fit, m)):
                 best = fit
+        return best
+
+    def split(m, held, held_rc, start, error, reference):
+        """The best fit of one more image than ``start`` (k, 5) on the trial views, each
+        image in turn replaced by a pair on its line of sight, when it explains the
+        pixels better than the ``reference`` model (k, 5) with model error ``error`` on
+        the trial views (:func:`explains_more`) and passes :func:`distinct`; or of two
+        more images, when they explain the pixels better than that pair (or the
+        reference, without one): ``(fit refitted on every view, its model error on the
+        trial views)``; else None."""
+        best = best_replacement(m, held, held_rc, start, error, reference, 2)
+        # Three particles whose images all merge: a pair cannot explain them, and the
+        # pair's fit can settle between them with one faint image. Each image replaced
+        # by three on its line of sight (itself and the pair's starts) finds them.
+        if (len(start) + 2 <= settings.split_max_images
+                and (best is None or best.model_error > settings.refine_max_model_error)):
+            more = best_replacement(m, held, held_rc, start,
+                                    *((error, reference) if best is None
+                                      else (best.model_error, best.params)), 3)
+            best = best if more is None else more
         if best is None or all_views:
             return None if best is None else (best, best.model_error)
         trial_error = best.model_error     # the group on every view, from the trial's fit
