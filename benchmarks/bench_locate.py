@@ -5,9 +5,10 @@
     python benchmarks/bench_locate.py --scaling        # 100, 400, 1000 particles of 0.5 mm
 
 The calibration (lenslet grid from a simulated white image, DLFC from seven simulated
-dot cards) and the raw image are simulated once and cached in ``--workdir`` (a few
-minutes on the full sensor; the raw image is keyed by preset, particle count and seed);
-later runs reuse them. The compiled kernels are warmed up on the same image before
+dot cards) and the raw image are simulated once, in a child process (the heap a
+simulation leaves behind would count in the peak memory), and cached in ``--workdir`` (a
+few minutes on the full sensor; the raw image is keyed by preset, particle count and
+seed); later runs reuse them. The compiled kernels are warmed up on the same image before
 timing.
 
 Stages are those :func:`~plenoptrack.locate.perspective.locate_frame` reports in
@@ -125,6 +126,18 @@ def _prepare(preset_name: str, n: int, seed: int, workdir: Path,
     return load_calibration(calib_path), np.load(raw_path), scene.truth
 
 
+def _prepare_apart(preset_name: str, n: int, seed: int, workdir: Path,
+                   diameter_mm: float | None = None) -> None:
+    """Simulate what :func:`_prepare` would in a child process, so that the heap the
+    simulation leaves behind (which ``malloc_trim`` does not always return) is not counted
+    in this process's peak memory."""
+    args = [sys.executable, str(Path(__file__).resolve()), "--prepare-only", "--preset",
+            preset_name, "--particles", str(n), "--seed", str(seed), "--workdir", str(workdir)]
+    if diameter_mm is not None:
+        args += ["--diameter", str(diameter_mm)]
+    subprocess.run(args, check=True)
+
+
 def _best(fn, repeat: int) -> tuple[float, object]:
     best, out = np.inf, None
     for _ in range(repeat):
@@ -180,6 +193,9 @@ def scaling(args) -> None:
     from plenoptrack.locate.perspective import locate_frame
 
     numba.set_num_threads(1)
+    for n in args.counts:
+        for seed in args.seeds:
+            _prepare_apart(args.preset, n, seed, args.workdir, args.diameter)
     previous = _load_previous()
     stages = ("decode", "segment", "cluster", "triangulate", "checks", "refine")
     rows = []
@@ -402,7 +418,11 @@ def main() -> None:
     ap.add_argument("--kernels", action="store_true",
                     help="time the segmentation and patch-mask kernels against KERNEL_BASELINE_REV")
     ap.add_argument("--threads", type=int, default=1, help="numba threads for --kernels")
+    ap.add_argument("--prepare-only", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.prepare_only:
+        _prepare(args.preset, args.particles, args.seed, args.workdir, args.diameter)
+        return
     if args.kernels:
         bench_kernels(args)
         return
@@ -415,6 +435,7 @@ def main() -> None:
     from plenoptrack.evaluate import evaluate_particles
     from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
 
+    _prepare_apart(args.preset, args.particles, args.seed, args.workdir, args.diameter)
     calib, raw, truth = _prepare(args.preset, args.particles, args.seed, args.workdir,
                                  args.diameter)
     base_mb = _vm_hwm_mb()
