@@ -96,6 +96,35 @@ def test_an_elongated_particle_is_not_split(small_calibrated):
         assert sphere.sum() == 1 and np.abs(found.loc[sphere, "z"].iloc[0]) < 0.1
 
 
+def test_a_lone_particle_one_image_cannot_explain_and_no_split_takes_apart_is_unexplained(
+        small_calibrated):
+    """The ellipsoid of aspect 3 alone: no neighbour overlaps it, so the refinement never
+    fits it; the split stage's one-image fit leaves its pixels unexplained and two discs
+    at one depth are no split. It is flagged ``UNEXPLAINED`` (kept on its centroid
+    solution) with its sigma widened by its fit's model error, in a frame where nothing
+    was split as in one where something was."""
+    optics, calib = small_calibrated
+    truth = _truth([(-2.5, 1.2, -3.0), (2.5, -1.2, 4.0), (0.0, 0.0, 2.0)], 0.8)
+    truth["shape"] = ["sphere", "sphere", "ellipsoid"]
+    truth["aspect"] = [1.0, 1.0, 3.0]
+    truth["axis_x"], truth["axis_y"], truth["axis_z"] = [0.0, 0.0, 1.0], 0.0, [1.0, 1.0, 0.0]
+    plain = PerspectiveLocator.from_dict({"solve": {"unexplained_error": False}})
+    for seed in (0, 1):
+        raw = render_frame(optics, truth, seed=np.random.default_rng([seed, 3, 0]))
+        found = locate_frame(raw, calib).particles
+        assert len(found) == 3
+        flags = found["flags"].to_numpy()
+        assert not (flags & SPLIT).any()
+        ellipsoid = (np.hypot(found["x"], found["y"]) < 0.6).to_numpy()
+        assert ellipsoid.sum() == 1
+        assert np.all((flags[ellipsoid] & UNEXPLAINED) > 0)
+        assert not (flags[~ellipsoid] & UNEXPLAINED).any()
+        unscaled = locate_frame(raw, calib, locator=plain).particles
+        np.testing.assert_array_equal(unscaled[["x", "y", "z"]], found[["x", "y", "z"]])
+        ratio = found["sigma_z"].to_numpy() / unscaled["sigma_z"].to_numpy()
+        assert np.all(ratio[ellipsoid] > 1.05) and np.allclose(ratio[~ellipsoid], 1.0)
+
+
 def test_splitting_adds_no_false_particles(small_calibrated):
     """Random scenes of 40 particles: the split finds at least as many true particles
     and no more false ones."""

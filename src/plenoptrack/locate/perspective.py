@@ -842,8 +842,20 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         for q in held[(flags[held] & unexplained) > 0]:
             if _coincides(pred[rows], radius[rows], pred[[q]], radius[[q]]):
                 pos[q] = radius[q] = pred[q] = np.nan
+    # A particle never fitted before, whose one-image fit here left its pixels
+    # unexplained and which no split took apart, is unexplained like those the
+    # refinement could not explain (flagged only now: the tests above decided on the
+    # flags the refinement left).
+    n = state.n_particles
+    left = (never_fitted & (single_error > settings.refine_max_model_error)
+            & np.all(np.isfinite(pos[:n]), axis=1)
+            & ((flags[:n] & int(TriangulationFlag.SPLIT)) == 0))
+    flags[np.flatnonzero(left)] |= unexplained
     if not parent:
-        return state
+        table = table.copy()
+        table["flags"] = flags
+        table[_FIT_ERROR] = single_error
+        return dataclasses.replace(state, table=table)
     extra = table.loc[parent].copy()
     extra["cluster"] = -1
     extra["n_views"] = np.asarray(n_views, dtype=extra["n_views"].dtype)

@@ -75,11 +75,12 @@ FLAG_DESCRIPTIONS = {
     TriangulationFlag.REFINED: "position and sigma come from the image-model refinement "
                                "(the particle's image was fitted to the view pixels), not "
                                "from the centroid solve",
-    TriangulationFlag.UNEXPLAINED: "the image-model refinement could not explain the pixels "
-                                   "around the particle (model error above "
-                                   "check.refine_max_model_error): an unseen or merged "
-                                   "neighbour is likely; position and sigma are the "
-                                   "centroid solve's",
+    TriangulationFlag.UNEXPLAINED: "an image fit could not explain the pixels around the "
+                                   "particle (model error above "
+                                   "check.refine_max_model_error) and no split took them "
+                                   "apart: an unseen or merged neighbour is likely; the "
+                                   "position is the centroid solve's, its sigma widened "
+                                   "by the model error",
     TriangulationFlag.SPLIT: "one of two particles on nearly one line of sight that had been "
                              "taken for one: the image-model refinement separated them "
                              "(check.split_merged); position, sigma and size come from "
