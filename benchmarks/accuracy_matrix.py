@@ -26,7 +26,12 @@ cards, spec-sheet values that differ from the truth; see
   default volume at the base density runs at the largest density of the 1-2-5 series that
   fits, and says so in its name);
 * magnification sweep: -0.3, -0.5, -0.75, -1.0, f-number matched to the microlenses
-  (:meth:`CameraSpec.with_magnification`);
+  (:meth:`CameraSpec.with_magnification`); the volume depth, and the dot cards with it,
+  scale like the depth of field, as ``1/M**2`` (55.6, 20, 8.9 and 5 mm:
+  :func:`~plenoptrack.simulate.scene.volume_depth_mm`; before 2026-12-02 every
+  magnification used 20 mm, at M -1 five times the plenoptic depth of field, where the
+  far dot cards could not be measured and the faces' blur left the volume 2.6 x 1 mm
+  wide);
 * shape sweep: ``ellipsoid`` (prolate spheroids, aspect ratio log-uniform in 1-3, random
   orientation) and ``fragment`` (irregular convex or star-shaped bodies), at the base size
   (volume-equivalent diameter) and density; shapes the simulator does not know are skipped

@@ -140,3 +140,32 @@ def test_another_magnification_still_gives_a_measurable_lenslet_grid(tmp_path):
     calib, report = calibrate_from_white(out.white_path, load_camera(out.camera_path))
     assert calib.grid.shape == out.camera.grid_shape
     assert report.rms_residual_px < 0.2
+
+
+def test_the_default_volume_and_cards_follow_the_depth_of_field_at_another_magnification(
+        tmp_path):
+    """A preset used at magnification M keeps its volume within the depth of field: the
+    depth scales as 1/M^2 (small: 20 mm at -0.5, 5 mm at -1), and so do the default dot
+    cards, which then calibrate. With 20 mm at M -1 the far cards lay five times the
+    plenoptic depth of field out of focus and their dot lattice could not be found
+    (seed 100 failed so)."""
+    from plenoptrack.calibrate import calibrate
+    from plenoptrack.locate.refocusing import depth_of_field_mm
+    from plenoptrack.simulate.dotcard import default_dotcard_depths
+    from plenoptrack.simulate.scene import default_volume, volume_depth_mm
+
+    small = preset("small")
+    assert volume_depth_mm(small) == 20.0
+    assert volume_depth_mm(preset("hall2019")) == 50.0
+    closer = small.with_magnification(-1.0)
+    assert volume_depth_mm(closer) == pytest.approx(5.0)
+    assert volume_depth_mm(small.with_magnification(-0.25)) == pytest.approx(80.0)
+    near, far = depth_of_field_mm(closer)
+    assert near < default_volume(closer).z_mm[0] and default_volume(closer).z_mm[1] < far
+    np.testing.assert_allclose(default_dotcard_depths(closer)[[0, -1]], [-2.5, 2.5])
+    custom = small.with_changes(name="mine")                 # not a preset: 15 % of s_o
+    assert volume_depth_mm(custom) == pytest.approx(round(0.15 * custom.object_distance_mm, 1))
+    out = simulate_dataset("small", tmp_path / "sim", seed=100, n_particles=0,
+                           magnification=-1.0)
+    calib, report = calibrate(out.white_path, out.out_dir / "dotcards", out.camera)
+    assert report.rms_px < 0.3 and len(report.cards) == 11
