@@ -11,7 +11,8 @@ prints, against the truth:
 - fragments: fragments of at least ``--min-diameter`` mm (volume-equivalent) located in
   three or more frames, how many of those one track holds completely, the track's mean
   speed and median equivalent diameter against the truth (speed; ``sqrt(4 A / pi)`` of
-  the projected area ``A``).
+  the projected area ``A``), tracked with order 1, a window of 6 frames and
+  ``--fragment-memory`` (3, as in the README's fragment example).
 
 Usage::
 
@@ -92,12 +93,12 @@ def vortex(data: Path, calib, work: Path, tolerance: float) -> dict:
 
 
 def fragments(data: Path, calib, work: Path, tolerance: float, min_diameter: float,
-              locator=None) -> dict:
+              locator=None, memory: int = 3) -> dict:
     particles = _locate(data, calib, work / "fragment_particles.parquet", locator)
     truth = read_table(data / "truth.parquet")
     dt = tomllib.loads((data / "scene.toml").read_text())["frame_interval_s"]
     result = track_particles(particles, TrackSettings(order=1, window=6, search_range_mm=(1.5, 3.0),
-                                                      frame_interval_s=dt))
+                                                      frame_interval_s=dt, memory=memory))
     tracks = result.tracks
     write_table(tracks, work / "fragment_tracks.parquet")
     # every located row (before dropping short tracks) gets its true fragment
@@ -148,6 +149,8 @@ def main() -> None:
                     help="locator settings for the fragments as JSON, e.g. "
                          "'{\"segment\": {\"max_area_ratio\": 100, \"split_pairs\": false}}' "
                          "(sizes spanning a decade are not merged images)")
+    ap.add_argument("--fragment-memory", type=int, default=3,
+                    help="frames a fragment's track may miss (the README's fragment example: 3)")
     args = ap.parse_args()
     args.work.mkdir(parents=True, exist_ok=True)
     report = {}
@@ -159,7 +162,7 @@ def main() -> None:
 
             locator = PerspectiveLocator.from_dict(args.fragment_settings)
         report["fragments"] = fragments(args.fragments, calib, args.work, args.tolerance,
-                                        args.min_diameter, locator)
+                                        args.min_diameter, locator, args.fragment_memory)
     if args.vortex:
         calib = _calibration(args.calib_from or args.vortex, args.work)
         report["vortex"] = vortex(args.vortex, calib, args.work, args.tolerance)
