@@ -631,9 +631,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     started at the pair's starts and the image itself: a pair cannot explain three
     particles whose images all merge and can settle between them with one faint image.
     While the group still leaves the pixels unexplained, one of its images is split
-    again under the same tests, up to ``settings.split_max_images`` images. The image nearer the merged solution in depth takes the particle's row, the
-    others are appended; all carry ``REFINED`` and ``SPLIT`` and their position, sigma
-    and image radius come from the fit. The unexplained neighbours of a split particle
+    again under the same tests, up to ``settings.split_max_images`` images. The image
+    nearer the merged solution in depth takes the particle's row, the others are
+    appended; all carry ``REFINED`` and ``SPLIT`` and their position, sigma and image
+    radius come from the fit. The unexplained neighbours of a split particle
     are then refitted beside the group and become ``REFINED`` where that explains their
     pixels; one that stays unexplained and is one with an image of the group
     (:func:`_coincides`) is dropped, the group's image taking its place.
