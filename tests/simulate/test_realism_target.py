@@ -109,8 +109,13 @@ def test_scene_file_optics_table(tmp_path):
 
 @pytest.fixture(scope="module")
 def realistic_target(tmp_path_factory):
-    """A 'small' data set with realistic cards and spec sheet (image effects off)."""
-    realism = replace(Realism.ideal(), target=TargetEffects(zero_offset_mm=0.5),
+    """A 'small' data set with realistic cards and spec sheet (image effects off).
+
+    The card is centred 0.9 mm off the axis (seed 21: x 0.81 mm, more than half its
+    1.25 mm spacing), so the dot nearest the axis is not the one it was printed around.
+    """
+    realism = replace(Realism.ideal(), target=TargetEffects(zero_offset_mm=0.5,
+                                                            centre_offset_mm=1.0),
                       spec=SpecEffects())
     out = tmp_path_factory.mktemp("target") / "sim"
     return simulate_dataset("small", out, seed=21, n_particles=12, realism=realism)
@@ -124,6 +129,9 @@ def test_files_record_nominal_and_true_optics(realistic_target):
     assert doc["camera"] != doc["nominal_camera"]
     origin = doc["target_frame"]["origin_world_mm"]
     assert origin[2] != 0 and abs(origin[2]) <= 0.5
+    # the frame's origin is the dot nearest the axis: one spacing back from the 0.81 mm centre
+    assert origin[0] == pytest.approx(0.811 - 1.25, abs=0.001)
+    assert origin[1] == pytest.approx(0.398, abs=0.001)
     cards = tomllib.loads((sim.dotcards_path).read_text())["cards"]
     assert [c["z_mm"] for c in cards] == [d["z_stated_mm"] for d in doc["dotcards"]]
     assert len({d["depth_error_mm"] for d in doc["dotcards"]}) == len(cards)
@@ -143,3 +151,5 @@ def test_locating_against_the_target_frame_truth_is_unbiased(realistic_target):
     zero = json.loads(sim.optics_path.read_text())["target_frame"]["origin_world_mm"][2]
     assert ev.recall >= 0.9
     assert abs(ev.mean_error_z) < 0.25 * abs(zero) + 0.05
+    # the calibration's dot (0, 0) is the truth's: no whole-spacing (1.25 mm) lateral shift
+    assert abs(ev.mean_error_x) < 0.05 and abs(ev.mean_error_y) < 0.05

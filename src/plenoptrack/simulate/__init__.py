@@ -21,7 +21,7 @@ Examples
 """
 
 from .dataset import SimulationResult, simulate_dataset
-from .dotcard import (CardPlacement, DotCard, default_dotcard, default_dotcard_depths, dot_grid,
+from .dotcard import (CardPlacement, DotCard, axis_dot_mm, default_dotcard, default_dotcard_depths, dot_grid,
                       dotcard_irradiance, draw_card_placements, render_dotcard)
 from .optics import SimOptics, make_optics, true_camera
 from .fragments import Fragment, fragment_geometry, fragment_silhouette
@@ -38,7 +38,7 @@ __all__ = [
     "SimOptics", "make_optics", "true_camera",
     "Realism", "BlurEffects", "LensEffects", "IlluminationEffects", "SensorEffects", "TargetEffects",
     "SpecEffects", "ParticleEffects", "realism_from_dict", "CardPlacement",
-    "draw_card_placements",
+    "draw_card_placements", "axis_dot_mm",
     "render_white", "render_frame", "render_repeats", "render_irradiance", "render_dark", "expose_image",
     "DotCard", "default_dotcard", "default_dotcard_depths", "dot_grid", "render_dotcard",
     "dotcard_irradiance",

@@ -36,7 +36,7 @@ from .._columns import T_COLUMN
 from ..camera import CameraSpec, preset, save_camera
 from ..errors import SettingsError
 from ..io import atomic_folder, atomic_write_text, write_table, write_tiff
-from .dotcard import (DotCard, default_dotcard, default_dotcard_depths,
+from .dotcard import (DotCard, axis_dot_mm, default_dotcard, default_dotcard_depths,
                       draw_card_placements, render_dotcard)
 from .optics import SimOptics, make_optics
 from .realism import Realism
@@ -249,11 +249,12 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     Notes
     -----
     ``truth.parquet`` is in the frame the calibration target defines, as an
-    experimenter's truth would be: x and y from dot (0, 0) of the cards, z from the
-    traverse zero. With perfect cards that is the world frame of the camera (z = 0 at the
-    nominal focal plane); with ``realism.target`` it is shifted by the card centre offset
-    and the traverse zero offset, recorded in ``truth_optics.json`` under
-    ``"target_frame"``.
+    experimenter's truth would be: x and y from the card dot nearest the optical axis
+    (the calibration's dot (0, 0); :func:`~.dotcard.axis_dot_mm`), z from the traverse
+    zero. With perfect cards that is the world frame of the camera (z = 0 at the nominal
+    focal plane); with ``realism.target`` it is shifted by the card centre offset (less
+    whole dot spacings) and the traverse zero offset, recorded in ``truth_optics.json``
+    under ``"target_frame"``.
 
     Raises
     ------
@@ -298,7 +299,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     if optics.realism.target.enabled:
         zero_mm, centre_mm, placements = draw_card_placements(
             optics.realism.target, len(depths), np.random.default_rng([seed, 5]))
-    target_truth = truth.assign(x=truth["x"] - centre_mm[0], y=truth["y"] - centre_mm[1],
+    origin_xy = axis_dot_mm(centre_mm, card.spacing_mm)   # the calibration's dot (0, 0)
+    target_truth = truth.assign(x=truth["x"] - origin_xy[0], y=truth["y"] - origin_xy[1],
                                 z=truth["z"] - zero_mm)
     n_frames = scene.frames
     frame_names = [Path("raw") / f"frame_{f:04d}.tif" for f in range(n_frames)]
@@ -314,7 +316,7 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         save_camera(camera, tmp / "camera.toml")
         optics_doc = optics.to_dict() | {
             "samples_per_pixel": samples_per_pixel, "sensor": asdict(sensor),
-            "target_frame": {"origin_world_mm": [centre_mm[0], centre_mm[1], zero_mm],
+            "target_frame": {"origin_world_mm": [origin_xy[0], origin_xy[1], zero_mm],
                              "note": "truth.parquet = world position - origin_world_mm"},
             "dotcards": [{"z_stated_mm": float(z), **(p.to_dict() if p is not None else {})}
                          for z, p in zip(depths, placements)]}

@@ -14,6 +14,13 @@ error per card (10 um RMS, a typical lead-screw stage); each card is tilted by u
 photo-plotted film or laser print); and dot (0, 0) sits up to 0.3 mm from the optical
 axis (the card is centred by eye). The calibration sees none of this: ``dotcards.toml``
 states the nominal depths and the ideal lattice.
+
+A card without a fiducial mark cannot say which of its dots is ``(0, 0)``; what the images
+do show is which dot lies nearest the optical axis (in the central view its image stays put
+from card to card, the others move with the magnification of their depth). The
+calibration makes that dot its origin, and so does the simulator's truth frame
+(:func:`axis_dot_mm`): with a centre offset of more than half a spacing it is not the dot
+the card was printed around.
 """
 
 from __future__ import annotations
@@ -33,8 +40,8 @@ from .render import (DEFAULT_SAMPLES_PER_PIXEL, _check_optics, _check_samples,
 from .scene import SceneError, volume_depth_mm
 from .sensor import SensorModel
 
-__all__ = ["DotCard", "CardPlacement", "draw_card_placements", "default_dotcard", "default_dotcard_depths", "render_dotcard",
-           "dotcard_irradiance", "dot_grid"]
+__all__ = ["DotCard", "CardPlacement", "draw_card_placements", "axis_dot_mm", "default_dotcard",
+           "default_dotcard_depths", "render_dotcard", "dotcard_irradiance", "dot_grid"]
 
 
 @dataclass(frozen=True)
@@ -140,6 +147,33 @@ def draw_card_placements(effects: TargetEffects, n_cards: int,
             centre_mm=centre, print_sigma_mm=effects.print_sigma_um * 1e-3,
             print_seed=int(rng.integers(0, 2**31 - 1))))
     return zero, centre, placements
+
+
+def axis_dot_mm(centre_mm: tuple[float, float], spacing_mm: float) -> tuple[float, float]:
+    """World ``(x, y)`` of the card dot nearest the optical axis, mm.
+
+    Parameters
+    ----------
+    centre_mm : (float, float)
+        World ``(x, y)`` of the dot the card was printed around (``CardPlacement.centre_mm``),
+        mm.
+    spacing_mm : float
+        Dot spacing, mm.
+
+    Returns
+    -------
+    (float, float)
+        ``centre_mm`` moved by whole spacings into ``[-spacing / 2, spacing / 2]`` on each
+        axis: the origin of the calibration's frame (see the module notes).
+
+    Examples
+    --------
+    >>> axis_dot_mm((0.3, -0.1), 0.5)
+    (-0.2, -0.1)
+    """
+    c = np.asarray(centre_mm, dtype=float)
+    dot = c - spacing_mm * np.rint(c / spacing_mm)
+    return float(round(dot[0], 12)), float(round(dot[1], 12))
 
 
 def default_dotcard(camera: CameraSpec) -> DotCard:
