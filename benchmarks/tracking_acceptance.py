@@ -7,7 +7,10 @@ prints, against the truth:
 
 - vortex ring: true links recovered (consecutive located detections of one true particle
   joined by one track), velocity RMS error over the mean true speed, depth error standard
-  deviation (and robust 1.4826 MAD) per frame over track-smoothed;
+  deviation (and robust 1.4826 MAD) per frame over track-smoothed, and how the depth
+  error splits into a part each particle keeps along its track, a part shared with the
+  other particles nearby (a field of the calibration's mapping) and the rest, which is
+  all a smoother over time can average (:func:`depth_error_structure`);
 - fragments: fragments of at least ``--min-diameter`` mm (volume-equivalent) located in
   three or more frames, how many of those one track holds completely, the track's mean
   speed and median equivalent diameter against the truth (speed; ``sqrt(4 A / pi)`` of
@@ -89,7 +92,62 @@ def vortex(data: Path, calib, work: Path, tolerance: float) -> dict:
             "velocity rms / mean speed": ev.velocity_rms_error / ev.mean_speed,
             "z sd ratio frame/smooth": ev.z_std_frame / ev.z_std_smooth,
             "z robust sd ratio frame/smooth": ev.z_rstd_frame / ev.z_rstd_smooth,
-            "estimated depth scatter ratio": result.depth_scatter_ratio}
+            "estimated depth scatter ratio": result.depth_scatter_ratio,
+            "depth error structure": depth_error_structure(result.tracks, truth, tolerance)}
+
+
+def _rstd(a) -> float:
+    a = np.asarray(a, dtype=float)
+    return float(1.4826 * np.median(np.abs(a - np.median(a)))) if a.size else float("nan")
+
+
+def depth_error_structure(tracks: pd.DataFrame, truth: pd.DataFrame, tolerance: float, *,
+                          min_points: int = 8, radius_mm: float = 4.0) -> dict:
+    """How much of the per-frame depth error a smoother over time could remove.
+
+    Every tracked point is matched to its true particle; over the particles seen in at
+    least ``min_points`` frames the depth error ``dz`` splits into each particle's median
+    (kept along its track whatever the smoother does) and the rest (which it can average).
+    The error shared in space is measured without the particle's own points: the median
+    ``dz`` of the *other* particles' points within ``radius_mm`` predicts it (a field of the
+    calibration's mapping, which every particle passing there carries). Returns robust
+    (1.4826 MAD) spreads in mm, the lag-1 correlation of the rest within particles and
+    the largest robust gain a perfect smoother of the rest could reach
+    (``rstd(dz) / rstd(per-particle median)``).
+    """
+    from scipy.spatial import cKDTree
+
+    ids = match_track_points(tracks, truth, tolerance_mm=tolerance).to_numpy()
+    m = tracks[ids >= 0].assign(_true=ids[ids >= 0])
+    true_xyz = truth.set_index(["frame", "particle"]).loc[
+        list(zip(m["frame"], m["_true"])), ["x", "y", "z"]].to_numpy(float)
+    m = m.assign(dz=m["z"].to_numpy(float) - true_xyz[:, 2])
+    m = m[np.abs(m["dz"] - m["dz"].median()) < 10 * _rstd(m["dz"])]   # not the swapped points
+    n = m.groupby("_true")["dz"].transform("size")
+    m = m[n >= min_points].sort_values(["_true", "frame"])
+    bias = m.groupby("_true")["dz"].transform("median")
+    rest = (m["dz"] - bias).to_numpy()
+    same = m["_true"].to_numpy()
+    nxt = same[1:] == same[:-1]
+    lag1 = float(np.corrcoef(rest[:-1][nxt], rest[1:][nxt])[0, 1])
+    xyz = m[["x", "y", "z"]].to_numpy(float)
+    dz = m["dz"].to_numpy(float)
+    shared = np.full(len(m), np.nan)
+    for i, near in enumerate(cKDTree(xyz).query_ball_point(xyz, radius_mm)):
+        others = [j for j in near if same[j] != same[i]]
+        if len(others) >= 3:
+            shared[i] = np.median(dz[others])
+    ok = np.isfinite(shared)
+    per_particle = m.groupby("_true")["dz"].median().to_numpy()
+    return {"particles": int(len(per_particle)), "points": int(len(m)),
+            "dz robust sd, mm": _rstd(dz),
+            "per-particle median dz, robust sd, mm": _rstd(per_particle),
+            "within-particle dz, robust sd, mm": _rstd(rest),
+            "within-particle lag-1 correlation": lag1,
+            f"corr(dz, other particles' median dz within {radius_mm:g} mm)":
+                float(np.corrcoef(dz[ok], shared[ok])[0, 1]),
+            "dz less that shared part, robust sd, mm": _rstd(dz[ok] - shared[ok]),
+            "largest robust gain of a smoother over time": _rstd(dz) / _rstd(per_particle)}
 
 
 def fragments(data: Path, calib, work: Path, tolerance: float, min_diameter: float,
