@@ -21,8 +21,9 @@ Examples
 """
 
 from .dataset import SimulationResult, simulate_dataset
-from .dotcard import (CardPlacement, DotCard, axis_dot_mm, default_dotcard, default_dotcard_depths, dot_grid,
-                      dotcard_irradiance, draw_card_placements, render_dotcard)
+from .dotcard import (CardPlacement, DotCard, default_dotcard, default_dotcard_depths, dot_grid,
+                      dotcard_irradiance, draw_card_placements, origin_dot_mm, render_dotcard,
+                      sensor_centre_aim_mm)
 from .optics import SimOptics, make_optics, true_camera
 from .fragments import Fragment, fragment_geometry, fragment_silhouette
 from .realism import (BlurEffects, IlluminationEffects, LensEffects, ParticleEffects, Realism,
@@ -38,7 +39,7 @@ __all__ = [
     "SimOptics", "make_optics", "true_camera",
     "Realism", "BlurEffects", "LensEffects", "IlluminationEffects", "SensorEffects", "TargetEffects",
     "SpecEffects", "ParticleEffects", "realism_from_dict", "CardPlacement",
-    "draw_card_placements", "axis_dot_mm",
+    "draw_card_placements", "origin_dot_mm", "sensor_centre_aim_mm",
     "render_white", "render_frame", "render_repeats", "render_irradiance", "render_dark", "expose_image",
     "DotCard", "default_dotcard", "default_dotcard_depths", "dot_grid", "render_dotcard",
     "dotcard_irradiance",

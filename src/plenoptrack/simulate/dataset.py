@@ -36,8 +36,9 @@ from .._columns import T_COLUMN
 from ..camera import CameraSpec, preset, save_camera
 from ..errors import SettingsError
 from ..io import atomic_folder, atomic_write_text, write_table, write_tiff
-from .dotcard import (DotCard, axis_dot_mm, default_dotcard, default_dotcard_depths,
-                      draw_card_placements, render_dotcard)
+from .dotcard import (DotCard, default_dotcard, default_dotcard_depths,
+                      draw_card_placements, origin_dot_mm, render_dotcard,
+                      sensor_centre_aim_mm)
 from .optics import SimOptics, make_optics
 from .realism import Realism
 from .render import DEFAULT_SAMPLES_PER_PIXEL, render_frame, render_white
@@ -249,9 +250,9 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     Notes
     -----
     ``truth.parquet`` is in the frame the calibration target defines, as an
-    experimenter's truth would be: x and y from the card dot nearest the optical axis
-    (the calibration's dot (0, 0); :func:`~.dotcard.axis_dot_mm`), z from the traverse
-    zero. With perfect cards that is the world frame of the camera (z = 0 at the nominal
+    experimenter's truth would be: x and y from the card dot imaged nearest the sensor
+    centre (the calibration's dot (0, 0); :func:`~.dotcard.origin_dot_mm`), z from the
+    traverse zero. With perfect cards that is the world frame of the camera (z = 0 at the nominal
     focal plane); with ``realism.target`` it is shifted by the card centre offset (less
     whole dot spacings) and the traverse zero offset, recorded in ``truth_optics.json``
     under ``"target_frame"``.
@@ -299,7 +300,8 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     if optics.realism.target.enabled:
         zero_mm, centre_mm, placements = draw_card_placements(
             optics.realism.target, len(depths), np.random.default_rng([seed, 5]))
-    origin_xy = axis_dot_mm(centre_mm, card.spacing_mm)   # the calibration's dot (0, 0)
+    # the calibration's dot (0, 0): the dot the sensor centre sees, or nearest to it
+    origin_xy = origin_dot_mm(centre_mm, card.spacing_mm, sensor_centre_aim_mm(optics))
     target_truth = truth.assign(x=truth["x"] - origin_xy[0], y=truth["y"] - origin_xy[1],
                                 z=truth["z"] - zero_mm)
     n_frames = scene.frames

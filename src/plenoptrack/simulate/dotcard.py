@@ -15,12 +15,13 @@ photo-plotted film or laser print); and dot (0, 0) sits up to 0.3 mm from the op
 axis (the card is centred by eye). The calibration sees none of this: ``dotcards.toml``
 states the nominal depths and the ideal lattice.
 
-A card without a fiducial mark cannot say which of its dots is ``(0, 0)``; what the images
-do show is which dot lies nearest the optical axis (in the central view its image stays put
-from card to card, the others move with the magnification of their depth). The
-calibration makes that dot its origin, and so does the simulator's truth frame
-(:func:`axis_dot_mm`): with a centre offset of more than half a spacing it is not the dot
-the card was printed around.
+A card without a fiducial mark cannot say which of its dots is ``(0, 0)``. The
+calibration makes it the dot imaged nearest the sensor centre, which it takes for the
+optical axis (in the central view the image of a point on the axis stays put from card to
+card); the simulator's truth frame does the same (:func:`origin_dot_mm`). With a card
+centred more than half a spacing off, or an optical axis off the sensor centre
+(:attr:`~.optics.SimOptics.axis_offset_mm`), that is not always the dot the card was
+printed around.
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ from .render import (DEFAULT_SAMPLES_PER_PIXEL, _check_optics, _check_samples,
 from .scene import SceneError, volume_depth_mm
 from .sensor import SensorModel
 
-__all__ = ["DotCard", "CardPlacement", "draw_card_placements", "axis_dot_mm", "default_dotcard",
+__all__ = ["DotCard", "CardPlacement", "draw_card_placements", "origin_dot_mm", "sensor_centre_aim_mm",
+           "default_dotcard",
            "default_dotcard_depths", "render_dotcard", "dotcard_irradiance", "dot_grid"]
 
 
@@ -149,8 +151,9 @@ def draw_card_placements(effects: TargetEffects, n_cards: int,
     return zero, centre, placements
 
 
-def axis_dot_mm(centre_mm: tuple[float, float], spacing_mm: float) -> tuple[float, float]:
-    """World ``(x, y)`` of the card dot nearest the optical axis, mm.
+def origin_dot_mm(centre_mm: tuple[float, float], spacing_mm: float,
+                  near_mm: tuple[float, float] = (0.0, 0.0)) -> tuple[float, float]:
+    """World ``(x, y)`` of the card dot nearest a point of the card plane, mm.
 
     Parameters
     ----------
@@ -159,21 +162,40 @@ def axis_dot_mm(centre_mm: tuple[float, float], spacing_mm: float) -> tuple[floa
         mm.
     spacing_mm : float
         Dot spacing, mm.
+    near_mm : (float, float)
+        The point, world ``(x, y)`` mm: where the sensor centre's chief ray meets the
+        card (:func:`sensor_centre_aim_mm`), whose nearest dot the calibration makes its
+        ``(0, 0)``.
 
     Returns
     -------
     (float, float)
-        ``centre_mm`` moved by whole spacings into ``[-spacing / 2, spacing / 2]`` on each
-        axis: the origin of the calibration's frame (see the module notes).
+        ``centre_mm`` moved by whole spacings to within half a spacing of ``near_mm`` on
+        each axis: the origin of the calibration's frame (see the module notes).
 
     Examples
     --------
-    >>> axis_dot_mm((0.3, -0.1), 0.5)
+    >>> origin_dot_mm((0.3, -0.1), 0.5)
     (-0.2, -0.1)
+    >>> origin_dot_mm((0.3, -0.1), 0.5, near_mm=(0.1, 0.0))
+    (0.3, -0.1)
     """
     c = np.asarray(centre_mm, dtype=float)
-    dot = c - spacing_mm * np.rint(c / spacing_mm)
+    dot = c - spacing_mm * np.rint((c - np.asarray(near_mm, dtype=float)) / spacing_mm)
     return float(round(dot[0], 12)), float(round(dot[1], 12))
+
+
+def sensor_centre_aim_mm(optics: SimOptics) -> tuple[float, float]:
+    """World ``(x, y)`` in the focal plane that the sensor centre images, mm.
+
+    The world origin is on the optical axis, which meets the sensor
+    ``optics.axis_offset_mm`` from its centre; the sensor centre therefore sees the point
+    ``-axis_offset_mm / |M|`` (world ``x = -(X - a_x)``, see :mod:`.optics`; distortion
+    vanishes this near the axis). ``(0, 0)`` when the axis is centred.
+    """
+    a = np.asarray(optics.axis_offset_mm, dtype=float)
+    aim = -a / abs(optics.camera.magnification)
+    return float(aim[0]), float(aim[1])
 
 
 def default_dotcard(camera: CameraSpec) -> DotCard:
