@@ -190,6 +190,34 @@ def fitted_error_scale(pairs: pd.DataFrame) -> tuple[float, bool]:
     return float(np.mean(ratios)), floor
 
 
+def by_flag(pairs: pd.DataFrame) -> pd.DataFrame:
+    """Coverage of the particles that carry each quality flag, and of those that do not,
+    per optics mode over all cells; ``share of x >3s`` is the part of all the x errors
+    beyond 3 sigma that the flagged particles make up (where the tails come from)."""
+    from plenoptrack.locate.triangulate import TriangulationFlag
+
+    rows = []
+    for optics, g in pairs.groupby("optics"):
+        flags = g["flags"].to_numpy(np.int64)
+        tail_x = np.abs(g["dx"].to_numpy(float)) > 3 * g["sigma_x"].to_numpy(float)
+        for flag in TriangulationFlag:
+            # CONVERGED is the normal case: the row is for the particles without it
+            converged = flag is TriangulationFlag.CONVERGED
+            sel = ((flags & int(flag)) > 0) != converged
+            if sel.any():
+                rows.append({"optics": optics,
+                             "particles": f"not {flag.name}" if converged else flag.name}
+                            | coverage(g[sel])
+                            | {"share of x >3s": float(tail_x[sel].sum() / max(tail_x.sum(), 1))})
+        clean = (flags & int(TriangulationFlag.CONVERGED)) > 0
+        for flag in (TriangulationFlag.SPLIT, TriangulationFlag.UNEXPLAINED):
+            clean &= (flags & int(flag)) == 0
+        rows.append({"optics": optics, "particles": "converged, neither SPLIT nor UNEXPLAINED"}
+                    | coverage(g[clean])
+                    | {"share of x >3s": float(tail_x[clean].sum() / max(tail_x.sum(), 1))})
+    return pd.DataFrame(rows)
+
+
 def _markdown(df: pd.DataFrame) -> str:
     def fmt(v):
         return f"{v:.3g}" if isinstance(v, float) else str(v)
@@ -231,6 +259,13 @@ def main(argv=None) -> int:
              "and 0.003 for a calibrated Gaussian sigma), k68 (the factor sigma would need "
              "for 68 % coverage), robust (1.4826 MAD) and plain standard deviation of the "
              "error, mm.", "", text, ""]
+    flagged = by_flag(pairs)
+    flag_cols = ["optics", "particles", "n"] + [f"{ax} {m}" for ax in "xyz"
+                                                for m in ("1s", ">3s", "k68")] + ["share of x >3s"]
+    flag_text = _markdown(flagged[flag_cols])
+    print(flag_text)
+    lines += ["By quality flag (all cells pooled per optics mode): where the core and the "
+              "tails come from.", "", flag_text, ""]
     if args.seeds == "dev":
         for optics in sorted(set(pairs["optics"])):
             k, floor = fitted_error_scale(pairs[pairs["optics"] == optics])
