@@ -232,6 +232,18 @@ def test_smoother_is_exact_on_polynomials_and_weights_by_sigma():
     assert abs(equal.loc[5, "z_smooth"] - (-5.0)) > 0.3
 
 
+@pytest.mark.parametrize("window", [4, 5, 6, 7])
+def test_even_and_odd_windows_on_tracks_longer_than_the_window(window):
+    # Near a track's end the window reaches further to the other side; with an even
+    # window that end window is 2 * window points long (it overflowed the window table).
+    f = np.arange(14)
+    t = pd.DataFrame({"frame": f, "particle": 0, "x": 0.5 * f, "y": 1.0, "z": -0.25 * f,
+                      "sigma_x": 0.01, "sigma_y": 0.01, "sigma_z": 0.05})
+    s = smooth_tracks(t, TrackSettings(window=window, order=1, clip=0))
+    np.testing.assert_allclose(s["x_smooth"], 0.5 * f, atol=1e-9)
+    np.testing.assert_allclose(s["velocity_z"], -0.25, atol=1e-9)
+
+
 def test_smoother_rejects_outliers_and_keeps_a_smoothed_value():
     rng = np.random.default_rng(4)
     f = np.arange(30)

@@ -511,11 +511,12 @@ def _windows(frames: np.ndarray, starts: np.ndarray, lengths: np.ndarray, k: int
     ``s < k // 2`` points on that side, uses those ``s`` and ``k - 1 - s + 2 (k // 2 - s)``
     points on the other side (a derivative at the end of a one-sided window is far less
     certain than at its centre; the longer window makes up for it). A track of fewer
-    points uses all of them. Unused slots hold -1; the array has ``2 k - 1`` columns.
+    points uses all of them. Unused slots hold -1; the array has ``k + 2 (k // 2)``
+    columns (``2 k - 1`` for odd ``k``, ``2 k`` for even), the longest end window.
     """
     n = len(frames)
     half = k // 2
-    width = 2 * k - 1
+    width = k + 2 * half
     out = np.full((n, width), -1, dtype=np.int64)
     for s0, m in zip(starts, lengths):
         for i in range(m):
