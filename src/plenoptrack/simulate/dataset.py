@@ -252,10 +252,10 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
     ``truth.parquet`` is in the frame the calibration target defines, as an
     experimenter's truth would be: x and y from the card dot imaged nearest the sensor
     centre (the calibration's dot (0, 0); :func:`~.dotcard.origin_dot_mm`), z from the
-    traverse zero. With perfect cards that is the world frame of the camera (z = 0 at the nominal
-    focal plane); with ``realism.target`` it is shifted by the card centre offset (less
-    whole dot spacings) and the traverse zero offset, recorded in ``truth_optics.json``
-    under ``"target_frame"``.
+    traverse zero. With perfect cards that is the world frame of the camera (z = 0 at the
+    nominal focal plane); with ``realism.target`` it is shifted by the card centre offset
+    (less whole dot spacings) and the traverse zero offset, recorded in
+    ``truth_optics.json`` under ``"target_frame"``.
 
     Raises
     ------

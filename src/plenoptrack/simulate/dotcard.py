@@ -41,9 +41,9 @@ from .render import (DEFAULT_SAMPLES_PER_PIXEL, _check_optics, _check_samples,
 from .scene import SceneError, volume_depth_mm
 from .sensor import SensorModel
 
-__all__ = ["DotCard", "CardPlacement", "draw_card_placements", "origin_dot_mm", "sensor_centre_aim_mm",
-           "default_dotcard",
-           "default_dotcard_depths", "render_dotcard", "dotcard_irradiance", "dot_grid"]
+__all__ = ["DotCard", "CardPlacement", "draw_card_placements", "origin_dot_mm",
+           "sensor_centre_aim_mm", "default_dotcard", "default_dotcard_depths", "render_dotcard",
+           "dotcard_irradiance", "dot_grid"]
 
 
 @dataclass(frozen=True)
