@@ -309,6 +309,15 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
             state = refine_particles(ctx, state, locator)
             if locator.check.split_merged:
                 state = split_merged_particles(ctx, state, locator.check)
+            if locator.check.find_hidden:
+                ctx, state, n_hidden = find_hidden_particles(ctx, state, locator, calibration,
+                                                             frame=frame)
+                if n_hidden:
+                    n_before = state.n_particles - n_hidden
+                    state = refine_particles(ctx, state, locator)
+                    if locator.check.split_merged:
+                        state = split_merged_particles(ctx, state, locator.check)
+                    state = _drop_unexplained_hidden(state, n_before, n_hidden)
     with clock("checks"):
         particles, detections = measure_particles(
             ctx, state, locator.solve, frame=frame,
@@ -574,17 +583,171 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     changed = keep & np.any(pos != state.positions, axis=1)
     table.loc[changed, list(POS_COLUMNS)] = pos[changed]
     table.loc[changed, list(SIGMA_COLUMNS)] = sigma[changed]
-    flags = table["flags"].fillna(0).to_numpy(np.int64)
+    flags = table["flags"].fillna(0).to_numpy(np.int64).copy()
+    fitted = keep & np.isfinite(model_error)
     flags[changed] |= int(TriangulationFlag.REFINED)
+    flags[fitted & ~unexplained] &= ~int(TriangulationFlag.UNEXPLAINED)
     flags[keep & unexplained] |= int(TriangulationFlag.UNEXPLAINED)
     table["flags"] = flags
     # what the split stage reads: how well each particle's last fit explained its pixels,
-    # and the image radius and contrast it found
-    fitted = keep & np.isfinite(model_error)
-    table[_FIT_ERROR] = np.where(fitted, model_error, np.nan)
-    table[_FIT_RADIUS] = np.where(fitted, rc[:, 0], np.nan)
-    table[_FIT_CONTRAST] = np.where(fitted, rc[:, 1], np.nan)
+    # and the image radius and contrast it found (an earlier refinement's where this one
+    # did not fit the particle)
+    for column, value in ((_FIT_ERROR, model_error), (_FIT_RADIUS, rc[:, 0]),
+                          (_FIT_CONTRAST, rc[:, 1])):
+        before = (table[column].to_numpy(float) if column in table.columns
+                  else np.full(n, np.nan))
+        table[column] = np.where(fitted, value, before)
     return dataclasses.replace(state, positions=pos, table=table)
+
+
+def find_hidden_particles(ctx: FrameContext, state: ParticleState,
+                          locator: PerspectiveLocator, calibration, *,
+                          frame: int = 0) -> tuple[FrameContext, ParticleState, int]:
+    """Stage 5d: search again with the located particles' images divided out.
+
+    The model of every located particle's image (its fitted radius and contrast, or its
+    regions' shadow and contrast 0.9) is divided out of the light field
+    (:func:`~plenoptrack.locate.residual.residual_light_field`, pixels a located image
+    blocks set to the background), and the residual is segmented, clustered, solved and
+    checked as the frame was. A particle found there whose images coincide with a located
+    particle's (:func:`_coincides`: what the model did not quite explain of that image) is
+    dropped. Each other one, best seen first, is fitted to the frame's own pixels
+    (:func:`~plenoptrack.locate.refine.fit_images`) beside the particles located (and
+    those of this search already kept), and kept when its image is opaque
+    (``check.split_min_contrast``), explains the pixels better than the model without it
+    by ``check.refine_max_model_error**2`` in mean square (the split's test,
+    :func:`split_merged_particles`), and neither lies inside a located particle nor
+    overlaps one with images that keep their offset across the views (nothing tells
+    those from one elongated image). The kept ones join the frame at their fitted
+    position, with their regions. Returns the frame context over both sets of regions,
+    the joined state and the number of particles added.
+    """
+    from .refine import fit_images
+    from .residual import residual_light_field, transmission_model
+
+    table = state.table
+    n = state.n_particles
+    live = ((table["n_views"].to_numpy(float) >= locator.solve.min_views)
+            & np.all(np.isfinite(state.positions), axis=1))
+    if not live.any():
+        return ctx, state, 0
+    fit_radius = (table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in table.columns
+                  else np.full(n, np.nan))
+    shadow = 0.5 * _member_diameter(ctx.detections, state.owner, n, shadow=True)
+    radius = np.where(np.isfinite(fit_radius), fit_radius, shadow)
+    contrast = (np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
+                if _FIT_CONTRAST in table.columns else np.full(n, 0.9))
+    live &= np.isfinite(radius) & (radius > 0)
+    views_uv, view_rc = _fit_views(ctx)
+    pred = _predict_all(ctx.dlfc, np.where(live[:, None], state.positions, np.nan), views_uv)
+    lf = ctx.lf
+    transmission = transmission_model(lf.data.shape[2], lf.data.shape[3], pred[live],
+                                      radius[live], contrast[live])
+    residual = residual_light_field(lf, view_rc, transmission,
+                                    floor=locator.check.hidden_floor)
+    found = segment_frame(residual, locator.segment, frame=frame)
+    if len(found) == 0:
+        return ctx, state, 0
+    ctx2 = FrameContext.build(residual, calibration, found, locator)
+    state2 = ParticleState.start(ctx2, locator.segment)
+    for _ in range(locator.grow.passes):
+        state2, n_new = cluster_unassigned(ctx2, state2, locator.cluster,
+                                           min_views=locator.solve.min_views)
+        if n_new == 0:
+            break
+        for _round in range(3):
+            state2 = solve_particles(ctx2, state2, locator.solve)
+            state2 = grow_particles(ctx2, state2, locator.grow)
+    if state2.n_particles == 0:
+        return ctx, state, 0
+    state2 = check_particles(ctx2, state2, locator)
+    new = ((state2.table["n_views"].to_numpy(float) >= locator.solve.min_views)
+           & np.all(np.isfinite(state2.positions), axis=1))
+    radius2 = 0.5 * _member_diameter(found, state2.owner, state2.n_particles)
+    pred2 = _predict_all(ctx.dlfc, state2.positions, views_uv)
+    for q in np.flatnonzero(new):
+        if not np.isfinite(radius2[q]) or _coincides(pred2[[q]], radius2[[q]], pred[live],
+                                                     radius[live]):
+            new[q] = False
+    # A particle found in the residual must explain the frame's own pixels: fitted to
+    # them beside the located particles, it must be opaque enough and explain them
+    # better than those particles alone by the split's gain
+    # (check.refine_max_model_error**2 in mean square).
+    positions2 = state2.positions.copy()
+    held_pos, held_rc = state.positions[live], np.c_[radius[live], contrast[live]]
+    held_pred, settings = pred[live], locator.check
+    # best-seen first: a hidden particle cut into two regions by a located one's image
+    # can be found twice, and the second is then held beside the first
+    order = np.flatnonzero(new)[np.argsort(-state2.table["n_views"].to_numpy(float)[new],
+                                           kind="stable")]
+    for q in order:
+        gap = np.hypot(*(held_pred - pred2[q][None]).transpose(2, 0, 1))     # (L, V)
+        near = np.any(gap < (held_rc[:, 0] + radius2[q] + 4.0)[:, None], axis=1)
+        start = np.array([[radius2[q], 0.9]])
+        fit = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, positions2[[q]], start,
+                         held_pos[near], held_rc[near],
+                         max_depth_shift=0.1 * ctx.volume_depth_mm,
+                         reference=np.array([[*positions2[q], radius2[q], 0.0]]))
+        if (fit is None or not np.all(np.isfinite(fit.params))
+                or fit.params[0, 4] < settings.split_min_contrast
+                or fit.reference_error ** 2 - fit.model_error ** 2
+                < settings.refine_max_model_error ** 2):
+            new[q] = False
+            continue
+        # Where the fit took it into a particle already located (their bodies overlap in
+        # space), or beside one with images that keep their offset across the views
+        # (nothing tells those two from one elongated image), it was that particle's
+        # image the model had not quite explained.
+        fitted_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)
+        offset = fitted_pred - held_pred                                       # (L, V, 2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)                   # all-NaN rows
+            dist = np.nanmedian(np.hypot(offset[..., 0], offset[..., 1]), axis=1)
+        both = np.vstack([fit.params[:, :4], np.c_[held_pos, held_rc[:, 0]]])
+        radius_mm = both[:, 3] / ctx.dlfc.local_magnification(*both[:, :3].T)
+        inside = (np.linalg.norm(held_pos - fit.params[0, :3], axis=1)
+                  < radius_mm[0] + radius_mm[1:])
+        merged = (dist < fit.params[0, 3] + held_rc[:, 0]) & (_parallax_px(offset) < 1.0)
+        if np.any(inside | merged):
+            new[q] = False
+            continue
+        positions2[q] = fit.params[0, :3]
+        held_pos = np.vstack([held_pos, fit.params[:, :3]])
+        held_rc = np.vstack([held_rc, fit.params[:, 3:]])
+        held_pred = np.concatenate([held_pred, fitted_pred])
+    if not new.any():
+        return ctx, state, 0
+    state2 = dataclasses.replace(state2, positions=positions2)
+    # the new particles and their regions join the frame
+    index = np.full(state2.n_particles, -1, dtype=np.int64)
+    index[new] = n + np.arange(int(new.sum()))
+    owner2 = np.where(state2.owner >= 0, index[np.maximum(state2.owner, 0)], state2.owner)
+    owner2 = np.where((state2.owner >= 0) & (owner2 < 0), -1, owner2)
+    detections = pd.concat([ctx.detections, found], ignore_index=True)
+    joined = ParticleState(
+        owner=np.concatenate([state.owner, owner2]),
+        initial=np.vstack([state.initial, state2.initial[new]]),
+        positions=np.vstack([state.positions, state2.positions[new]]),
+        table=pd.concat([table, state2.table.loc[new]], ignore_index=True))
+    return (FrameContext.build(lf, calibration, detections, locator), joined,
+            int(new.sum()))
+
+
+def _drop_unexplained_hidden(state: ParticleState, first: int, n: int) -> ParticleState:
+    """The particles ``first .. first + n - 1`` (found by :func:`find_hidden_particles`)
+    whose refit beside all the others leaves their pixels unexplained are dropped: what
+    admitted them was a fit that explained the pixels."""
+    flags = state.table["flags"].fillna(0).to_numpy(np.int64)
+    rows = np.arange(first, first + n)
+    bad = rows[(flags[rows] & int(TriangulationFlag.UNEXPLAINED)) > 0]
+    if len(bad) == 0:
+        return state
+    table = state.table.copy()
+    table.loc[bad, "n_views"] = 0
+    positions = state.positions.copy()
+    positions[bad] = np.nan
+    owner = np.where(np.isin(state.owner, bad), -1, state.owner)
+    return dataclasses.replace(state, owner=owner, positions=positions, table=table)
 
 
 _FIT_ERROR = "_fit_model_error"
@@ -610,15 +773,19 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     far enough apart in depth) give one merged region per view; the clustering takes
     them for one particle between them, and the refinement cannot explain its pixels
     with one disc (``UNEXPLAINED``); when no neighbour overlaps the pair, the refinement
-    never fits it at all. Each such particle, unexplained or never fitted, is refitted as
-    two (a never fitted one only once a one-image fit has failed to explain its pixels)
+    never fits it at all. Each particle whose last image fit left more than
+    ``settings.split_max_model_error`` of the background unexplained (a lower bar than
+    ``refine_max_model_error``, above which the refinement gives a particle back its
+    centroid solution: a pair whose images merge in every view can be fitted by one disc
+    almost well enough), or that was never fitted, is refitted as two (a never fitted
+    one only once a one-image fit has left more than that unexplained)
     (:func:`~plenoptrack.locate.refine.fit_images`, its neighbours held), started on the
     line of sight of its central-view image one view pixel of image travel either side
     of it in depth (:func:`_line_of_sight_pair`). The two are kept when both images are
     opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
     (model error at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
     pair's own pixels, a mean-square residual lower than the single image's by at least
-    ``settings.refine_max_model_error**2``: images of particles never located add to
+    ``settings.split_max_model_error**2``: images of particles never located add to
     both alike, and cancel in the difference but not in the ratio), their
     images move apart across the views by at least one view pixel and either stand apart
     by the smaller radius in some view or are two bodies apart in space
@@ -627,7 +794,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     unexplained one at most twice the size of the split's images can be the merged image
     of a particle of the group and another). When no pair passes, or the best pair still
     leaves the pixels unexplained (model error above
-    ``settings.refine_max_model_error``), three images are tried under the same tests,
+    ``settings.split_max_model_error``), three images are tried under the same tests,
     started at the pair's starts and the image itself: a pair cannot explain three
     particles whose images all merge and can settle between them with one faint image.
     While the group still leaves the pixels unexplained, one of its images is split
@@ -654,8 +821,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     # length across the views.
     unexplained, refined = int(TriangulationFlag.UNEXPLAINED), int(TriangulationFlag.REFINED)
     never_fitted = ((flags & (unexplained | refined)) == 0) & ~np.isfinite(single_error)
-    candidates = np.flatnonzero((((flags & unexplained) > 0) & np.isfinite(single_error)
+    split_max = settings.split_max_model_error
+    candidates = np.flatnonzero(((np.isfinite(single_error) & (single_error > split_max))
                                  | never_fitted)
+                                & ((flags & int(TriangulationFlag.SPLIT)) == 0)
                                 & np.all(np.isfinite(pos), axis=1))
     if len(candidates) == 0:
         return state
@@ -714,12 +883,12 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         """Whether one more image explains the pixels better than the model it splits:
         ``split_min_gain`` times better than ``error``, or, on the fit's own pixels
         against that model (``fit.reference_error``), by a mean square of at least
-        ``refine_max_model_error**2``. Images of particles never located add to both
+        ``split_max_model_error**2``. Images of particles never located add to both
         costs alike: they cancel in the difference, not in the ratio."""
         if fit.model_error * settings.split_min_gain <= error:
             return True
         gained = fit.reference_error ** 2 - fit.model_error ** 2
-        return bool(gained >= settings.refine_max_model_error ** 2)
+        return bool(gained >= split_max ** 2)
 
     def best_replacement(m, held, held_rc, start, error, reference, n):
         """The best fit on the trial views of ``start`` (k, 5) with one image replaced
@@ -756,7 +925,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         # pair's fit can settle between them with one faint image. Each image replaced
         # by three on its line of sight (itself and the pair's starts) finds them.
         if (len(start) + 2 <= settings.split_max_images
-                and (best is None or best.model_error > settings.refine_max_model_error)):
+                and (best is None or best.model_error > split_max)):
             more = best_replacement(m, held, held_rc, start,
                                     *((error, reference) if best is None
                                       else (best.model_error, best.params)), 3)
@@ -770,7 +939,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         return (best, trial_error) if distinct(best, m) else None
 
     for m in candidates:
-        if flags[m] & refined and not flags[m] & unexplained:
+        if not never_fitted[m] and not single_error[m] > split_max:
             continue                       # explained beside a neighbour's split meanwhile
         if not np.all(np.isfinite(pos[m])):
             continue                       # taken over by a neighbour's split meanwhile
@@ -786,7 +955,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                              np.array([[radius[m], 0.9]]), pos[held], held_rc)
             if one is None or not np.isfinite(one.model_error):
                 continue
-            if never_fitted[m] and one.model_error <= settings.refine_max_model_error:
+            if never_fitted[m] and one.model_error <= split_max:
                 continue                   # one image explains it: left as it is
             single_error[m] = one.model_error
             reference = one.params
@@ -794,7 +963,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         # Three or more particles on one line of sight: split an image of the group
         # again while the group leaves the pixels unexplained.
         while (found is not None and len(found[0].params) < settings.split_max_images
-               and found[0].model_error > settings.refine_max_model_error):
+               and found[0].model_error > split_max):
             more = split(m, held, held_rc, found[0].params, found[1], found[0].params)
             if more is None:
                 break
@@ -822,7 +991,9 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         # The group's merged image also spoilt its neighbours' fits: refit those the
         # refinement could not explain, now beside the group.
         pred = _predict_all(ctx.dlfc, pos, views_uv)
-        for q in held[(flags[held] & unexplained) > 0]:
+        held_error = np.where(held < len(single_error),
+                              single_error[np.minimum(held, len(single_error) - 1)], np.nan)
+        for q in held[((flags[held] & unexplained) > 0) | (held_error > split_max)]:
             near = neighbours(q, pred)
             one = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, pos[[q]],
                              np.array([[radius[q], contrast[q]]]), pos[near],
@@ -866,6 +1037,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     table[list(POS_COLUMNS)] = pos
     table[list(SIGMA_COLUMNS)] = sigma
     table[_FIT_RADIUS] = radius
+    table[_FIT_CONTRAST] = contrast
     # how well each particle's last fit explains its pixels: a split group's own error
     fit_error = np.append(single_error, np.full(len(parent), np.nan))
     parent = np.asarray(parent)

@@ -1,0 +1,106 @@
+"""Particles hidden by others: the residual light field and the second search
+(check.find_hidden)."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from plenoptrack.evaluate import match_particles
+from plenoptrack.lightfield import LightField
+from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
+from plenoptrack.locate.refine import disc_image
+from plenoptrack.locate.residual import residual_light_field, transmission_model
+from plenoptrack.simulate import make_scene, render_frame
+
+
+def test_transmission_is_the_product_of_the_image_model_discs():
+    """Two overlapping discs in two views, against refine.disc_image evaluated
+    independently on the pixel grid."""
+    pred = np.array([[[10.2, 8.7], [11.0, 9.0]],      # particle 0 in views 0 and 1
+                     [[13.1, 9.4], [np.nan, np.nan]]])  # particle 1 only in view 0
+    radius, contrast = np.array([3.0, 2.2]), np.array([0.95, 0.6])
+    t = transmission_model(20, 25, pred, radius, contrast)
+    assert t.shape == (2, 20, 25) and t.dtype == np.float32
+    tt, ss = np.mgrid[0:20, 0:25].astype(float)
+    for v in range(2):
+        expected = np.ones((20, 25))
+        for p in range(2):
+            s, c = pred[p, v], contrast[p]
+            if np.isfinite(s).all():
+                expected *= disc_image(np.hypot(ss - s[0], tt - s[1]), radius[p], c)[0]
+        np.testing.assert_allclose(t[v], expected, atol=2e-6)
+
+
+def _lightfield(data):
+    n_v, n_u, n_t, n_s = data.shape
+    return LightField(data=data, u=np.arange(n_u) - n_u // 2.0, v=np.arange(n_v) - n_v // 2.0,
+                      valid_fraction=np.ones((n_v, n_u)), spatial_mask=np.ones((n_t, n_s), bool),
+                      origin_px=(0.0, 0.0), s_step_px=(0.0, 1.0), t_step_px=(1.0, 0.0),
+                      sensor_shape_px=(n_t, n_s))
+
+
+def test_dividing_out_a_modelled_image_leaves_the_background_and_the_input_untouched():
+    rng = np.random.default_rng(0)
+    background = 0.8
+    pred = np.array([[[12.0, 10.0]]])
+    t = transmission_model(24, 30, pred, np.array([4.0]), np.array([1.0]))
+    hidden = transmission_model(24, 30, np.array([[[18.5, 10.0]]]), np.array([2.0]),
+                                np.array([1.0]))
+    noise = 1 + 0.01 * rng.standard_normal((24, 30))
+    data = (background * t[0] * hidden[0] * noise).astype(np.float32)[None, None]
+    lf = _lightfield(data.copy())
+    out = residual_light_field(lf, np.array([[0, 0]]), t, floor=0.5)
+    np.testing.assert_array_equal(lf.data, data)             # the input is not changed
+    res = out.data[0, 0]
+    blocked = t[0] < 0.5
+    assert blocked.any()
+    # the located image is gone: its blocked core reads the background, its rim as well
+    # (up to the noise it amplifies by at most 1 / floor)
+    np.testing.assert_allclose(res[blocked], np.median(data[0, 0, ::3, ::3]), rtol=1e-6)
+    rim = ~blocked & (t[0] < 0.99) & (hidden[0] > 0.99)
+    assert np.all(np.abs(res[rim] / background - 1) < 0.1)
+    # the hidden particle's shadow is left where the located image does not cover it
+    free = (hidden[0] < 0.05) & (t[0] > 0.99)
+    assert free.any() and np.all(res[free] < 0.1 * background)
+
+
+@pytest.fixture(scope="module")
+def mixed_scenes(small_calibrated):
+    """Random frames of 60 particles of 0.2-1 mm (log-uniform) on the small camera:
+    small particles often stand behind large ones."""
+    optics, calib = small_calibrated
+    out = []
+    for seed in (11, 12):
+        scene = make_scene(calib.camera, n_particles=60, seed=seed, diameter_mm=(0.2, 1.0))
+        raw = render_frame(optics, scene.truth, seed=np.random.default_rng([seed, 3, 0]))
+        out.append((scene.truth, raw))
+    return calib, out
+
+
+def test_the_second_search_finds_hidden_particles(mixed_scenes):
+    """Each frame: more true particles found, each new one a true particle (matched, and
+    no more unmatched particles than without the search beyond one per frame)."""
+    calib, scenes = mixed_scenes
+    on = PerspectiveLocator.from_dict({"check": {"find_hidden": True}})
+    off = PerspectiveLocator.from_dict({"check": {"find_hidden": False}})
+    gained = 0
+    for truth, raw in scenes:
+        counts = {}
+        for name, locator in (("off", off), ("on", on)):
+            found = locate_frame(raw, calib, locator=locator).particles
+            matched = len(match_particles(found, truth, tolerance_mm=1.0))
+            counts[name] = (matched, len(found) - matched)
+        assert counts["on"][0] >= counts["off"][0] + 2
+        assert counts["on"][1] <= counts["off"][1] + 1
+        gained += counts["on"][0] - counts["off"][0]
+    assert gained >= 6
+
+
+def test_hidden_search_settings_are_checked():
+    from plenoptrack.errors import SettingsError
+
+    for bad in ({"hidden_floor": 0.0}, {"hidden_floor": 1.0}, {"hidden_floor": -0.5}):
+        with pytest.raises(SettingsError):
+            PerspectiveLocator.from_dict({"check": bad})
+    assert dataclasses.asdict(PerspectiveLocator().check)["hidden_floor"] == 0.5
