@@ -618,9 +618,13 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     by ``check.refine_max_model_error**2`` in mean square (the split's test,
     :func:`split_merged_particles`), and neither lies inside a located particle nor
     overlaps one with images that keep their offset across the views (nothing tells
-    those from one elongated image). The kept ones join the frame at their fitted
-    position, with their regions. Returns the frame context over both sets of regions,
-    the joined state and the number of particles added.
+    those from one elongated image). The kept ones join the frame with their regions,
+    their position, sigma and image from the fit (``REFINED``; their size too, in
+    :func:`measure_particles`: their regions were cut by the images divided out).
+    Nothing is searched when every located particle's last image fit explains its pixels
+    to within ``check.refine_max_model_error``, the gain a particle found must bring: one
+    whose images merge with a located particle's would have spoilt that one's fit. Returns the frame context over both
+    sets of regions, the joined state and the number of particles added.
     """
     from .refine import fit_images
     from .residual import residual_light_field, transmission_model
@@ -638,6 +642,12 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     contrast = (np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
                 if _FIT_CONTRAST in table.columns else np.full(n, 0.9))
     live &= np.isfinite(radius) & (radius > 0)
+    # Only a frame whose image fits left something unexplained can hide a particle: one
+    # whose images merge with a located particle's in most views spoils that one's fit.
+    fit_error = (table[_FIT_ERROR].to_numpy(float) if _FIT_ERROR in table.columns
+                 else np.full(n, np.nan))
+    if not np.any(live & (fit_error > locator.check.refine_max_model_error)):
+        return ctx, state, 0
     views_uv, view_rc = _fit_views(ctx)
     pred = _predict_all(ctx.dlfc, np.where(live[:, None], state.positions, np.nan), views_uv)
     lf = ctx.lf
@@ -674,6 +684,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     # better than those particles alone by the split's gain
     # (check.refine_max_model_error**2 in mean square).
     positions2 = state2.positions.copy()
+    fits = {}                                     # the fit that admitted each one
     held_pos, held_rc = state.positions[live], np.c_[radius[live], contrast[live]]
     held_pred, settings = pred[live], locator.check
     # best-seen first: a hidden particle cut into two regions by a located one's image
@@ -712,12 +723,25 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
             new[q] = False
             continue
         positions2[q] = fit.params[0, :3]
+        fits[q] = fit
         held_pos = np.vstack([held_pos, fit.params[:, :3]])
         held_rc = np.vstack([held_rc, fit.params[:, 3:]])
         held_pred = np.concatenate([held_pred, fitted_pred])
     if not new.any():
         return ctx, state, 0
-    state2 = dataclasses.replace(state2, positions=positions2)
+    # their position, sigma and image are the fit's (REFINED), as a refined particle's
+    added = state2.table.copy()
+    rows = np.flatnonzero(new)
+    added.loc[rows, list(POS_COLUMNS)] = positions2[rows]
+    added.loc[rows, list(SIGMA_COLUMNS)] = np.array(
+        [np.where(np.isfinite(fits[q].sigma[0]), fits[q].sigma[0], np.nan) for q in rows])
+    added.loc[rows, _FIT_ERROR] = [fits[q].model_error for q in rows]
+    added.loc[rows, _FIT_RADIUS] = [fits[q].params[0, 3] for q in rows]
+    added.loc[rows, _FIT_CONTRAST] = [fits[q].params[0, 4] for q in rows]
+    added.loc[rows, "flags"] = (added.loc[rows, "flags"].fillna(0).to_numpy(np.int64)
+                                | int(TriangulationFlag.REFINED))
+    added[_HIDDEN] = True
+    state2 = dataclasses.replace(state2, positions=positions2, table=added)
     # the new particles and their regions join the frame
     index = np.full(state2.n_particles, -1, dtype=np.int64)
     index[new] = n + np.arange(int(new.sum()))
@@ -728,7 +752,8 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         owner=np.concatenate([state.owner, owner2]),
         initial=np.vstack([state.initial, state2.initial[new]]),
         positions=np.vstack([state.positions, state2.positions[new]]),
-        table=pd.concat([table, state2.table.loc[new]], ignore_index=True))
+        table=pd.concat([table.assign(**{_HIDDEN: False}), state2.table.loc[new]],
+                        ignore_index=True))
     return (FrameContext.build(lf, calibration, detections, locator), joined,
             int(new.sum()))
 
@@ -751,6 +776,7 @@ def _drop_unexplained_hidden(state: ParticleState, first: int, n: int) -> Partic
 
 
 _FIT_ERROR = "_fit_model_error"
+_HIDDEN = "_hidden"
 _FIT_RADIUS = "_fit_radius_px"
 _FIT_CONTRAST = "_fit_contrast"
 
@@ -1200,11 +1226,18 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     particles["major_axis"] = shape.loc[keep, "major_px"].to_numpy() / scale
     particles["minor_axis"] = shape.loc[keep, "minor_px"].to_numpy() / scale
     particles["orientation"] = shape.loc[keep, "orientation"].to_numpy()
-    if split.any():   # their regions are the merged pair's: size from the image fit
-        fitted = 2.0 * table.loc[keep, _FIT_RADIUS].to_numpy(float)[split] / mag[split]
+    # A split particle's regions are the merged pair's, a hidden one's were cut by the
+    # images divided out: their size comes from the image fit.
+    from_fit = split.copy()
+    if _HIDDEN in table.columns:
+        radius_fit = table.loc[keep, _FIT_RADIUS].to_numpy(float)
+        from_fit |= (table.loc[keep, _HIDDEN].fillna(False).to_numpy(bool)
+                     & np.isfinite(radius_fit))
+    if from_fit.any():
+        fitted = 2.0 * table.loc[keep, _FIT_RADIUS].to_numpy(float)[from_fit] / mag[from_fit]
         for column in ("diameter", "major_axis", "minor_axis"):
-            particles.loc[particles.index[split], column] = fitted
-        particles.loc[particles.index[split], "orientation"] = np.nan
+            particles.loc[particles.index[from_fit], column] = fitted
+        particles.loc[particles.index[from_fit], "orientation"] = np.nan
     particles[sigma] = with_shape_error(particles[sigma].to_numpy(float),
                                         particles["diameter"].to_numpy(float), solve.shape_error)
     # Renumber particles 0..n-1 and point the detections at the kept rows.
