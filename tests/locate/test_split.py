@@ -147,7 +147,8 @@ def test_split_settings_are_checked():
     for bad in ({"split_min_contrast": 0.0}, {"split_min_contrast": 1.5},
                 {"split_min_gain": 0.9}, {"split_trial_stride": 0},
                 {"split_max_images": 1}, {"split_max_images": 2.5},
-                {"split_trial_stride": 1.5}, {"split_trial_stride": True}):
+                {"split_trial_stride": 1.5}, {"split_trial_stride": True},
+                {"split_max_model_error": 0.0}, {"split_floor_ratio": -1.0}):
         with pytest.raises(SettingsError):
             PerspectiveLocator.from_dict({"check": bad})
 
@@ -306,3 +307,22 @@ def test_a_particle_behind_a_close_pair_is_split_from_their_merged_image(small_c
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.15)
     assert ((found["flags"].to_numpy() & SPLIT) > 0).sum() == 2
     assert not (found["flags"].to_numpy() & UNEXPLAINED).any()
+
+
+def test_the_split_bar_stands_above_the_frames_typical_misfit():
+    """The bar is the fixed split_max_model_error, or 1.2 times the frame's median fit
+    error where that is larger, never above the refinement's bar; particles not fitted
+    (NaN) do not count."""
+    from plenoptrack.locate.perspective import split_bar
+    from plenoptrack.locate.settings import CheckSettings
+
+    settings = CheckSettings()
+    assert settings.split_max_model_error == 0.05 and settings.split_floor_ratio == 1.2
+    assert split_bar(np.array([]), settings) == 0.05
+    assert split_bar(np.array([0.04, 0.041, np.nan, 0.3]), settings) == 0.05
+    tight = np.r_[np.full(9, 0.05), 0.2, np.nan]          # hall2019-like floor
+    assert split_bar(tight, settings) == pytest.approx(0.06)
+    crowded = np.full(5, 0.1)                              # every fit poor
+    assert split_bar(crowded, settings) == settings.refine_max_model_error == 0.08
+    off = CheckSettings(split_floor_ratio=0.0)
+    assert split_bar(tight, off) == 0.05

@@ -245,3 +245,19 @@ def test_sampling_error_covers_particles_near_the_focal_plane():
     assert far.sum() > 200
     assert np.median(sampled[far] / plain[far]) < 1.3                # 1.12
     assert np.mean(errors[far] > 3 * sampled[far]) < 0.01
+
+
+def test_reduced_chi2_typical_scatter_from_chosen_particles():
+    """The frame's typical scatter can be taken from some particles only (those of the
+    frame's own centroids); the others are still measured against it."""
+    from plenoptrack.locate.uncertainty import reduced_chi2
+
+    residual = np.array([1.0, 1.0, 1.0, 3.0, 3.0, 3.0, 3.0])
+    n = np.full(7, 10.0)
+    everyone = reduced_chi2(residual, n)
+    np.testing.assert_allclose(everyone, (residual / 3.0) ** 2)     # median s2 is 9's
+    own = np.array([True, True, True, False, False, False, False])
+    chosen = reduced_chi2(residual, n, typical_of=own)
+    np.testing.assert_allclose(chosen, residual ** 2)
+    np.testing.assert_allclose(reduced_chi2(residual, n, typical_of=np.zeros(7, bool)),
+                               everyone)

@@ -313,10 +313,13 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
                 ctx, state, n_hidden = find_hidden_particles(ctx, state, locator, calibration,
                                                              frame=frame)
                 if n_hidden:
+                    # only the particles found and those their images touch are
+                    # refitted (and tried as splits) again
                     n_before = state.n_particles - n_hidden
-                    state = refine_particles(ctx, state, locator)
+                    near = _near_particles(ctx, state, np.arange(n_before, state.n_particles))
+                    state = refine_particles(ctx, state, locator, only=near)
                     if locator.check.split_merged:
-                        state = split_merged_particles(ctx, state, locator.check)
+                        state = split_merged_particles(ctx, state, locator.check, only=near)
                     state = _drop_unexplained_hidden(state, n_before, n_hidden)
     with clock("checks"):
         particles, detections = measure_particles(
@@ -508,7 +511,8 @@ def check_particles(ctx: FrameContext, state: ParticleState,
 
 
 def refine_particles(ctx: FrameContext, state: ParticleState,
-                     locator: PerspectiveLocator, *, sweeps: int = 2) -> ParticleState:
+                     locator: PerspectiveLocator, *, sweeps: int = 2,
+                     only: np.ndarray | None = None) -> ParticleState:
     """Stage 5b: refit particles whose images overlap others' to the view pixels.
 
     Each particle kept by the checks whose image another particle's overlaps in at least
@@ -537,6 +541,9 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
             & np.all(np.isfinite(pos), axis=1))
     radius = 0.5 * _member_diameter(ctx.detections, state.owner, n)
     keep &= np.isfinite(radius)
+    # the particles that may be refitted (all by default); the others are drawn as held
+    # neighbours at their current solution
+    may_fit = keep if only is None else keep & np.asarray(only, dtype=bool)
     lf = ctx.lf
     views_uv, view_rc = _fit_views(ctx)
     basis = ctx.dlfc.view_basis(views_uv[:, 0], views_uv[:, 1])
@@ -555,10 +562,11 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
         overlap = overlap_fraction(pred, r)
         nearby = overlap_fraction(pred, r, gap_px=4.0) > 0
         fitted_pairs = set()
-        for a in np.flatnonzero(keep & (overlap.max(axis=1, initial=0.0)
-                                        >= settings.refine_min_overlap)):
+        for a in np.flatnonzero(may_fit & (overlap.max(axis=1, initial=0.0)
+                                           >= settings.refine_min_overlap)):
             b = int(np.argmax(overlap[a]))
-            free = [a, b] if overlap[a, b] >= settings.refine_pair_overlap else [a]
+            free = ([a, b] if overlap[a, b] >= settings.refine_pair_overlap and may_fit[b]
+                    else [a])
             if len(free) == 2:
                 if (b, a) in fitted_pairs:   # refitted together with b a moment ago
                     continue
@@ -758,6 +766,28 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
             int(new.sum()))
 
 
+def _near_particles(ctx: FrameContext, state: ParticleState, rows: np.ndarray) -> np.ndarray:
+    """(P,) bool: the particles ``rows`` and those whose images come within 4 view
+    pixels of theirs in some view (radius from the image fit, else the regions)."""
+    from ._assign import _predict_all
+
+    n = state.n_particles
+    radius = (state.table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in state.table.columns
+              else np.full(n, np.nan))
+    radius = np.where(np.isfinite(radius), radius,
+                      0.5 * _member_diameter(ctx.detections, state.owner, n))
+    radius = np.nan_to_num(radius, nan=0.0)
+    views_uv, _ = _fit_views(ctx)
+    pred = _predict_all(ctx.dlfc, state.positions, views_uv)                  # (P, V, 2)
+    out = np.zeros(n, dtype=bool)
+    out[rows] = True
+    for q in rows:
+        gap = np.hypot(*(pred - pred[q][None]).transpose(2, 0, 1))           # (P, V)
+        with np.errstate(invalid="ignore"):
+            out |= np.any(gap < (radius + radius[q] + 4.0)[:, None], axis=1)
+    return out
+
+
 def _drop_unexplained_hidden(state: ParticleState, first: int, n: int) -> ParticleState:
     """The particles ``first .. first + n - 1`` (found by :func:`find_hidden_particles`)
     whose refit beside all the others leaves their pixels unexplained are dropped: what
@@ -792,7 +822,8 @@ def _fit_views(ctx: FrameContext) -> tuple[np.ndarray, np.ndarray]:
 
 
 def split_merged_particles(ctx: FrameContext, state: ParticleState,
-                           settings: CheckSettings) -> ParticleState:
+                           settings: CheckSettings, *,
+                           only: np.ndarray | None = None) -> ParticleState:
     """Stage 5c: separate two particles on nearly one line of sight taken for one.
 
     Two particles whose images overlap in every view (nearly in line with the camera,
@@ -847,10 +878,11 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     # length across the views.
     unexplained, refined = int(TriangulationFlag.UNEXPLAINED), int(TriangulationFlag.REFINED)
     never_fitted = ((flags & (unexplained | refined)) == 0) & ~np.isfinite(single_error)
-    split_max = settings.split_max_model_error
+    split_max = split_bar(single_error, settings)
     candidates = np.flatnonzero(((np.isfinite(single_error) & (single_error > split_max))
                                  | never_fitted)
                                 & ((flags & int(TriangulationFlag.SPLIT)) == 0)
+                                & (True if only is None else np.asarray(only, dtype=bool))
                                 & np.all(np.isfinite(pos), axis=1))
     if len(candidates) == 0:
         return state
@@ -1075,6 +1107,25 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     return dataclasses.replace(state, initial=initial, positions=pos, table=table)
 
 
+def split_bar(fit_error: np.ndarray, settings: CheckSettings) -> float:
+    """The model error above which a particle is tried as a split: the larger of
+    ``settings.split_max_model_error`` and ``settings.split_floor_ratio`` times the
+    frame's median image-fit model error (NaN entries, particles not fitted, left out),
+    but never above ``settings.refine_max_model_error``: a particle the refinement could
+    not explain is always tried.
+
+    One disc never explains an image exactly (the edge profile, the background, the
+    neighbours held at their own fits): the frame's median fit says how far from exact
+    its explained images typically are, which differs from camera to camera (about 0.04
+    of the background on the ``small`` camera with realistic optics, 0.05 on hall2019).
+    A merged pair must stand out from that, not from a fixed figure."""
+    fitted = np.asarray(fit_error, dtype=float)
+    fitted = fitted[np.isfinite(fitted)]
+    floor = float(np.median(fitted)) if len(fitted) else 0.0
+    bar = max(settings.split_max_model_error, settings.split_floor_ratio * floor)
+    return min(bar, max(settings.refine_max_model_error, settings.split_max_model_error))
+
+
 def _view_subgrid(view_rc: np.ndarray, stride: int, *, min_views: int = 12) -> np.ndarray:
     """(V,) bool: the views whose ``(v, u)`` index ``view_rc`` (V, 2) differs from the
     central view's by a multiple of ``stride`` in both, a regular sub-grid spanning the
@@ -1197,7 +1248,11 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                  "confidence", "residual_px", "flags"]].copy()
     sigma = ["sigma_x", "sigma_y", "sigma_z"]
     n_views = particles["n_views"].to_numpy(float)
-    chi2 = reduced_chi2(particles["residual_px"].to_numpy(float), n_views)
+    # the frame's typical scatter from the centroids of the frame itself: a hidden
+    # particle's were measured in the light field with the others divided out
+    hidden = (table.loc[keep, _HIDDEN].fillna(False).to_numpy(bool)
+              if _HIDDEN in table.columns else np.zeros(len(particles), dtype=bool))
+    chi2 = reduced_chi2(particles["residual_px"].to_numpy(float), n_views, typical_of=~hidden)
     split = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.SPLIT)) > 0
     travel = image_travel_px(ctx.dlfc, positions, owner, ctx.views[ctx.view])[keep]
     # A refined particle's sigma is its image fit's, not its centroids'. Its centroids'

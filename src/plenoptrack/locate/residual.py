@@ -27,13 +27,13 @@ from .refine import EDGE_PX
 __all__ = ["transmission_model", "residual_light_field"]
 
 
-@numba.njit(cache=True, parallel=True)
+@numba.njit(cache=True)
 def _transmission(n_t, n_s, pred, radius, contrast, edge, out):  # pragma: no cover - compiled
     """Product over particles of ``1 - c D(|p - mu|; r)`` in each view: ``pred``
     (P, V, 2) image centres ``(s, t)``, ``radius`` and ``contrast`` (P,); into ``out``
     (V, n_t, n_s), filled with 1 first."""
     inv = 1.0 / (math.sqrt(2.0) * edge)
-    for v in numba.prange(out.shape[0]):
+    for v in range(out.shape[0]):
         out[v] = 1.0
         for p in range(pred.shape[0]):
             s, t = pred[p, v, 0], pred[p, v, 1]

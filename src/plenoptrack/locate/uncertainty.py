@@ -342,7 +342,8 @@ def sampling_groups(travel_px: np.ndarray) -> np.ndarray:
     return (1.0 + travel / SAMPLING_CELL_PX) ** 2
 
 
-def reduced_chi2(residual_px: np.ndarray, n_views: np.ndarray) -> np.ndarray:
+def reduced_chi2(residual_px: np.ndarray, n_views: np.ndarray, *,
+                 typical_of: np.ndarray | None = None) -> np.ndarray:
     """Fit quality of each particle: reduced chi-square against the frame's typical scatter.
 
     Parameters
@@ -351,6 +352,9 @@ def reduced_chi2(residual_px: np.ndarray, n_views: np.ndarray) -> np.ndarray:
         RMS reprojection error ``sqrt(SSR / n)`` of each particle, view pixels.
     n_views : (N,) float ndarray
         Centroids ``n`` of each particle (``2n`` equations, 3 unknowns).
+    typical_of : (N,) bool ndarray, optional
+        The particles whose median scatter is the typical one (default all; none of
+        them finite: all).
 
     Returns
     -------
@@ -370,5 +374,7 @@ def reduced_chi2(residual_px: np.ndarray, n_views: np.ndarray) -> np.ndarray:
     finite = np.isfinite(s2)
     if not finite.any():
         return s2
+    if typical_of is not None and (finite & np.asarray(typical_of, dtype=bool)).any():
+        finite &= np.asarray(typical_of, dtype=bool)
     typical = np.median(s2[finite])
     return s2 / typical if typical > 0 else np.full_like(s2, np.nan)
