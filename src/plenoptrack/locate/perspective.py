@@ -289,17 +289,7 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     if len(detections) == 0:
         return _finish_empty(detections, frame, clock.seconds)
     ctx = FrameContext.build(lf, calibration, detections, locator)
-    state = ParticleState.start(ctx, locator.segment)
-    for _ in range(locator.grow.passes):
-        with clock("cluster"):
-            state, n_new = cluster_unassigned(ctx, state, locator.cluster,
-                                              min_views=locator.solve.min_views)
-        if n_new == 0:
-            break
-        with clock("triangulate"):
-            for _round in range(3):
-                state = solve_particles(ctx, state, locator.solve)
-                state = grow_particles(ctx, state, locator.grow)
+    state = _cluster_and_solve(ctx, ParticleState.start(ctx, locator.segment), locator, clock)
     if state.n_particles == 0:
         return _finish_empty(detections, frame, clock.seconds)
     with clock("checks"):
@@ -329,6 +319,26 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         return _finish_empty(detections, frame, clock.seconds)
     return LocateResult(particles=particles, detections=detections,
                         stage_seconds=clock.seconds)
+
+
+def _cluster_and_solve(ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator,
+                       clock: "_StageClock | None" = None) -> ParticleState:
+    """Stages 2-4 in their passes: cluster the unassigned regions into new particles,
+    then solve and grow them (three rounds), until a pass adds none or
+    ``grow.passes`` are done. ``clock`` times the ``cluster`` and ``triangulate``
+    stages."""
+    timed = clock if clock is not None else (lambda _name: contextlib.nullcontext())
+    for _ in range(locator.grow.passes):
+        with timed("cluster"):
+            state, n_new = cluster_unassigned(ctx, state, locator.cluster,
+                                              min_views=locator.solve.min_views)
+        if n_new == 0:
+            break
+        with timed("triangulate"):
+            for _round in range(3):
+                state = solve_particles(ctx, state, locator.solve)
+                state = grow_particles(ctx, state, locator.grow)
+    return state
 
 
 def _decoded(raw_or_lf, calibration, frame: int, white) -> LightField:
@@ -667,15 +677,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     if len(found) == 0:
         return ctx, state, 0
     ctx2 = FrameContext.build(residual, calibration, found, locator)
-    state2 = ParticleState.start(ctx2, locator.segment)
-    for _ in range(locator.grow.passes):
-        state2, n_new = cluster_unassigned(ctx2, state2, locator.cluster,
-                                           min_views=locator.solve.min_views)
-        if n_new == 0:
-            break
-        for _round in range(3):
-            state2 = solve_particles(ctx2, state2, locator.solve)
-            state2 = grow_particles(ctx2, state2, locator.grow)
+    state2 = _cluster_and_solve(ctx2, ParticleState.start(ctx2, locator.segment), locator)
     if state2.n_particles == 0:
         return ctx, state, 0
     state2 = check_particles(ctx2, state2, locator)
