@@ -29,7 +29,8 @@ def test_transmission_is_the_product_of_the_image_model_discs():
             s, c = pred[p, v], contrast[p]
             if np.isfinite(s).all():
                 expected *= disc_image(np.hypot(ss - s[0], tt - s[1]), radius[p], c)[0]
-        np.testing.assert_allclose(t[v], expected, atol=2e-6)
+        # the model leaves out erfc's last 6e-5 beyond 4 edge widths of each rim
+        np.testing.assert_allclose(t[v], expected, atol=1e-4)
 
 
 def _lightfield(data):
@@ -57,7 +58,8 @@ def test_dividing_out_a_modelled_image_leaves_the_background_and_the_input_untou
     assert blocked.any()
     # the located image is gone: its blocked core reads the background, its rim as well
     # (up to the noise it amplifies by at most 1 / floor)
-    np.testing.assert_allclose(res[blocked], np.median(data[0, 0, ::3, ::3]), rtol=1e-6)
+    sample = data[0, 0, ::3, ::3]
+    np.testing.assert_allclose(res[blocked], np.median(sample[sample > 0]), rtol=1e-6)
     rim = ~blocked & (t[0] < 0.99) & (hidden[0] > 0.99)
     assert np.all(np.abs(res[rim] / background - 1) < 0.1)
     # the hidden particle's shadow is left where the located image does not cover it
