@@ -65,6 +65,7 @@ from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_dupl
 from ._nearby import pairs_within
 from ._order import unique_rows
 from ._regions import _region_shape, _single_image_area, _split_pairs
+from .bodies import merge_bodies, one_body_pairs, parallax_px
 from .opacity import blur_at, opacity
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
@@ -314,7 +315,8 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
     with clock("checks"):
         particles, detections = measure_particles(
             ctx, state, locator.solve, frame=frame,
-            max_model_error=locator.check.refine_max_model_error)
+            max_model_error=locator.check.refine_max_model_error,
+            merge_pieces=locator.check.merge_pieces)
     if len(particles) == 0:
         return _finish_empty(detections, frame, clock.seconds)
     return LocateResult(particles=particles, detections=detections,
@@ -728,7 +730,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         radius_mm = both[:, 3] / ctx.dlfc.local_magnification(*both[:, :3].T)
         inside = (np.linalg.norm(held_pos - fit.params[0, :3], axis=1)
                   < radius_mm[0] + radius_mm[1:])
-        merged = (dist < fit.params[0, 3] + held_rc[:, 0]) & (_parallax_px(offset) < 1.0)
+        merged = (dist < fit.params[0, 3] + held_rc[:, 0]) & (parallax_px(offset) < 1.0)
         if np.any(inside | merged):
             new[q] = False
             continue
@@ -928,7 +930,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             # stand apart in some view or be two bodies apart in space (one body fitted
             # with two discs puts them inside itself, overlapping; two large particles
             # far apart in depth can overlap in every view).
-            if not (_parallax_px(offset) >= 1.0
+            if not (parallax_px(offset) >= 1.0
                     and (np.nanmax(np.hypot(*offset.T)) >= fit.params[[a, b], 3].min()
                          or _apart_in_space(ctx.dlfc, fit.params[[a, b]]))):
                 return False
@@ -1164,14 +1166,15 @@ def _coincides(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
     an image of ``other_pred`` (P, V, 2): centres closer than the larger radius (median
     over the views; the same particle found twice), or overlapping images that keep their
     offset across the views (parallax below one view pixel,
-    :func:`_parallax_px`): nothing then tells them from one elongated image."""
+    :func:`~plenoptrack.locate.bodies.parallax_px`): nothing then tells them from one
+    elongated image."""
     if len(other_pred) == 0:
         return False
     offset = pred[:, None] - other_pred[None]                             # (k, P, V, 2)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)                   # all-NaN rows
         dist = np.nanmedian(np.hypot(offset[..., 0], offset[..., 1]), axis=2)
-        parallax = _parallax_px(offset)
+        parallax = parallax_px(offset)
         same = dist < np.maximum(radius[:, None], other_radius[None])
         merged = (dist < radius[:, None] + other_radius[None]) & (parallax < 1.0)
     return bool(np.any(same | merged))
@@ -1183,14 +1186,6 @@ def _apart_in_space(dlfc, params: np.ndarray) -> bool:
     each radius taken to object space with the DLFC's local magnification (px per mm)."""
     radius_mm = params[:, 3] / dlfc.local_magnification(*params[:, :3].T)
     return bool(np.linalg.norm(params[0, :3] - params[1, :3]) >= radius_mm.sum())
-
-
-def _parallax_px(offset: np.ndarray) -> np.ndarray:
-    """How far the offset ``(..., V, 2)`` between two particles' images changes across
-    the views: ``sqrt(8 (var ds + var dt))``, view pixels (as
-    :func:`~plenoptrack.locate.uncertainty.image_travel_px`); 0 for two particles at one
-    depth."""
-    return np.sqrt(8.0 * np.nansum(np.nanvar(offset, axis=-2), axis=-1))
 
 
 def _member_diameter(detections: pd.DataFrame, owner: np.ndarray, n: int, *,
@@ -1215,8 +1210,8 @@ def _member_diameter(detections: pd.DataFrame, owner: np.ndarray, n: int, *,
 
 
 def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSettings, *,
-                      frame: int, max_model_error: float = math.inf
-                      ) -> tuple[pd.DataFrame, pd.DataFrame]:
+                      frame: int, max_model_error: float = math.inf,
+                      merge_pieces: bool = False) -> tuple[pd.DataFrame, pd.DataFrame]:
     """Stage 6: the particle table (positions, uncertainties, size and shape in mm).
 
     Particles with at least ``solve.min_views`` centroids and a finite position are kept
@@ -1231,7 +1226,9 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     the uncertainty of an irregular body's centre
     (:func:`~plenoptrack.locate.uncertainty.with_shape_error`); size and shape come from their
     member regions (:func:`~plenoptrack.locate._regions._region_shape`) divided by the
-    DLFC's local magnification at their position.
+    DLFC's local magnification at their position. With ``merge_pieces``, two particles
+    that are pieces of one body (bodies overlapping in space, images at one depth:
+    :mod:`~plenoptrack.locate.bodies`) are merged into one.
 
     Returns
     -------
@@ -1297,8 +1294,6 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
         for column in ("diameter", "major_axis", "minor_axis"):
             particles.loc[particles.index[from_fit], column] = fitted
         particles.loc[particles.index[from_fit], "orientation"] = np.nan
-    particles[sigma] = with_shape_error(particles[sigma].to_numpy(float),
-                                        particles["diameter"].to_numpy(float), solve.shape_error)
     # Renumber particles 0..n-1 and point the detections at the kept rows.
     new_index = np.full(len(positions), -1, dtype=np.int64)
     new_index[np.flatnonzero(keep)] = np.arange(int(keep.sum()))
@@ -1306,6 +1301,17 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     particles = particles[list(PARTICLE_COLUMNS)].reset_index(drop=True)
     particles["n_views"] = particles["n_views"].astype(np.int64)
     particles["flags"] = particles["flags"].astype(np.uint8)
+    if merge_pieces and len(particles) > 1:
+        views_uv, _ = _fit_views(ctx)
+        pred = _predict_all(ctx.dlfc, particles[list(POS_COLUMNS)].to_numpy(float), views_uv)
+        pairs = one_body_pairs(particles[list(POS_COLUMNS)].to_numpy(float),
+                               particles["diameter"].to_numpy(float), pred)
+        if len(pairs):
+            particles, new_row = merge_bodies(particles, pairs)
+            particle_of = np.where(particle_of >= 0, new_row[np.maximum(particle_of, 0)], -1)
+    # an irregular body's centre, of the whole body where pieces were merged
+    particles[sigma] = with_shape_error(particles[sigma].to_numpy(float),
+                                        particles["diameter"].to_numpy(float), solve.shape_error)
     detections = ctx.detections.assign(particle=particle_of, inlier=particle_of >= 0)
     return particles, detections
 

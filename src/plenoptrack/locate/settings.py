@@ -406,6 +406,13 @@ class CheckSettings:
         Pixels the located particles' model lets through less than this fraction of the
         back-light are set to the background in that search: nothing behind an opaque
         image can be seen, and dividing there would only amplify the noise.
+    merge_pieces : bool
+        Merge two particles that are pieces of one body
+        (:mod:`~plenoptrack.locate.bodies`): bodies that overlap (centres closer than
+        the sum of their radii) with images at one depth (their
+        offset changes by less than a view pixel across the views). Two solid particles
+        cannot overlap, and nothing in the images tells such a pair from one silhouette
+        a glint or an elongated outline cut in two.
     """
 
     max_residual_ratio: float = 4.0
@@ -425,6 +432,7 @@ class CheckSettings:
     split_trial_stride: int = 2
     find_hidden: bool = True
     hidden_floor: float = 0.5
+    merge_pieces: bool = True
 
     def __post_init__(self) -> None:
         _require(self.max_residual_ratio > 1, "max_residual_ratio", "above 1",
