@@ -52,6 +52,10 @@ def test_from_dict_changes_only_what_it_names():
     ({"solve": {"solver": "newton"}}, "solver must be 'lm' or 'scipy'"),
     ({"grow": {"merge_distance_px": -1.0}}, "merge_distance_px must be None or positive"),
     ({"check": {"max_residual_ratio": 0.5}}, "max_residual_ratio must be above 1"),
+    ({"check": {"merge_pieces": "yes"}}, "merge_pieces must be true or false; got 'yes'"),
+    ({"segment": {"split_pairs": 1}}, "split_pairs must be true or false; got 1"),
+    ({"solve": {"opacity": "false"}}, "opacity must be true or false"),
+    ({"cluster": {"density_sweep": None}}, "density_sweep must be true or false"),
 ])
 def test_bad_settings_name_the_setting(data, match):
     with pytest.raises(SettingsError, match=match):

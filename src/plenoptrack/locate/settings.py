@@ -47,6 +47,16 @@ def _require(ok: bool, name: str, expected: str, value) -> None:
         raise SettingsError(f"{name} must be {expected}; got {value!r}")
 
 
+def _require_switches(section) -> None:
+    """Every ``bool`` setting of ``section`` must be true or false (not a string or a
+    number: a TOML ``"yes"`` or ``1`` would otherwise pass as a switch silently)."""
+    for f in fields(section):
+        if f.type in ("bool", bool):
+            value = getattr(section, f.name)
+            _require(isinstance(value, bool) or type(value).__name__ == "bool_", f.name,
+                     "true or false", value)
+
+
 def _pair(name: str, value) -> tuple[float, float]:
     try:
         lo, hi = (float(v) for v in value)
@@ -119,6 +129,7 @@ class SegmentSettings:
     split_pairs: bool = True
 
     def __post_init__(self) -> None:
+        _require_switches(self)
         _require(_is_int(self.window) and self.window >= 3, "window",
                  "an integer of at least 3 view pixels", self.window)
         _require(0 < self.contrast < 1, "contrast", "between 0 and 1", self.contrast)
@@ -177,6 +188,7 @@ class ClusterSettings:
     seed: int = 0
 
     def __post_init__(self) -> None:
+        _require_switches(self)
         _require(_is_int(self.n_planes) and self.n_planes >= 2, "n_planes",
                  "an integer of at least 2", self.n_planes)
         if self.depth_range_mm is not None:
@@ -261,6 +273,7 @@ class SolveSettings:
     opacity: bool = True
 
     def __post_init__(self) -> None:
+        _require_switches(self)
         _require(self.reject_k > 0, "reject_k", "positive", self.reject_k)
         _require(isinstance(self.shape_error, numbers.Real)
                  and not isinstance(self.shape_error, bool) and 0 <= self.shape_error < 1,
@@ -294,6 +307,7 @@ class GrowSettings:
     merge_distance_px: float | None = None
 
     def __post_init__(self) -> None:
+        _require_switches(self)
         _require(_is_int(self.passes) and self.passes >= 1, "passes",
                  "an integer of at least 1", self.passes)
         _require(self.add_tolerance_px > 0, "add_tolerance_px", "positive",
@@ -435,6 +449,7 @@ class CheckSettings:
     merge_pieces: bool = True
 
     def __post_init__(self) -> None:
+        _require_switches(self)
         _require(self.max_residual_ratio > 1, "max_residual_ratio", "above 1",
                  self.max_residual_ratio)
         _require(0 <= self.min_aperture_spread < 1, "min_aperture_spread", "in [0, 1)",
