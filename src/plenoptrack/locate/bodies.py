@@ -137,10 +137,7 @@ def merge_bodies(particles: pd.DataFrame, pairs: np.ndarray) -> tuple[pd.DataFra
         table.loc[first, "flags"] = int(np.bitwise_or.reduce(
             table.loc[rows, "flags"].to_numpy(np.int64)))
         keep[rows[1:]] = False
-    first_of = np.full(group.max() + 1, -1, dtype=np.int64)
-    for row in range(n):
-        if first_of[group[row]] < 0:
-            first_of[group[row]] = row
+    _, first_of = np.unique(group, return_index=True)      # first row of each group
     new_index = np.cumsum(keep) - 1
     new_row = new_index[first_of[group]]
     merged = table[keep].reset_index(drop=True)

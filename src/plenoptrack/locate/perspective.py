@@ -775,8 +775,6 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
 def _near_particles(ctx: FrameContext, state: ParticleState, rows: np.ndarray) -> np.ndarray:
     """(P,) bool: the particles ``rows`` and those whose images come within 4 view
     pixels of theirs in some view (radius from the image fit, else the regions)."""
-    from ._assign import _predict_all
-
     n = state.n_particles
     radius = (state.table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in state.table.columns
               else np.full(n, np.nan))

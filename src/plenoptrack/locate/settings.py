@@ -32,6 +32,8 @@ import tomllib
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
+import numpy as np
+
 from ..errors import InputFileError, SettingsError
 
 __all__ = ["PerspectiveLocator", "SegmentSettings", "ClusterSettings", "SolveSettings",
@@ -53,8 +55,7 @@ def _require_switches(section) -> None:
     for f in fields(section):
         if f.type in ("bool", bool):
             value = getattr(section, f.name)
-            _require(isinstance(value, bool) or type(value).__name__ == "bool_", f.name,
-                     "true or false", value)
+            _require(isinstance(value, (bool, np.bool_)), f.name, "true or false", value)
 
 
 def _pair(name: str, value) -> tuple[float, float]:
