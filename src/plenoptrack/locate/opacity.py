@@ -150,8 +150,12 @@ def opacity(peak, shadow_radius_px, blur_px, *, iterations: int = 40) -> np.ndar
         lo = np.where(below, mid, lo)
         hi = np.where(below, hi, mid)
     c = 0.5 * (lo + hi)
-    unsure = blur_sensitivity(a / c) > MAX_BLUR_SENSITIVITY
-    c = np.where((peak_of(np.ones(p.shape)) <= p) | unsure, 1.0, c)
+    # ln c moves by s times the blur's relative error: beyond MAX_BLUR_SENSITIVITY the
+    # correction is damped by (MAX / s)^2, continuing the full correction below it
+    s = blur_sensitivity(a / c)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        weight = np.where(s > MAX_BLUR_SENSITIVITY, (MAX_BLUR_SENSITIVITY / s) ** 2, 1.0)
+    c = np.where(peak_of(np.ones(p.shape)) <= p, 1.0, c ** np.nan_to_num(weight))
     return np.where(ok, c, np.nan)
 
 
