@@ -363,16 +363,11 @@ def tolerances(magnification: float) -> tuple[float, float]:
 
 
 def source_density(truth: pd.DataFrame, camera) -> float:
-    """Sum of the particle-image areas in the central view over the view area (module notes)."""
-    s_o = camera.object_distance_mm
-    m = abs(camera.magnification)
-    z = truth["z"].to_numpy(float)
-    d = truth["diameter"].to_numpy(float)
-    sub_aperture = camera.aperture_diameter_mm / camera.pixels_per_lenslet
-    image = m * (d * s_o / (s_o + z) + sub_aperture * np.abs(z) / (s_o + z))   # mm on the MLA
-    rows, cols = camera.grid_shape
-    area = rows * camera.row_pitch_um * 1e-3 * cols * camera.microlens_pitch_um * 1e-3
-    return float((math.pi / 4 * image ** 2).sum() / area)
+    """Sum of the particle-image areas in the central view over the view area (module
+    notes; :func:`plenoptrack.locate.crowding.source_density`)."""
+    from plenoptrack.locate.crowding import source_density as density
+
+    return density(truth, camera)
 
 
 def make_cell_scene(cell: Cell, seed: int, frames: int):

@@ -12,7 +12,7 @@ __all__ = [
     "PlenoptrackError", "UsageError", "SettingsError", "OutputConflictError",
     "InputFileError", "CameraSpecError", "CalibrationError", "ImageSizeError",
     "PlenoptrackWarning", "NoParticlesWarning", "VignettingWarning", "ExposureWarning",
-    "CardDepthWarning",
+    "CardDepthWarning", "CrowdedFrameWarning",
 ]
 
 
@@ -71,3 +71,8 @@ class FlatFieldWarning(PlenoptrackWarning):
 
 class CardDepthWarning(PlenoptrackWarning):
     """A dot card's stated depth disagrees with the depth its parallax across views shows."""
+
+
+class CrowdedFrameWarning(PlenoptrackWarning):
+    """A frame's particle images cover so much of each view that the locator will miss
+    particles whose images merge with others' (:mod:`plenoptrack.locate.crowding`)."""

@@ -11,6 +11,7 @@ from .cluster import Clustering, ProjectionGeometry, cluster_detections, plane_a
 from .dlfc import DLFC, FitReport, fit_dlfc
 from .dotcards import (CardLattice, OriginConsensus, card_lattice, consistent_origins,
                        dotcard_points, index_dotcard, index_lattice)
+from .crowding import CROWDED_COVERAGE, image_coverage, source_density
 from .perspective import PARTICLE_COLUMNS, LocateResult, locate_frame
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings, read_settings, settings_toml)
@@ -27,5 +28,5 @@ __all__ = [
     "DLFC", "FitReport", "fit_dlfc", "dotcard_points", "index_dotcard", "index_lattice",
     "card_lattice", "CardLattice", "consistent_origins", "OriginConsensus",
     "triangulate_clusters", "triangulate_cluster", "Triangulation", "TriangulationFlag",
-    "predict_detection",
+    "predict_detection", "image_coverage", "source_density", "CROWDED_COVERAGE",
 ]

@@ -57,7 +57,7 @@ import numpy as np
 import pandas as pd
 
 from .._columns import POS_COLUMNS, SIGMA_COLUMNS, T_COLUMN
-from ..errors import NoParticlesWarning
+from ..errors import CrowdedFrameWarning, NoParticlesWarning
 from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
 from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_duplicates,
@@ -66,6 +66,7 @@ from ._nearby import pairs_within
 from ._order import unique_rows
 from ._regions import _region_shape, _single_image_area, _split_pairs
 from .bodies import merge_bodies, one_body_pairs, parallax_px
+from .crowding import CROWDED_COVERAGE, image_coverage
 from .opacity import blur_at, opacity
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
 from .segment import segment_views
@@ -110,11 +111,18 @@ class LocateResult:
         ``cluster`` (every clustering pass), ``triangulate`` (solves, duplicate merging
         and centroid addition), ``checks`` (final consistency checks and the table) and
         ``refine`` (the image-model refinement; 0 when it is off).
+    image_coverage : float
+        Share of each view the particle images cover (median over the views,
+        :func:`~plenoptrack.locate.crowding.image_coverage`): it follows the source
+        density, which sets how many particles the locator can tell apart. Above
+        :data:`~plenoptrack.locate.crowding.CROWDED_COVERAGE` the frame is crowded.
+        NaN where the method does not measure it.
     """
 
     particles: pd.DataFrame
     detections: pd.DataFrame
     stage_seconds: dict = field(default_factory=dict, compare=False)
+    image_coverage: float = math.nan
 
 
 @dataclass(frozen=True)
@@ -287,12 +295,20 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         lf = _decoded(raw_or_lf, calibration, frame, white)
     with clock("segment"):
         detections = segment_frame(lf, locator.segment, frame=frame)
+    coverage = image_coverage(detections, lf)
+    if coverage > CROWDED_COVERAGE:
+        warnings.warn(f"frame {frame}: particle images cover {100 * coverage:.0f} % of each "
+                      f"view (above {100 * CROWDED_COVERAGE:.0f} %); expect to miss particles "
+                      "whose images merge with others' (on simulated frames recall was 0.87 "
+                      "at 21 % and 0.55 at 38 %); a lower seeding density, smaller "
+                      "magnification or thinner volume keeps more", CrowdedFrameWarning,
+                      stacklevel=2)
     if len(detections) == 0:
-        return _finish_empty(detections, frame, clock.seconds)
+        return _finish_empty(detections, frame, clock.seconds, coverage)
     ctx = FrameContext.build(lf, calibration, detections, locator)
     state = _cluster_and_solve(ctx, ParticleState.start(ctx, locator.segment), locator, clock)
     if state.n_particles == 0:
-        return _finish_empty(detections, frame, clock.seconds)
+        return _finish_empty(detections, frame, clock.seconds, coverage)
     with clock("checks"):
         state = check_particles(ctx, state, locator)
     if locator.check.refine_images:
@@ -318,9 +334,9 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
             max_model_error=locator.check.refine_max_model_error,
             merge_pieces=locator.check.merge_pieces)
     if len(particles) == 0:
-        return _finish_empty(detections, frame, clock.seconds)
+        return _finish_empty(detections, frame, clock.seconds, coverage)
     return LocateResult(particles=particles, detections=detections,
-                        stage_seconds=clock.seconds)
+                        stage_seconds=clock.seconds, image_coverage=coverage)
 
 
 def _cluster_and_solve(ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator,
@@ -643,8 +659,9 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     :func:`measure_particles`: their regions were cut by the images divided out).
     Nothing is searched when every located particle's last image fit explains its pixels
     to within ``check.refine_max_model_error``, the gain a particle found must bring: one
-    whose images merge with a located particle's would have spoilt that one's fit. Returns the frame context over both
-    sets of regions, the joined state and the number of particles added.
+    whose images merge with a located particle's would have spoilt that one's fit. Returns
+    the frame context over both sets of regions, the joined state and the number of
+    particles added.
     """
     from .refine import fit_images
     from .residual import residual_light_field, transmission_model
@@ -1440,9 +1457,10 @@ class _StageClock:
             self.seconds[stage] += time.perf_counter() - t0
 
 
-def _finish_empty(detections: pd.DataFrame, frame: int, clock=None) -> LocateResult:
+def _finish_empty(detections: pd.DataFrame, frame: int, clock=None,
+                  coverage: float = math.nan) -> LocateResult:
     warnings.warn(f"frame {frame}: no particles found", NoParticlesWarning, stacklevel=3)
     detections = detections.assign(particle=np.full(len(detections), -1, dtype=np.int64),
                                    inlier=np.zeros(len(detections), dtype=bool))
     return LocateResult(particles=_empty_particles(), detections=detections,
-                        stage_seconds=dict(clock or {}))
+                        stage_seconds=dict(clock or {}), image_coverage=coverage)

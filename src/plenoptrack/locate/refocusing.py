@@ -792,4 +792,4 @@ def locate_frame_hybrid(raw_or_lf, calibration, *, frame: int = 0,
     clock = dict(base.stage_seconds)
     clock["refine"] = time.perf_counter() - t_start
     return LocateResult(particles=parts.assign(z=new_z), detections=base.detections,
-                        stage_seconds=clock)
+                        stage_seconds=clock, image_coverage=base.image_coverage)
