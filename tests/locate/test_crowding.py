@@ -17,18 +17,23 @@ from plenoptrack.simulate import make_scene
 
 
 def _lf(n_views, pixels=100):
+    """One row of ``n_views`` valid views at u = 0, 1, ... and two rim views beyond."""
     return SimpleNamespace(spatial_mask=np.ones(pixels, bool),
-                           valid_fraction=np.r_[np.ones(n_views), np.full(2, 0.2)])
+                           u=np.arange(n_views + 2, dtype=float), v=np.zeros(1),
+                           valid_fraction=np.r_[np.ones(n_views), np.full(2, 0.2)][None, :])
 
 
-def test_image_coverage_is_the_median_view_and_counts_empty_views():
+def test_image_coverage_is_the_median_valid_view_and_counts_empty_views():
     det = pd.DataFrame({"u": [0.0, 0.0, 1.0, 2.0], "v": [0.0, 0.0, 0.0, 0.0],
                         "area": [6, 4, 30, 50]})
-    # three views with regions (0.1, 0.3, 0.5 of their 100 pixels)
+    # three valid views with regions (0.1, 0.3, 0.5 of their 100 pixels)
     assert image_coverage(det, _lf(3)) == pytest.approx(0.3)
     # two more valid views without a region: the median falls to the second
     assert image_coverage(det, _lf(5)) == pytest.approx(0.1)
     assert image_coverage(det.iloc[:0], _lf(5)) == 0.0
+    # regions in the rim views (less than half valid) do not count
+    rim = pd.DataFrame({"u": [3.0, 4.0], "v": [0.0, 0.0], "area": [90, 90]})
+    assert image_coverage(pd.concat([det, rim]), _lf(3)) == pytest.approx(0.3)
 
 
 def test_source_density_is_the_image_area_over_the_array():

@@ -67,8 +67,9 @@ def image_coverage(detections: pd.DataFrame, lf) -> float:
         The frame's regions (:func:`~plenoptrack.locate.segment.segment_views`): at least
         the columns ``u, v`` (view) and ``area`` (view pixels).
     lf : LightField
-        The decoded frame: its ``spatial_mask`` (pixels of a view) and ``valid_fraction``
-        (share of valid samples of each view; views below one half are not counted).
+        The decoded frame: its ``spatial_mask`` (pixels of a view), view coordinates
+        ``u, v`` and ``valid_fraction`` (share of valid samples of each view; views below
+        one half are not counted).
 
     Returns
     -------
@@ -79,20 +80,22 @@ def image_coverage(detections: pd.DataFrame, lf) -> float:
     Examples
     --------
     >>> from types import SimpleNamespace
-    >>> lf = SimpleNamespace(spatial_mask=np.ones((10, 10), bool),
-    ...                      valid_fraction=np.ones((1, 3)))
+    >>> lf = SimpleNamespace(spatial_mask=np.ones((10, 10), bool), u=np.array([-1.0, 0, 1]),
+    ...                      v=np.array([0.0]), valid_fraction=np.ones((1, 3)))
     >>> det = pd.DataFrame({"u": [0.0, 0.0, 1.0], "v": [0.0, 0.0, 0.0], "area": [6, 4, 30]})
-    >>> image_coverage(det, lf)   # views cover 0.1, 0.3 and nothing
+    >>> image_coverage(det, lf)   # views cover nothing, 0.1 and 0.3
     0.1
     """
     pixels = int(np.count_nonzero(lf.spatial_mask))
-    n_views = int(np.count_nonzero(np.asarray(lf.valid_fraction) >= _MIN_VALID_FRACTION))
-    if len(detections) == 0 or pixels == 0:
+    vv, uu = np.nonzero(np.asarray(lf.valid_fraction) >= _MIN_VALID_FRACTION)
+    if len(vv) == 0 or pixels == 0:
         return 0.0
-    per_view = (detections.groupby(["u", "v"], sort=False)["area"].sum().to_numpy(float)
-                / pixels)
+    counted = pd.MultiIndex.from_arrays([np.asarray(lf.u, float)[uu], np.asarray(lf.v, float)[vv]],
+                                        names=["u", "v"])
+    area = (detections.groupby(["u", "v"])["area"].sum() if len(detections)
+            else pd.Series(dtype=float))
     # views without a region cover nothing
-    per_view = np.concatenate([per_view, np.zeros(max(n_views - len(per_view), 0))])
+    per_view = area.reindex(counted, fill_value=0.0).to_numpy(float) / pixels
     return float(np.median(per_view))
 
 
