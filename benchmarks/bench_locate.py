@@ -272,8 +272,10 @@ def _sd(values: np.ndarray) -> float:
 
 
 def _robust_sd(values: np.ndarray) -> float:
-    return (float(1.4826 * np.median(np.abs(values - np.median(values))))
-            if len(values) else float("nan"))
+    """1.4826 MAD (:func:`scipy.stats.median_abs_deviation` with the normal scale)."""
+    from scipy.stats import median_abs_deviation
+
+    return float(median_abs_deviation(values, scale="normal")) if len(values) else float("nan")
 
 
 KERNEL_BASELINE_REV = "ab05a35c462d9afa5dba85e356132be9c85f0935"
