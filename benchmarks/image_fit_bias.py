@@ -135,13 +135,20 @@ def main(argv=None) -> None:
         parser.error(f"--optics: {exc}; groups: {', '.join(am.effect_groups())}")
     import tempfile
 
+    if args.depths < 2 or min(args.sizes) <= 0 or min(args.edges) <= 0:
+        parser.error("--depths must be at least 2, --sizes and --edges positive")
+    from plenoptrack.simulate import SceneError
+
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         workdir = args.workdir or Path(tmp)
         runner = am.Runner(workdir, 80, t0)
-        table = pd.concat([measure_size(runner, s, args.optics, args.seed, args.depths,
-                                        args.edges, workdir) for s in args.sizes],
-                          ignore_index=True)
+        try:
+            table = pd.concat([measure_size(runner, s, args.optics, args.seed, args.depths,
+                                            args.edges, workdir) for s in args.sizes],
+                              ignore_index=True)
+        except SceneError as exc:
+            parser.error(str(exc))
     wall = time.perf_counter() - t0
     pd.set_option("display.width", 200)
     print(table.round(4).to_string(index=False))
