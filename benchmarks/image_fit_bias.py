@@ -13,7 +13,8 @@ sphere per frame at ``--depths`` depths spread over 95 % of the volume of the ``
 camera at magnification -0.5 (the accuracy matrix's calibration: simulated white image
 and dot cards, ``calibrate`` defaults), located with the default locator, then fitted
 alone (no neighbours) with one disc from the located position, at each model edge width
-of ``--edges`` (view pixels; the locator's is ``refine.EDGE_PX``). Prints and writes
+of ``--edges`` (view pixels; the locator's is ``refine.EDGE_PX``), on the views more
+than ``--min-valid`` valid (the locator's bar, 0.5, by default). Prints and writes
 (``--out``) a table of the depth errors per size and depth, and per size the mean error
 at negative and at positive depth.
 """
@@ -34,7 +35,7 @@ import accuracy_matrix as am  # noqa: E402
 
 
 def measure_size(runner, size: float, optics: str, seed: int, depths: int,
-                 edges, workdir: Path) -> pd.DataFrame:
+                 edges, workdir: Path, min_valid: float = 0.5) -> pd.DataFrame:
     """Depth errors (mm) of the centroid solution and of the disc fit at each edge width,
     one row per depth."""
     from plenoptrack.io import read_raw
@@ -77,6 +78,8 @@ def measure_size(runner, size: float, optics: str, seed: int, depths: int,
             ctx = FrameContext.build(lf, calib, segment_frame(lf, locator.segment, frame=f),
                                      locator)
             views_uv, view_rc = _fit_views(ctx)
+            full = lf.valid_fraction[view_rc[:, 0], view_rc[:, 1]] > min_valid
+            views_uv, view_rc = views_uv[full], view_rc[full]
             xyz = p[["x", "y", "z"]].to_numpy(float)[None]
             radius = 0.5 * float(p.diameter) * float(ctx.dlfc.local_magnification(*xyz.T)[0])
             default_edge = refine.EDGE_PX
@@ -124,6 +127,10 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=am.DEV_SEEDS[0])
     parser.add_argument("--depths", type=int, default=15)
     parser.add_argument("--edges", type=float, nargs="+", default=[0.6])
+    parser.add_argument("--min-valid", type=float, default=0.5,
+                        help="fit only the views with more than this fraction of valid "
+                             "samples (the locator's: 0.5; 0.95 leaves out the views "
+                             "the aperture's rim cuts)")
     parser.add_argument("--workdir", type=Path, default=None,
                         help="where simulated data go (default: a temporary folder)")
     parser.add_argument("--out", type=Path,
@@ -137,6 +144,8 @@ def main(argv=None) -> None:
 
     if args.depths < 2 or min(args.sizes) <= 0 or min(args.edges) <= 0:
         parser.error("--depths must be at least 2, --sizes and --edges positive")
+    if not 0 <= args.min_valid < 1:
+        parser.error(f"--min-valid must be in [0, 1); got {args.min_valid}")
     from plenoptrack.simulate import SceneError
 
     t0 = time.perf_counter()
@@ -145,8 +154,8 @@ def main(argv=None) -> None:
         runner = am.Runner(workdir, 80, t0)
         try:
             table = pd.concat([measure_size(runner, s, args.optics, args.seed, args.depths,
-                                            args.edges, workdir) for s in args.sizes],
-                              ignore_index=True)
+                                            args.edges, workdir, args.min_valid)
+                               for s in args.sizes], ignore_index=True)
         except SceneError as exc:
             parser.error(str(exc))
     wall = time.perf_counter() - t0
@@ -156,7 +165,8 @@ def main(argv=None) -> None:
     lines = ["# Depth offset of the image-model fit on isolated spheres", "",
              f"`python benchmarks/image_fit_bias.py --sizes {' '.join(f'{s:g}' for s in args.sizes)}"
              f" --optics {args.optics} --seed {args.seed} --depths {args.depths} --edges "
-             f"{' '.join(f'{e:g}' for e in args.edges)}` ({wall:.0f} s): `small` camera, "
+             f"{' '.join(f'{e:g}' for e in args.edges)} --min-valid {args.min_valid:g}` "
+             f"({wall:.0f} s): `small` camera, "
              "magnification -0.5, one sphere per frame. Depth error (measured minus true, "
              "mm) of the centroid solution and of one disc fitted alone from it, per model "
              "edge width (view pixels).", "",
