@@ -205,15 +205,25 @@ def effect_groups() -> tuple[str, ...]:
 
 
 def realism_of(optics: str):
-    """``"ideal"``, ``"realistic"`` or ``"ideal+GROUP"`` as a Realism (or the name)."""
+    """``"ideal"``, ``"realistic"``, ``"ideal+GROUP"`` (ideal optics with one group of
+    effects at its realistic size) or ``"ideal+GROUP.FIELD"`` (only that field of the
+    group, the group's others as in ideal optics) as a Realism (or the name)."""
     if optics in OPTICS:
         return optics
     from plenoptrack.simulate.realism import Realism
 
-    group = optics.removeprefix("ideal+")
-    if group not in effect_groups():
+    group, _, field = optics.removeprefix("ideal+").partition(".")
+    if not optics.startswith("ideal+") or group not in effect_groups():
         raise ValueError(f"unknown optics {optics!r}")
-    return dataclasses.replace(Realism.ideal(), **{group: getattr(Realism.realistic(), group)})
+    ideal, realistic = Realism.ideal(), Realism.realistic()
+    effects = getattr(realistic, group)
+    if field:
+        names = [f.name for f in dataclasses.fields(effects)]
+        if field not in names:
+            raise ValueError(f"unknown optics {optics!r}: group {group!r} has the fields "
+                             f"{', '.join(names)}")
+        effects = dataclasses.replace(getattr(ideal, group), **{field: getattr(effects, field)})
+    return dataclasses.replace(ideal, **{group: effects})
 
 
 def _fitting_density(cell: Cell) -> float | None:

@@ -122,8 +122,9 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", type=float, nargs="+", default=[0.4, 1.0, 2.0])
     parser.add_argument("--optics", default="ideal",
-                        help="ideal, realistic or ideal+GROUP (one group of the simulator's "
-                             "Realism, as in the accuracy matrix's effect rows)")
+                        help="ideal, realistic, ideal+GROUP (one group of the simulator's "
+                             "Realism, as in the accuracy matrix's effect rows) or "
+                             "ideal+GROUP.FIELD (one effect of a group)")
     parser.add_argument("--seed", type=int, default=am.DEV_SEEDS[0])
     parser.add_argument("--depths", type=int, default=15)
     parser.add_argument("--edges", type=float, nargs="+", default=[0.6])
