@@ -695,6 +695,18 @@ def _fmt(value, spec: str) -> str:
         else spec.format(value)
 
 
+def markdown_table(df: pd.DataFrame, fmt=None) -> list[str]:
+    """The lines of a markdown table of ``df``'s columns; each value through ``fmt(value,
+    column)`` (default: floats to 3 significant digits, anything else as ``str``)."""
+    def default(v, _column):
+        return f"{v:.3g}" if isinstance(v, float) else str(v)
+    fmt = fmt or default
+    cols = [str(c) for c in df.columns]
+    return (["| " + " | ".join(cols) + " |", "|" + " --- |" * len(cols)]
+            + ["| " + " | ".join(fmt(v, c) for v, c in zip(row, cols)) + " |"
+               for row in df.itertuples(index=False)])
+
+
 def _table(rows: list[dict]) -> list[str]:
     head = ["preset", "axis", "optics", "M", "dens.", "N_s", "size mm", "seeds", "n true",
             "FP/frame", *[h for _, h, _ in _TABLE_COLS]]

@@ -65,16 +65,15 @@ def measure_size(runner, size: float, optics: str, seed: int, depths: int,
     rows = []
     for f, path in enumerate(sim.frame_paths):
         true = sim.truth[sim.truth.frame == f].iloc[0]
-        raw = read_raw(path)
+        lf = _decoded(read_raw(path), calib, f, white)       # decoded once for both
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            found = locate_frame(raw, calib, frame=f, white=white, locator=locator).particles
+            found = locate_frame(lf, calib, frame=f, locator=locator).particles
         row = {"size_mm": size, "z_true": float(true.z)}
         if len(found):
             near = int(np.argmin(np.hypot(found.x - true.x, found.y - true.y)))
             p = found.iloc[near]
             row["centroid"] = float(p.z - true.z)
-            lf = _decoded(raw, calib, f, white)
             ctx = FrameContext.build(lf, calib, segment_frame(lf, locator.segment, frame=f),
                                      locator)
             views_uv, view_rc = _fit_views(ctx)
@@ -97,25 +96,26 @@ def measure_size(runner, size: float, optics: str, seed: int, depths: int,
     return pd.DataFrame(rows)
 
 
+def _is_error(column) -> bool:
+    """Whether ``column`` holds depth errors (the centroid solution's or a fit's)."""
+    return column == "centroid" or str(column).startswith("fit")
+
+
 def summary(table: pd.DataFrame) -> pd.DataFrame:
     """Mean depth error per size at negative and at positive depth, mm."""
-    cols = [c for c in table.columns if c == "centroid" or c.startswith("fit")]
+    cols = [c for c in table.columns if _is_error(c)]
     side = np.where(table["z_true"] < 0, "z < 0", "z >= 0")
     return table.groupby(["size_mm", side])[cols].mean()
 
 
 def _markdown(table: pd.DataFrame) -> list[str]:
-    """A markdown table of ``table``'s columns, numbers to 4 decimals."""
-    cols = [str(c) for c in table.columns]
-    signed = [c == "centroid" or c.startswith("fit") for c in cols]
-
-    def cell(v, error):
+    """A markdown table of ``table``: depth errors signed to 4 decimals, other numbers
+    as ``%g``."""
+    def cell(v, column):
         if isinstance(v, (float, np.floating)):
-            return f"{v:+.4f}" if error else f"{v:g}"
+            return f"{v:+.4f}" if _is_error(column) else f"{v:g}"
         return str(v)
-    return (["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
-            + ["| " + " | ".join(cell(v, e) for v, e in zip(row, signed)) + " |"
-               for row in table.itertuples(index=False)])
+    return am.markdown_table(table, cell)
 
 
 def main(argv=None) -> None:
