@@ -396,8 +396,12 @@ def test_robust_sd_is_scipys_normal_scaled_mad():
     from scipy.stats import median_abs_deviation
 
     rng = np.random.default_rng(4)
-    for n in (1, 2, 7, 1000):
-        x = rng.standard_t(3, n)
-        assert _robust_sd(x) == float(median_abs_deviation(x, scale="normal"))
+    for n in (1, 2, 3, 4, 7, 8, 1000, 1001):
+        for x in (rng.standard_t(3, n), np.round(rng.normal(0.0, 1.0, n), 1)):  # ties too
+            assert _robust_sd(x) == float(median_abs_deviation(x, scale="normal"))
     assert _robust_sd(rng.normal(0.0, 2.0, 200_000)) == pytest.approx(2.0, rel=0.01)
+    with_nan = rng.normal(size=50)
+    with_nan[7] = np.nan
+    assert np.isnan(_robust_sd(with_nan))
+    assert np.isnan(_robust_sd(np.zeros(0)))
 

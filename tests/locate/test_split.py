@@ -326,3 +326,46 @@ def test_the_split_bar_stands_above_the_frames_typical_misfit():
     assert split_bar(crowded, settings) == settings.refine_max_model_error == 0.08
     off = CheckSettings(split_floor_ratio=0.0)
     assert split_bar(tight, off) == 0.05
+
+
+def _coincides_every_pair(pred, radius, other_pred, other_radius):
+    """:func:`_coincides` comparing every image with every other in every view."""
+    import warnings
+
+    from plenoptrack.locate.bodies import parallax_px
+
+    if len(other_pred) == 0:
+        return False
+    offset = pred[:, None] - other_pred[None]
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        dist = np.nanmedian(np.hypot(offset[..., 0], offset[..., 1]), axis=2)
+        same = dist < np.maximum(radius[:, None], other_radius[None])
+        merged = (dist < radius[:, None] + other_radius[None]) & (parallax_px(offset) < 1.0)
+    return bool(np.any(same | merged))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_coinciding_images_are_found_as_by_comparing_every_pair(seed):
+    from plenoptrack.locate._nearby import ImageSpans
+    from plenoptrack.locate.perspective import _coincides
+
+    rng = np.random.default_rng(seed)
+    n_views = 25
+    aperture = rng.uniform(-1.0, 1.0, (1, n_views, 1))
+    depth = rng.normal(0.0, 2.0, (300, 1, 1))
+    pred = rng.uniform(0.0, 80.0, (300, 1, 2)) + depth * aperture \
+        + rng.normal(0.0, 0.1, (300, n_views, 2))
+    pred[rng.random(300) < 0.05] = np.nan
+    radius = rng.uniform(0.5, 4.0, 300)
+    radius[rng.random(300) < 0.05] = np.nan
+    spans = ImageSpans(pred[20:])
+    answers = []
+    for q in range(20):
+        # itself slightly moved (coincides), or anywhere (mostly does not)
+        mine = pred[[q]] + rng.normal(0.0, 0.3, (1, 1, 2)) if q % 2 else pred[[q]] + 30.0
+        want = _coincides_every_pair(mine, radius[[q]], pred[20:], radius[20:])
+        assert _coincides(mine, radius[[q]], pred[20:], radius[20:]) == want
+        assert _coincides(mine, radius[[q]], pred[20:], radius[20:], spans) == want
+        answers.append(want)
+    assert 0 < sum(answers) < 20

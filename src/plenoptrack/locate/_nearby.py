@@ -6,6 +6,11 @@ every query point, the data points of its view within the query's own radius, in
 proportional to the number of points and of pairs found (not to their product), so that
 the steps of the locator that compare particles with centroids or with each other stay
 linear in the number of particles.
+
+:class:`ImageSpans` does the same for whole particles: from where each particle's
+images lie across the views (their mean position and the farthest any of them lies
+from it) it names the particles whose image can come within a distance of another's
+in some view, so that the exact test over every view runs only for those.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ import numpy as np
 
 from ._order import stable_argsort
 
-__all__ = ["pairs_within"]
+__all__ = ["pairs_within", "ImageSpans"]
 
 _SLACK = 1e-9            # relative widening of the search box; the exact test follows
 
@@ -161,3 +166,88 @@ def pairs_within(query_st: np.ndarray, query_view: np.ndarray, radius,
     dist = np.hypot(query_st[qi, 0] - data_st[di, 0], query_st[qi, 1] - data_st[di, 1])
     keep = dist <= radius[qi]
     return qi[keep], di[keep], dist[keep]
+
+
+class ImageSpans:
+    """Where each particle's images lie across the views, to rule out pairs of images
+    that cannot come near each other in any view.
+
+    Parameters
+    ----------
+    pred : (P, V, 2) float ndarray
+        Image centre ``(s, t)`` of every particle in every view, view pixels; NaN where
+        a particle has no image.
+
+    Notes
+    -----
+    A particle's ``centre`` is the mean of its image centres over the views where it has
+    one and its ``spread`` the farthest any of them lies from that mean. In a view where
+    both have an image, two particles' images are at least ``|centre_a - centre_b| -
+    spread_a - spread_b`` apart, so :meth:`near` names every particle whose image comes
+    within the distance asked of the query's in some view (and a few more): a test that
+    compares them view by view gives the same answer on those alone. A particle without
+    any image is near nothing.
+    """
+
+    def __init__(self, pred: np.ndarray) -> None:
+        pred = np.asarray(pred, dtype=np.float64)
+        self.centre, self.spread = _spans(pred)
+
+    def set_rows(self, rows, pred: np.ndarray) -> None:
+        """Take the images ``pred`` (len(rows), V, 2) of the particles ``rows``."""
+        self.centre[rows], self.spread[rows] = _spans(np.asarray(pred, dtype=np.float64))
+
+    def extended(self, pred: np.ndarray) -> "ImageSpans":
+        """These spans and those of the particles with images ``pred`` (n, V, 2) after
+        them."""
+        centre, spread = _spans(np.asarray(pred, dtype=np.float64))
+        out = self.subset(slice(None))
+        out.centre = np.concatenate([self.centre, centre])
+        out.spread = np.concatenate([self.spread, spread])
+        return out
+
+    def subset(self, rows) -> "ImageSpans":
+        """The spans of the particles ``rows`` (an index array or a boolean mask)."""
+        out = ImageSpans.__new__(ImageSpans)
+        out.centre, out.spread = self.centre[rows], self.spread[rows]
+        return out
+
+    def near(self, pred: np.ndarray, reach) -> np.ndarray:
+        """(P,) bool: the particles whose image may come within ``reach`` of one of the
+        images ``pred`` (k, V, 2) in some view.
+
+        ``reach`` (view pixels) is a scalar, one value per particle (P,), or one per
+        particle and image (k, P). Every particle whose image does is True; NaN reaches
+        none.
+        """
+        pred = np.asarray(pred, dtype=np.float64)
+        centre, spread = _spans(pred.reshape(-1, *pred.shape[-2:]))
+        gap = np.hypot(self.centre[None, :, 0] - centre[:, None, 0],
+                       self.centre[None, :, 1] - centre[:, None, 1])          # (k, P)
+        bound = np.asarray(reach, dtype=np.float64) + self.spread[None] + spread[:, None]
+        with np.errstate(invalid="ignore"):
+            # a little slack: the exact tests that follow decide the pairs
+            return np.any(gap <= bound * (1.0 + 1e-9) + 1e-9, axis=0)
+
+    def __len__(self) -> int:
+        return len(self.centre)
+
+
+def _spans(pred: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean image centre (n, 2) over the views with an image and the farthest image
+    from it (n,) of images ``pred`` (n, V, 2); NaN for a particle without any."""
+    centre = np.full((len(pred), 2), np.nan)
+    spread = np.full(len(pred), np.nan)
+    if pred.shape[1] == 0:
+        return centre, spread
+    whole = np.all(np.isfinite(pred), axis=(1, 2))
+    if whole.any():
+        centre[whole] = pred[whole].mean(axis=1)
+        spread[whole] = np.max(np.hypot(*(pred[whole] - centre[whole, None]).transpose(2, 0, 1)),
+                               axis=1)
+    part = np.flatnonzero(~whole & np.any(np.all(np.isfinite(pred), axis=2), axis=1))
+    for i in part:                                     # rare: images in some views only
+        seen = pred[i][np.all(np.isfinite(pred[i]), axis=1)]
+        centre[i] = seen.mean(axis=0)
+        spread[i] = np.max(np.hypot(*(seen - centre[i]).T))
+    return centre, spread

@@ -62,7 +62,7 @@ from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
 from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_duplicates,
                       _predict_all, _release_unclaimed, _trim_refit)
-from ._nearby import pairs_within
+from ._nearby import ImageSpans, pairs_within
 from ._order import unique_rows
 from ._regions import _region_shape, _single_image_area, _split_pairs
 from .bodies import merge_bodies, one_body_pairs, parallax_px
@@ -704,9 +704,10 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
            & np.all(np.isfinite(state2.positions), axis=1))
     radius2 = 0.5 * _member_diameter(found, state2.owner, state2.n_particles)
     pred2 = _predict_all(ctx.dlfc, state2.positions, views_uv)
+    live_spans = ImageSpans(pred[live])
     for q in np.flatnonzero(new):
         if not np.isfinite(radius2[q]) or _coincides(pred2[[q]], radius2[[q]], pred[live],
-                                                     radius[live]):
+                                                     radius[live], live_spans):
             new[q] = False
     # A particle found in the residual must explain the frame's own pixels: fitted to
     # them beside the located particles, it must be opaque enough and explain them
@@ -716,13 +717,16 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     fits = {}                                     # the fit that admitted each one
     held_pos, held_rc = state.positions[live], np.c_[radius[live], contrast[live]]
     held_pred, settings = pred[live], locator.check
+    held_spans = live_spans
     # best-seen first: a hidden particle cut into two regions by a located one's image
     # can be found twice, and the second is then held beside the first
     order = np.flatnonzero(new)[np.argsort(-state2.table["n_views"].to_numpy(float)[new],
                                            kind="stable")]
     for q in order:
-        gap = np.hypot(*(held_pred - pred2[q][None]).transpose(2, 0, 1))     # (L, V)
-        near = np.any(gap < (held_rc[:, 0] + radius2[q] + 4.0)[:, None], axis=1)
+        reach = held_rc[:, 0] + radius2[q] + 4.0
+        near = held_spans.near(pred2[q], reach)
+        gap = np.hypot(*(held_pred[near] - pred2[q][None]).transpose(2, 0, 1))   # (l, V)
+        near[near] = np.any(gap < reach[near, None], axis=1)
         start = np.array([[radius2[q], 0.9]])
         fit = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, positions2[[q]], start,
                          held_pos[near], held_rc[near],
@@ -739,16 +743,19 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         # (nothing tells those two from one elongated image), it was that particle's
         # image the model had not quite explained.
         fitted_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)
-        offset = fitted_pred - held_pred                                       # (L, V, 2)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)                   # all-NaN rows
-            dist = np.nanmedian(np.hypot(offset[..., 0], offset[..., 1]), axis=1)
         both = np.vstack([fit.params[:, :4], np.c_[held_pos, held_rc[:, 0]]])
         radius_mm = both[:, 3] / ctx.dlfc.local_magnification(*both[:, :3].T)
         inside = (np.linalg.norm(held_pos - fit.params[0, :3], axis=1)
                   < radius_mm[0] + radius_mm[1:])
-        merged = (dist < fit.params[0, 3] + held_rc[:, 0]) & (parallax_px(offset) < 1.0)
-        if np.any(inside | merged):
+        # merged images need their centres within the sum of the radii in some view
+        close = held_spans.near(fitted_pred, fit.params[0, 3] + held_rc[:, 0])
+        offset = fitted_pred - held_pred[close]                                # (l, V, 2)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)                   # all-NaN rows
+            dist = np.nanmedian(np.hypot(offset[..., 0], offset[..., 1]), axis=1)
+        merged = ((dist < fit.params[0, 3] + held_rc[close, 0])
+                  & (parallax_px(offset) < 1.0))
+        if np.any(inside) or np.any(merged):
             new[q] = False
             continue
         positions2[q] = fit.params[0, :3]
@@ -756,6 +763,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         held_pos = np.vstack([held_pos, fit.params[:, :3]])
         held_rc = np.vstack([held_rc, fit.params[:, 3:]])
         held_pred = np.concatenate([held_pred, fitted_pred])
+        held_spans = held_spans.extended(fitted_pred)
     if not new.any():
         return ctx, state, 0
     # their position, sigma and image are the fit's (REFINED), as a refined particle's
@@ -800,12 +808,15 @@ def _near_particles(ctx: FrameContext, state: ParticleState, rows: np.ndarray) -
     radius = np.nan_to_num(radius, nan=0.0)
     views_uv, _ = _fit_views(ctx)
     pred = _predict_all(ctx.dlfc, state.positions, views_uv)                  # (P, V, 2)
+    spans = ImageSpans(pred)
     out = np.zeros(n, dtype=bool)
     out[rows] = True
     for q in rows:
-        gap = np.hypot(*(pred - pred[q][None]).transpose(2, 0, 1))           # (P, V)
+        reach = radius + radius[q] + 4.0
+        close = np.flatnonzero(spans.near(pred[q], reach))
+        gap = np.hypot(*(pred[close] - pred[q][None]).transpose(2, 0, 1))    # (p, V)
         with np.errstate(invalid="ignore"):
-            out |= np.any(gap < (radius + radius[q] + 4.0)[:, None], axis=1)
+            out[close[np.any(gap < reach[close, None], axis=1)]] = True
     return out
 
 
@@ -916,15 +927,17 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
     parent, n_views = [], []           # of each appended particle
     pred = _predict_all(ctx.dlfc, pos, views_uv)     # kept current as particles change
+    spans = ImageSpans(pred)                         # and where their images lie
     group_error = []                   # (particle, model error of its split group)
 
     def neighbours(i, pred):
         """Particles whose images come within 4 view pixels of particle i's in a view."""
         live = np.all(np.isfinite(pos), axis=1) & np.isfinite(radius)
-        gap = np.hypot(*(pred - pred[i][None]).transpose(2, 0, 1))          # (P, V)
-        near = live & np.any(gap < (radius + radius[i] + 4.0)[:, None], axis=1)
-        near[i] = False
-        return np.flatnonzero(near)
+        reach = radius + radius[i] + 4.0
+        rows = np.flatnonzero(live & spans.near(pred[i], reach))
+        gap = np.hypot(*(pred[rows] - pred[i][None]).transpose(2, 0, 1))    # (p, V)
+        near = rows[np.any(gap < reach[rows, None], axis=1)]
+        return near[near != i]
 
     # the decision's fits use a sub-grid of the views; a split that passes is refitted
     trial = _view_subgrid(view_rc, settings.split_trial_stride)
@@ -956,7 +969,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         others = np.setdiff1d(np.flatnonzero(np.isfinite(radius)
                                              & np.all(np.isfinite(pos), axis=1)
                                              & ~merged_image), [m])
-        return not _coincides(group_pred, fit.params[:, 3], pred[others], radius[others])
+        return not _coincides(group_pred, fit.params[:, 3], pred[others], radius[others],
+                              spans.subset(others))
 
     def explains_more(fit, error) -> bool:
         """Whether one more image explains the pixels better than the model it splits:
@@ -1070,6 +1084,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         # The group's merged image also spoilt its neighbours' fits: refit those the
         # refinement could not explain, now beside the group.
         pred = _predict_all(ctx.dlfc, pos, views_uv)
+        spans = ImageSpans(pred)
         held_error = np.where(held < len(single_error),
                               single_error[np.minimum(held, len(single_error) - 1)], np.nan)
         for q in held[((flags[held] & unexplained) > 0) | (held_error > split_max)]:
@@ -1087,12 +1102,14 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 radius[q], contrast[q] = one.params[0, 3:]
                 flags[q] = (flags[q] & ~unexplained) | refined
                 pred[q] = _predict_all(ctx.dlfc, pos[[q]], views_uv)[0]
+                spans.set_rows([q], pred[[q]])
         # One that is still unexplained and one with an image of the group was a merged
         # image the group took apart: the group's image replaces it.
         rows = np.r_[m, np.arange(len(pos) - (k - 1), len(pos))]     # the group's
         for q in held[(flags[held] & unexplained) > 0]:
             if _coincides(pred[rows], radius[rows], pred[[q]], radius[[q]]):
                 pos[q] = radius[q] = pred[q] = np.nan
+                spans.set_rows([q], pred[[q]])
     # A particle never fitted before, whose one-image fit here left its pixels
     # unexplained and which no split took apart, is unexplained like those the
     # refinement could not explain (flagged only now: the tests above decided on the
@@ -1176,15 +1193,23 @@ def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray) -> np.ndarr
 
 
 def _coincides(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
-               other_radius: np.ndarray) -> bool:
+               other_radius: np.ndarray, other_spans: ImageSpans | None = None) -> bool:
     """Whether any of the images ``pred`` (k, V, 2) of radius ``radius`` (k,) is one with
     an image of ``other_pred`` (P, V, 2): centres closer than the larger radius (median
     over the views; the same particle found twice), or overlapping images that keep their
     offset across the views (parallax below one view pixel,
     :func:`~plenoptrack.locate.bodies.parallax_px`): nothing then tells them from one
-    elongated image."""
+    elongated image. ``other_spans`` (:class:`~plenoptrack.locate._nearby.ImageSpans` of
+    ``other_pred``, computed when not given) rules out the images that never come within
+    the sum of the radii, which both tests need."""
     if len(other_pred) == 0:
         return False
+    spans = ImageSpans(other_pred) if other_spans is None else other_spans
+    with np.errstate(invalid="ignore"):
+        close = np.flatnonzero(spans.near(pred, radius[:, None] + other_radius[None]))
+    if len(close) == 0:
+        return False
+    other_pred, other_radius = other_pred[close], other_radius[close]
     offset = pred[:, None] - other_pred[None]                             # (k, P, V, 2)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)                   # all-NaN rows

@@ -272,7 +272,22 @@ def _robust_sd(values: np.ndarray) -> float:
     """``median(|x - median(x)|) / 0.6745`` of a 1-D array: the standard deviation of a
     normal sample, robust to outliers (scipy's ``median_abs_deviation(x, scale="normal")``
     without its per-call overhead, which is most of the cost on patch-sized arrays)."""
-    return float(np.median(np.abs(values - np.median(values))) / _NORMAL_MAD)
+    values = np.asarray(values, dtype=np.float64)
+    return float(_median(np.abs(values - _median(values))) / _NORMAL_MAD)
+
+
+def _median(values: np.ndarray) -> float:
+    """:func:`numpy.median` of a 1-D array with one partition: the same order statistics
+    (the lower middle of an even count is the largest of the half below), at a fraction
+    of the cost of ``np.median``'s two-point partition. NaN if any value is."""
+    n = values.size
+    half = n // 2
+    if n == 0 or np.isnan(values).any():
+        return math.nan
+    part = np.partition(values, half)
+    if n % 2:
+        return float(part[half])
+    return float((part[:half].max() + part[half]) / 2.0)
 
 
 _NOISE_SAMPLES = 8192
