@@ -1,7 +1,10 @@
 """The locator steps as they were before they were made linear in the number of
 particles (copied unchanged): the steps that compare every particle with every other
 particle, every centroid or every k-means centre, and the triangulation that re-tests
-every centroid in every outlier-rejection round.
+every centroid in every outlier-rejection round. :class:`ImageSpans` rules out no
+particle, so that the split and hidden-particle checks compare every particle's images
+with every other's in every view, as they did; :func:`_robust_sd` takes
+:func:`numpy.median` twice, as it did.
 
 They are the independent reference of ``test_perspective_steps.py``,
 ``test_cluster.py`` and ``test_triangulate.py`` and the baseline of
@@ -449,3 +452,37 @@ def _outliers(err, model, keep, n_k, reject_k, min_views, min_threshold_px) -> n
     out = np.zeros(len(err), dtype=bool)
     out[cand[rank < allowed[cl]]] = True
     return out
+
+
+class ImageSpans:
+    """:class:`plenoptrack.locate._nearby.ImageSpans` that rules out nothing: every
+    particle is near every image, so its callers compare every view of every pair."""
+
+    def __init__(self, pred):
+        self.n = len(pred)
+
+    def set_rows(self, rows, pred):
+        pass
+
+    def extended(self, pred):
+        out = ImageSpans(())
+        out.n = self.n + len(pred)
+        return out
+
+    def subset(self, rows):
+        out = ImageSpans(())
+        out.n = len(np.arange(self.n)[rows])
+        return out
+
+    def near(self, pred, reach):
+        return np.ones(self.n, dtype=bool)
+
+    def __len__(self):
+        return self.n
+
+
+def _robust_sd(values: np.ndarray) -> float:
+    """``median(|x - median(x)|) / 0.6745`` of a 1-D array: the standard deviation of a
+    normal sample, robust to outliers (scipy's ``median_abs_deviation(x, scale="normal")``
+    without its per-call overhead, which is most of the cost on patch-sized arrays)."""
+    return float(np.median(np.abs(values - np.median(values))) / 0.6744897501960817)
