@@ -169,7 +169,7 @@ def _previous_steps(previous):
 
     swaps = [(perspective, name) for name in ("_add_centroids", "_merge_duplicates",
                                               "_release_unclaimed",
-                                              "_explained_by_others", "_trim_refit",
+                                              "_explained_away", "_trim_refit",
                                               "ImageSpans")]
     swaps += [(refine, "_robust_sd")]
     swaps += [(cluster, name) for name in ("_lloyd", "_kmeanspp_topup")]

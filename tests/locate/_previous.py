@@ -1,7 +1,8 @@
 """The locator steps as they were before they were made linear in the number of
 particles (copied unchanged): the steps that compare every particle with every other
-particle, every centroid or every k-means centre, and the triangulation that re-tests
-every centroid in every outlier-rejection round. :class:`ImageSpans` rules out no
+particle, every centroid or every k-means centre (the check for particles made of
+merged images recomputing every fraction over all pairs after each particle it drops),
+and the triangulation that re-tests every centroid in every outlier-rejection round. :class:`ImageSpans` rules out no
 particle, so that the split and hidden-particle checks compare every particle's images
 with every other's in every view, as they did; :func:`_robust_sd` takes
 :func:`numpy.median` twice, as it did.
@@ -190,6 +191,21 @@ def _explained_by_others(pred: np.ndarray, st: np.ndarray, view: np.ndarray,
     counts = np.bincount(own, minlength=n_p)
     frac = np.bincount(own, hit.astype(float), minlength=n_p) / np.maximum(counts, 1)
     return frac
+
+def _explained_away(pred, st, view, owner, radius_px, ok, judged, limit, strength):
+    """Particles explained away (:func:`plenoptrack.locate._assign._explained_away`),
+    every fraction computed again over all pairs after each particle that goes."""
+    out = np.zeros(len(pred), dtype=bool)
+    explains = np.asarray(ok, dtype=bool).copy()
+    while True:
+        frac = _explained_by_others(pred, st, view, owner, radius_px, explains)
+        over = np.flatnonzero(judged & ~out & (frac > limit))
+        if len(over) == 0:
+            return out
+        weakest = over[np.lexsort((over, strength[over]))[0]]
+        out[weakest] = True
+        explains[weakest] = False
+
 
 def _trim_refit(dlfc, st, view, views, owner, positions, particles, min_views: int,
                 tolerance_px: float):

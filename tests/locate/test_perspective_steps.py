@@ -91,15 +91,66 @@ def test_merge_duplicates_matches_all_pairs():
     assert changed > 30
 
 
-def test_explained_by_others_matches_all_pairs():
-    hits = 0
+def _explained_at_once(a, explainers, limit):
+    """The particles over ``limit`` with every particle of ``explainers`` explaining."""
+    frac = previous._explained_by_others(a["pred"], a["st"], a["view"], a["owner"],
+                                         a["radius"], explainers)
+    return a["ok"] & (frac > limit)
+
+
+def test_particles_explained_away_are_judged_weakest_first():
+    differs = 0
     for seed in SEEDS:
         a = _state(seed)
-        args = (a["pred"], a["st"], a["view"], a["owner"], a["radius"], a["ok"])
-        want = previous._explained_by_others(*args)
-        assert np.array_equal(_assign._explained_by_others(*args), want), seed
-        hits += int(np.any(want > 0))
-    assert hits > 30
+        limit = np.random.default_rng(seed).choice([0.0, 0.3, 0.5, 0.85], len(a["ok"]))
+        judged = a["ok"]
+        explainers = judged & (np.random.default_rng(seed + 1).random(len(judged)) < 0.9)
+        got = _assign._explained_away(a["pred"], a["st"], a["view"], a["owner"], a["radius"],
+                                      explainers, judged, limit, a["n_views"])
+        want = previous._explained_away(a["pred"], a["st"], a["view"], a["owner"],
+                                        a["radius"], explainers, judged, limit, a["n_views"])
+        assert np.array_equal(got, want), seed
+        at_once = _explained_at_once(a, explainers, limit)
+        # every particle explained away is explained with all the others explaining
+        assert not np.any(got & ~at_once), seed
+        # and without the ones explained away, no other one is
+        assert not np.any(_explained_at_once(a, explainers & ~got, limit) & ~got), seed
+        differs += int(np.any(got != at_once))
+    assert differs > 0
+
+
+def test_a_particle_is_not_explained_away_by_weaker_particles_it_explains():
+    """One real particle (30 views) and two ghosts on its line of sight (10 views each):
+    in every view of the ghosts, the other two are predicted on their centroid, and in
+    every view of the real one the ghosts are predicted on its. Judged at once, all
+    three go. Weakest first, the first ghost goes; without it neither the second ghost
+    nor the real particle lies between two others, and both stay (the next grow and
+    solve decide on the ghost). A ghost between two real particles goes as before."""
+    n_v = 30
+    pred = np.zeros((5, n_v, 2))
+    pred[:, :, 0] = np.arange(n_v)[None] * 10.0           # one image per view
+    pred[1, :, 1] = pred[2, :, 1] = 0.3                    # the ghosts, on the real one
+    pred[3, :, 1], pred[4, :, 1] = 50.0, 53.0              # two real ones, and a ghost
+    views = np.arange(n_v)
+    owner_real = np.zeros(n_v, dtype=np.int64)
+    st = [pred[0], pred[1, :10], pred[2, 10:20], pred[3], pred[4]]
+    view = [views, views[:10], views[10:20], views, views]
+    owner = [owner_real, np.full(10, 1), np.full(10, 2), np.full(n_v, 3), np.full(n_v, 4)]
+    # a ghost of 3 and 4 between them, in 12 views
+    ghost = np.c_[pred[3, :12, 0], np.full(12, 51.5)]
+    pred = np.concatenate([pred, np.c_[pred[3, :, 0], np.full(n_v, 51.5)][None]])
+    st, view = np.vstack(st + [ghost]), np.concatenate(view + [views[:12]])
+    owner = np.concatenate(owner + [np.full(12, 5)])
+    radius = np.where(owner == 5, 1.6, 1.0)               # the ghost's regions are larger
+    ok = np.ones(6, dtype=bool)
+    n_views = np.bincount(owner, minlength=6)
+    limit = np.full(6, 0.5)
+    at_once = previous._explained_by_others(pred, st, view, owner, radius, ok) > limit
+    assert at_once.tolist() == [True, True, True, False, False, True]
+    got = _assign._explained_away(pred, st, view, owner, radius, ok, ok, limit, n_views)
+    assert got.tolist() == [False, True, False, False, False, True]
+    want = previous._explained_away(pred, st, view, owner, radius, ok, ok, limit, n_views)
+    assert np.array_equal(got, want)
 
 
 class _ShiftModel:
@@ -189,7 +240,7 @@ def test_trim_refit_matches_per_particle_scan():
 
 def _use_previous_steps(monkeypatch):
     for name in ("_add_centroids", "_merge_duplicates", "_release_unclaimed",
-                 "_explained_by_others", "_trim_refit"):
+                 "_explained_away", "_trim_refit"):
         monkeypatch.setattr(perspective, name, getattr(previous, name))
     for name in ("_lloyd", "_kmeanspp_topup"):
         monkeypatch.setattr(cluster, name, getattr(previous, name))

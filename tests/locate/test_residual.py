@@ -82,7 +82,10 @@ def mixed_scenes(small_calibrated):
 
 def test_the_second_search_finds_hidden_particles(mixed_scenes):
     """Each frame: more true particles found, each new one a true particle (matched, and
-    no more unmatched particles than without the search beyond one per frame)."""
+    no more unmatched particles than without the search beyond one per frame); at least
+    9 more over both frames. (Frame 12 gained 3 until the merged-image check judged
+    particles weakest first: the first search now finds 2 of them, and both searches
+    together the same 41.)"""
     calib, scenes = mixed_scenes
     on = PerspectiveLocator.from_dict({"check": {"find_hidden": True}})
     off = PerspectiveLocator.from_dict({"check": {"find_hidden": False}})
@@ -93,10 +96,10 @@ def test_the_second_search_finds_hidden_particles(mixed_scenes):
             found = locate_frame(raw, calib, locator=locator).particles
             matched = len(match_particles(found, truth, tolerance_mm=1.0))
             counts[name] = (matched, len(found) - matched)
-        assert counts["on"][0] >= counts["off"][0] + 2
+        assert counts["on"][0] >= counts["off"][0] + 1
         assert counts["on"][1] <= counts["off"][1] + 1
         gained += counts["on"][0] - counts["off"][0]
-    assert gained >= 6
+    assert gained >= 9
 
 
 def test_hidden_search_settings_are_checked():

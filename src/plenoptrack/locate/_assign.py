@@ -255,31 +255,56 @@ def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round
     return owner
 
 
-def _explained_by_others(pred: np.ndarray, st: np.ndarray, view: np.ndarray,
-                         owner: np.ndarray, radius_px: np.ndarray, ok: np.ndarray
-                         ) -> np.ndarray:
-    """Fraction of each particle's centroids that two other particles' predictions fall on.
+def _explained_away(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: np.ndarray,
+                    radius_px: np.ndarray, ok: np.ndarray, judged: np.ndarray,
+                    limit: np.ndarray, strength: np.ndarray) -> np.ndarray:
+    """(P,) bool: the particles made of merged images of others, weakest first.
 
-    A region where the images of two particles merge has its centroid between them; a
-    spurious particle built from such regions has both neighbours predicted inside
-    (within ``radius_px``, the region radius) of nearly all its centroids. Only the
-    particles marked ``ok`` count as neighbours; with fewer than three every fraction
-    is 0.
+    A particle is explained away when, in more than ``limit`` (P,) of its views, two
+    other particles are predicted inside its region (within ``radius_px`` of its
+    centroid): a region where two particles' images merge has its centroid between them,
+    and a spurious particle built from such regions has both neighbours predicted on
+    nearly all its centroids. Only the particles ``ok`` explain others (none while fewer
+    than three do), and only those ``judged`` are judged. Several
+    particles on nearly one line of sight can each lie between two of the others: one
+    real particle and the ghosts built from what is left of its merged image all
+    explain each other, and judged together all of them go. So they are judged one at
+    a time, the one with the least ``strength`` (its number of views) first: a particle
+    explained away no longer explains the others, and the rest are judged again without
+    it.
     """
     n_p, n_v = pred.shape[:2]
-    frac = np.zeros(n_p)
+    out = np.zeros(n_p, dtype=bool)
     idx = np.flatnonzero(ok)
     if len(idx) < 3:
-        return frac
+        return out
     mine = np.flatnonzero(owner >= 0)
     own = owner[mine]
     q, d, _ = pairs_within(st[mine], view[mine], radius_px[mine], pred[idx].reshape(-1, 2),
                            np.tile(np.arange(n_v), len(idx)))
-    other = idx[d // n_v] != own[q]
-    hit = np.bincount(q[other], minlength=len(mine)) >= 2
-    counts = np.bincount(own, minlength=n_p)
-    frac = np.bincount(own, hit.astype(float), minlength=n_p) / np.maximum(counts, 1)
-    return frac
+    by = idx[d // n_v]
+    other = by != own[q]
+    q, by = q[other], by[other]
+    hits = np.bincount(q, minlength=len(mine))            # others predicted on each centroid
+    counts = np.maximum(np.bincount(own, minlength=n_p), 1)
+    n_hit = np.bincount(own, (hits >= 2).astype(float), minlength=n_p)
+    explains = ok.copy()
+    order = np.argsort(by, kind="stable")                   # each explainer's centroids
+    start = np.searchsorted(by[order], np.arange(n_p + 1))
+    while np.count_nonzero(explains) >= 3:
+        over = np.flatnonzero(judged & ~out & (n_hit / counts > limit))
+        if len(over) == 0:
+            return out
+        weakest = over[np.lexsort((over, strength[over]))[0]]
+        out[weakest] = True
+        if not explains[weakest]:
+            continue
+        explains[weakest] = False
+        cents = q[order[start[weakest]:start[weakest + 1]]]
+        lost = cents[hits[cents] == 2]                      # they fall below two others
+        hits[cents] -= 1
+        np.subtract.at(n_hit, own[lost], 1.0)
+    return out
 
 
 def _trim_refit(dlfc, st, view, views, owner, positions, particles, min_views: int,

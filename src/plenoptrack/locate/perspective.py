@@ -60,7 +60,7 @@ from .._columns import POS_COLUMNS, SIGMA_COLUMNS, T_COLUMN
 from ..errors import CrowdedFrameWarning, NoParticlesWarning
 from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
-from ._assign import (_MERGED, _add_centroids, _explained_by_others, _merge_duplicates,
+from ._assign import (_MERGED, _add_centroids, _explained_away, _merge_duplicates,
                       _predict_all, _release_unclaimed, _trim_refit)
 from ._nearby import ImageSpans, pairs_within
 from ._order import unique_rows
@@ -1403,7 +1403,9 @@ def _inconsistent(ctx: FrameContext, state: ParticleState, settings: CheckSettin
     exceeds ``max_residual_ratio`` times the median over all particles (and
     ``tolerance_px``); or when, in more than ``max_explained`` of its views, two other
     particles are predicted on its centroid (a particle made of merged images of two
-    others). Particles seen in at least a quarter of the valid views whose only fault is
+    others), judged from the particle seen in the fewest views up, each one dropped no
+    longer counting for the rest (:func:`~plenoptrack.locate._assign._explained_away`).
+    Particles seen in at least a quarter of the valid views whose only fault is
     the residual are to be refitted.
     """
     positions, table, owner, view, views = (state.positions, state.table, state.owner,
@@ -1429,9 +1431,10 @@ def _inconsistent(ctx: FrameContext, state: ParticleState, settings: CheckSettin
     typical = np.nanmedian(res[ok]) if ok.any() else np.nan
     res_bad = ok & (res > max(settings.max_residual_ratio * typical, tolerance_px))
     pred = _predict_all(ctx.dlfc, positions, views)
-    frac = _explained_by_others(pred, ctx.st, view, owner, ctx.radius_px, ok & ~bad & ~res_bad)
     strong = n_v >= 0.25 * lf.view_mask.sum()
-    bad |= ok & (frac > np.where(strong, settings.max_explained_strong, settings.max_explained))
+    bad |= _explained_away(pred, ctx.st, view, owner, ctx.radius_px, ok & ~bad & ~res_bad, ok,
+                           np.where(strong, settings.max_explained_strong,
+                                    settings.max_explained), n_v)
     return bad | res_bad, res_bad & ~bad & strong
 
 

@@ -333,7 +333,9 @@ class CheckSettings:
         views) are dropped: their depth rests on a narrow baseline.
     max_explained : float
         Particles for which, in more than this fraction of their views, two other
-        particles are predicted on the centroid are dropped (built from merged images).
+        particles are predicted on the centroid are dropped (built from merged images),
+        those seen in the fewest views first: a particle dropped no longer counts for
+        the others.
     max_explained_strong : float
         The same limit for particles seen in at least a quarter of the valid views. A
         phantom made of merged images exists only in the views where the images merge
