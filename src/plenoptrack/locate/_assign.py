@@ -265,13 +265,15 @@ def _explained_away(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner: n
     centroid): a region where two particles' images merge has its centroid between them,
     and a spurious particle built from such regions has both neighbours predicted on
     nearly all its centroids. Only the particles ``ok`` explain others (none while fewer
-    than three do), and only those ``judged`` are judged. Several
-    particles on nearly one line of sight can each lie between two of the others: one
-    real particle and the ghosts built from what is left of its merged image all
-    explain each other, and judged together all of them go. So they are judged one at
-    a time, the one with the least ``strength`` (its number of views) first: a particle
-    explained away no longer explains the others, and the rest are judged again without
-    it.
+    than three do), and only those ``judged`` are judged.
+
+    Several particles on nearly one line of sight can each lie between two of the
+    others: one real particle and the ghosts built from what is left of its merged
+    image all explain each other, and judged together all of them go. So they are
+    judged one at a time, the one with the least ``strength`` (its number of views)
+    first: a particle explained away no longer explains the others, and the rest are
+    judged again without it (the counts of the centroids it explained updated, not
+    recomputed).
     """
     n_p, n_v = pred.shape[:2]
     out = np.zeros(n_p, dtype=bool)
