@@ -103,6 +103,8 @@ def test_image_spans_name_every_particle_whose_image_comes_near(seed):
             near = spans.near(pred_q, reach)
             exact = _meet(pred_q, pred, reach)
             assert not np.any(exact & ~near)           # nothing that meets is ruled out
+            np.testing.assert_array_equal(spans.meet(pred, pred[q], reach[0]),
+                                          _meet(pred[q:q + 1], pred, reach[0]))
             n_ruled_out += int(np.sum(~near))
     assert n_ruled_out > 0.5 * 29 * 2 * 200            # and most that do not are
 

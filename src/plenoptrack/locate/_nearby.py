@@ -193,6 +193,12 @@ class ImageSpans:
         pred = np.asarray(pred, dtype=np.float64)
         self.centre, self.spread = _spans(pred)
 
+    @classmethod
+    def _of(cls, centre: np.ndarray, spread: np.ndarray) -> "ImageSpans":
+        out = cls.__new__(cls)
+        out.centre, out.spread = centre, spread
+        return out
+
     def set_rows(self, rows, pred: np.ndarray) -> None:
         """Take the images ``pred`` (len(rows), V, 2) of the particles ``rows``."""
         self.centre[rows], self.spread[rows] = _spans(np.asarray(pred, dtype=np.float64))
@@ -201,16 +207,12 @@ class ImageSpans:
         """These spans and those of the particles with images ``pred`` (n, V, 2) after
         them."""
         centre, spread = _spans(np.asarray(pred, dtype=np.float64))
-        out = self.subset(slice(None))
-        out.centre = np.concatenate([self.centre, centre])
-        out.spread = np.concatenate([self.spread, spread])
-        return out
+        return ImageSpans._of(np.concatenate([self.centre, centre]),
+                              np.concatenate([self.spread, spread]))
 
     def subset(self, rows) -> "ImageSpans":
         """The spans of the particles ``rows`` (an index array or a boolean mask)."""
-        out = ImageSpans.__new__(ImageSpans)
-        out.centre, out.spread = self.centre[rows], self.spread[rows]
-        return out
+        return ImageSpans._of(self.centre[rows], self.spread[rows])
 
     def near(self, pred: np.ndarray, reach) -> np.ndarray:
         """(P,) bool: the particles whose image may come within ``reach`` of one of the
@@ -228,6 +230,19 @@ class ImageSpans:
         with np.errstate(invalid="ignore"):
             # a little slack: the exact tests that follow decide the pairs
             return np.any(gap <= bound * (1.0 + 1e-9) + 1e-9, axis=0)
+
+    def meet(self, pred: np.ndarray, image: np.ndarray, reach) -> np.ndarray:
+        """(P,) bool: the particles whose image comes closer than ``reach`` (scalar or
+        (P,), view pixels) to ``image`` (V, 2) in some view, ``pred`` (P, V, 2) being
+        the images these spans were taken of; decided view by view for the particles
+        :meth:`near` does not rule out."""
+        reach = np.broadcast_to(np.asarray(reach, dtype=np.float64), (len(self),))
+        out = self.near(image, reach)
+        rows = np.flatnonzero(out)
+        gap = np.hypot(*(pred[rows] - np.asarray(image)[None]).transpose(2, 0, 1))   # (p, V)
+        with np.errstate(invalid="ignore"):
+            out[rows] = np.any(gap < reach[rows, None], axis=1)
+        return out
 
     def __len__(self) -> int:
         return len(self.centre)

@@ -723,10 +723,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     order = np.flatnonzero(new)[np.argsort(-state2.table["n_views"].to_numpy(float)[new],
                                            kind="stable")]
     for q in order:
-        reach = held_rc[:, 0] + radius2[q] + 4.0
-        near = held_spans.near(pred2[q], reach)
-        gap = np.hypot(*(held_pred[near] - pred2[q][None]).transpose(2, 0, 1))   # (l, V)
-        near[near] = np.any(gap < reach[near, None], axis=1)
+        near = held_spans.meet(held_pred, pred2[q], held_rc[:, 0] + radius2[q] + 4.0)
         start = np.array([[radius2[q], 0.9]])
         fit = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, positions2[[q]], start,
                          held_pos[near], held_rc[near],
@@ -812,11 +809,7 @@ def _near_particles(ctx: FrameContext, state: ParticleState, rows: np.ndarray) -
     out = np.zeros(n, dtype=bool)
     out[rows] = True
     for q in rows:
-        reach = radius + radius[q] + 4.0
-        close = np.flatnonzero(spans.near(pred[q], reach))
-        gap = np.hypot(*(pred[close] - pred[q][None]).transpose(2, 0, 1))    # (p, V)
-        with np.errstate(invalid="ignore"):
-            out[close[np.any(gap < reach[close, None], axis=1)]] = True
+        out |= spans.meet(pred, pred[q], radius + radius[q] + 4.0)
     return out
 
 
@@ -933,11 +926,9 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     def neighbours(i, pred):
         """Particles whose images come within 4 view pixels of particle i's in a view."""
         live = np.all(np.isfinite(pos), axis=1) & np.isfinite(radius)
-        reach = radius + radius[i] + 4.0
-        rows = np.flatnonzero(live & spans.near(pred[i], reach))
-        gap = np.hypot(*(pred[rows] - pred[i][None]).transpose(2, 0, 1))    # (p, V)
-        near = rows[np.any(gap < reach[rows, None], axis=1)]
-        return near[near != i]
+        near = live & spans.meet(pred, pred[i], radius + radius[i] + 4.0)
+        near[i] = False
+        return np.flatnonzero(near)
 
     # the decision's fits use a sub-grid of the views; a split that passes is refitted
     trial = _view_subgrid(view_rc, settings.split_trial_stride)
