@@ -328,6 +328,33 @@ def test_the_split_bar_stands_above_the_frames_typical_misfit():
     assert split_bar(tight, off) == 0.05
 
 
+def test_the_split_gain_bar_is_what_sets_a_candidate_apart_from_a_typical_image():
+    """A split must lower the mean-square model error by the bar squared less the
+    frame's typical (median) fit error squared: the hall2019-like frame (median 0.05,
+    bar 0.06) asks 0.06**2 - 0.05**2; with the fixed bar alone the full bar squared.
+    Checked against values computed by hand, and never negative, whatever the ratio."""
+    from plenoptrack.locate.perspective import split_bar, split_gain_bar
+    from plenoptrack.locate.settings import CheckSettings
+
+    settings = CheckSettings()
+    tight = np.r_[np.full(9, 0.05), 0.2, np.nan]          # median 0.05, bar 0.06
+    assert split_gain_bar(tight, settings) == pytest.approx(0.06 ** 2 - 0.05 ** 2)
+    # the small camera: the fixed bar 0.05 stands above 1.2 x the median 0.04
+    small = np.r_[np.full(7, 0.04), 0.03, 0.09]
+    assert split_gain_bar(small, settings) == pytest.approx(0.05 ** 2 - 0.04 ** 2)
+    # every fit poor: the bar is capped at the refinement's, the typical error at
+    # bar / ratio, so the gain stays what a candidate at the floor would need
+    crowded = np.full(5, 0.1)
+    assert split_gain_bar(crowded, settings) == pytest.approx(0.08 ** 2 * (1 - 1 / 1.2 ** 2))
+    assert split_gain_bar(np.array([]), settings) == pytest.approx(0.05 ** 2)
+    off = CheckSettings(split_floor_ratio=0.0)
+    assert split_gain_bar(tight, off) == split_bar(tight, off) ** 2 == pytest.approx(0.0025)
+    for ratio in (0.5, 1.0, 1.2, 3.0):
+        loose = CheckSettings(split_floor_ratio=ratio)
+        for errors in (tight, small, crowded, np.full(3, 0.07)):
+            assert 0.0 <= split_gain_bar(errors, loose) <= split_bar(errors, loose) ** 2
+
+
 def _coincides_every_pair(pred, radius, other_pred, other_radius):
     """:func:`_coincides` comparing every image with every other in every view."""
     import warnings

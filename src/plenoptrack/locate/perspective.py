@@ -867,8 +867,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
     (model error at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
     pair's own pixels, a mean-square residual lower than the single image's by at least
-    ``settings.split_max_model_error**2``: images of particles never located add to
-    both alike, and cancel in the difference but not in the ratio), their
+    :func:`split_gain_bar`: images of particles never located add to both alike, and
+    cancel in the difference but not in the ratio), their
     images move apart across the views by at least one view pixel and either stand apart
     by the smaller radius in some view or are two bodies apart in space
     (:func:`_apart_in_space`; only parallax tells two particles from one elongated
@@ -904,6 +904,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     unexplained, refined = int(TriangulationFlag.UNEXPLAINED), int(TriangulationFlag.REFINED)
     never_fitted = ((flags & (unexplained | refined)) == 0) & ~np.isfinite(single_error)
     split_max = split_bar(single_error, settings)
+    gain_bar = split_gain_bar(single_error, settings)
     candidates = np.flatnonzero(((np.isfinite(single_error) & (single_error > split_max))
                                  | never_fitted)
                                 & ((flags & int(TriangulationFlag.SPLIT)) == 0)
@@ -967,12 +968,12 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         """Whether one more image explains the pixels better than the model it splits:
         ``split_min_gain`` times better than ``error``, or, on the fit's own pixels
         against that model (``fit.reference_error``), by a mean square of at least
-        ``split_max_model_error**2``. Images of particles never located add to both
-        costs alike: they cancel in the difference, not in the ratio."""
+        :func:`split_gain_bar`. Images of particles never located add to both costs
+        alike: they cancel in the difference, not in the ratio."""
         if fit.model_error * settings.split_min_gain <= error:
             return True
         gained = fit.reference_error ** 2 - fit.model_error ** 2
-        return bool(gained >= split_max ** 2)
+        return bool(gained >= gain_bar)
 
     def best_replacement(m, held, held_rc, start, error, reference, n):
         """The best fit on the trial views of ``start`` (k, 5) with one image replaced
@@ -1153,6 +1154,33 @@ def split_bar(fit_error: np.ndarray, settings: CheckSettings) -> float:
     floor = float(np.median(fitted)) if len(fitted) else 0.0
     bar = max(settings.split_max_model_error, settings.split_floor_ratio * floor)
     return min(bar, max(settings.refine_max_model_error, settings.split_max_model_error))
+
+
+def split_gain_bar(fit_error: np.ndarray, settings: CheckSettings) -> float:
+    """The fall in mean-square model error (fraction of the background, squared) by
+    which more images must explain a split candidate's own pixels better than the model
+    they split, unless they pass the ratio ``settings.split_min_gain``: what sets a
+    candidate apart from the frame's typical explained image, ``bar**2 - typical**2``,
+    with ``bar`` :func:`split_bar` and ``typical`` the frame's median image-fit model
+    error (NaN entries left out), at most ``bar / max(split_floor_ratio, 1)``. With
+    ``settings.split_floor_ratio`` 0 (the fixed bar alone) it is ``bar**2``.
+
+    A pair whose images merge in every view, fitted as one disc, leaves a little more
+    than the bar unexplained; fitted as two, about as little as a typical image. Asking
+    the pair to remove ``bar**2`` itself asked it to explain more than ever set the
+    particle apart: on hall2019 (1000 particles of 0.5 mm, ideal optics, median model
+    error 0.050, bar 0.060) a pair 0.16 mm apart laterally and 1.5 mm in depth was
+    fitted within 0.07 mm of both particles (model error 0.065 to 0.045 on its pixels)
+    and rejected, and the locator reported one particle midway between them, 0.7 mm
+    off, with sigma_z 0.06 mm."""
+    bar = split_bar(fit_error, settings)
+    if settings.split_floor_ratio == 0:
+        return bar ** 2
+    fitted = np.asarray(fit_error, dtype=float)
+    fitted = fitted[np.isfinite(fitted)]
+    typical = min(float(np.median(fitted)) if len(fitted) else 0.0,
+                  bar / max(settings.split_floor_ratio, 1.0))
+    return bar ** 2 - typical ** 2
 
 
 def _view_subgrid(view_rc: np.ndarray, stride: int, *, min_views: int = 12) -> np.ndarray:

@@ -370,8 +370,11 @@ class CheckSettings:
     split_max_model_error : float
         A particle is tried as two when its last image fit leaves more than this RMS
         fraction of the local background unexplained (beyond the pixel noise); the two
-        must explain the pixels better by this much squared in mean square (or by
-        ``split_min_gain``), and while a split group leaves more than this unexplained
+        must explain the pixels better in mean square by the square of the split bar
+        (this, or the next setting's floor) less the square of the frame's median fit
+        error (what sets a candidate apart from a
+        typical image; :func:`~plenoptrack.locate.perspective.split_gain_bar`), or by
+        ``split_min_gain``, and while a split group leaves more than this unexplained
         a third image is tried. Lower than ``refine_max_model_error``: one disc fitted
         to two images that merge in every view can come close to explaining them. Chosen
         on the development seeds; on the accuracy matrix (0.05 against 0.08, the
@@ -385,7 +388,8 @@ class CheckSettings:
         are differs between cameras (about 0.04 on the ``small`` camera, realistic
         optics; 0.05 on hall2019, where 386 of 1000 particles of 0.5 mm fitted in
         (0.05, 0.08] and trying them all as splits cost 3.6 s for one more particle
-        found); never above ``refine_max_model_error``. 0: the fixed bar alone.
+        found); never above ``refine_max_model_error``. 0: the fixed bar alone, and a
+        split must lower the mean-square model error by its full square.
     split_min_contrast : float
         ... kept only when both fitted images block at least this fraction of the
         background light at their centre (an opaque particle's image: about 1; a disc
@@ -413,7 +417,7 @@ class CheckSettings:
         until that neighbour is taken away. A particle found there is kept only when,
         fitted to the frame's own pixels beside the located particles, it is opaque
         enough (``split_min_contrast``) and explains them better by
-        ``refine_max_model_error**2`` in mean square, as a split must; the frame is then
+        ``refine_max_model_error**2`` in mean square; the frame is then
         refined and split again. It runs only in frames where a located particle's fit
         leaves more than ``refine_max_model_error`` unexplained. On the accuracy
         matrix's validation cells it adds +0.45 recall and +0.16 precision summed over
