@@ -367,6 +367,7 @@ def calibrate_cmd(
     out_file: Path = typer.Option(Path("calib.json"), "--out", "-o", help="Calibration file to write."),
     order: int = typer.Option(4, "--order", min=1, max=6, help="DLFC total polynomial order (1-6)."),
     check_depths: bool = typer.Option(True, "--check-depths/--no-check-depths", help="Check the card depths of dotcards.toml against the depths the dots' parallax shows (refuse a wrong sign or unit, warn about single cards)."),
+    card_tilt: bool = typer.Option(True, "--card-tilt/--no-card-tilt", help="Measure each card's tilt on its mount from its dots' parallax and fit the DLFC to where the tilted card puts its dots (--no-card-tilt: every card perpendicular to the optical axis; the tilts are still printed)."),
 ) -> None:
     """Calibrate: lenslet grid from a white image, DLFC from dot cards; write a calibration file.
 
@@ -383,7 +384,7 @@ def calibrate_cmd(
     with _outputs({"--out": out_file}, inputs) as (tmp,):
         camera = load_camera(camera_file)
         calib, report = calibrate(white, cards, camera, order=order, check_depths=check_depths,
-                                  progress=True)
+                                  card_tilt=card_tilt, progress=True)
         save_calibration(record_white(calib, white, calibration_path=out_file), tmp)
     _print_calibration_report(calib, cards, report)
     console.print(f"wrote {out_file}", highlight=False)
@@ -400,17 +401,23 @@ def _print_calibration_report(calib, cards, report) -> None:
     summary.add_row("DLFC residual max, view px", f"{fit.max_px:.4f}")
     out.print(summary)
     implied = "z_implied_mm" in report.cards.columns
+    tilted = "tilt_x" in report.cards.columns
     per_card = Table(title="DLFC residual per dot card")
-    names = ["card", "z, mm"] + (["z from parallax, mm"] if implied else []) + [
-        "views", "points", "rejected", "RMS, view px"]
+    names = (["card", "z, mm"] + (["z from parallax, mm"] if implied else [])
+             + (["tilt x, y, mrad (* applied)"] if tilted else [])
+             + ["views", "points", "rejected", "RMS, view px"])
     for name in names:
         per_card.add_column(name, justify="left" if name == "card" else "right")
     for row in report.cards.itertuples():
         depth = [f"{row.z_implied_mm:.2f}"] if implied else []
-        per_card.add_row(row.file, f"{row.z_mm:g}", *depth, f"{row.n_views}", f"{row.n_points}",
-                         f"{row.n_rejected}", f"{row.rms_px:.4f}")
-    per_card.add_row("all", "", *([""] if implied else []), "", f"{fit.n_points + fit.n_rejected}",
-                     f"{fit.n_rejected}", f"{fit.rms_px:.4f}", style="bold")
+        tilt = [", ".join(f"{1e3 * t:+.2f}{'*' if a != 0 else ''}" for t, a in
+                          ((row.tilt_x, row.tilt_x_applied), (row.tilt_y, row.tilt_y_applied)))
+                ] if tilted else []
+        per_card.add_row(row.file, f"{row.z_mm:g}", *depth, *tilt, f"{row.n_views}",
+                         f"{row.n_points}", f"{row.n_rejected}", f"{row.rms_px:.4f}")
+    per_card.add_row("all", "", *([""] if implied else []), *([""] if tilted else []), "",
+                     f"{fit.n_points + fit.n_rejected}", f"{fit.n_rejected}",
+                     f"{fit.rms_px:.4f}", style="bold")
     out.print(per_card)
     measured = report.cards["model_error_z_mm"].notna()
     if measured.any():

@@ -795,7 +795,10 @@ def fit_dlfc(data, *, order: int = 4, group_by=None, reject_k: float | None = No
         Total polynomial order (126 terms per output for 4).
     group_by : str or array_like, optional
         Report residuals per group: a column/key name (e.g. ``"z"`` for one group per
-        dot-card depth, or a card id column) or an array of labels, one per point.
+        dot-card depth, or a card id column) or an array of labels, one per point. The
+        model error by depth (:func:`model_error_by_depth`) is then measured per group
+        too, each at the mean depth of its dots (one group per card: a card tilted on
+        its mount has its dots at many depths); without groups, per distinct depth.
     reject_k : float, optional
         If given, refit robustly: drop points whose residual length exceeds
         ``median + reject_k * 1.4826 * MAD`` of the residual lengths and refit, until
@@ -875,16 +878,24 @@ def fit_dlfc(data, *, order: int = 4, group_by=None, reject_k: float | None = No
     errors = dot_position_errors(dlfc, pts[keep])
     if len(errors):
         rms = np.sqrt(np.mean(errors[["dx", "dy", "dz"]].to_numpy() ** 2, axis=0))
+        dot_groups = None
+        if groups is not None:       # each dot's group: that of its points
+            known, first = np.unique(pts[keep][:, :3], axis=0, return_index=True)
+            label = pd.Series(np.asarray(groups)[keep][first],
+                              index=pd.MultiIndex.from_arrays(known.T))
+            dot_groups = label.reindex(pd.MultiIndex.from_frame(errors[["x", "y", "z"]])
+                                       ).to_numpy()
         dlfc = dataclasses.replace(dlfc, report=dataclasses.replace(
             report, position_rms_mm=tuple(float(e) for e in rms),
-            model_error_by_depth_mm=model_error_by_depth(errors)))
+            model_error_by_depth_mm=model_error_by_depth(errors, groups=dot_groups)))
     return dlfc
 
 
 _MIN_DOTS_PER_DEPTH = 5
 
 
-def model_error_by_depth(errors: pd.DataFrame, max_depths: int = 25) -> tuple:
+def model_error_by_depth(errors: pd.DataFrame, max_depths: int = 25, *,
+                         groups=None) -> tuple:
     """The DLFC's model error per calibration depth: the dots' error beyond their noise.
 
     Parameters
@@ -893,8 +904,12 @@ def model_error_by_depth(errors: pd.DataFrame, max_depths: int = 25) -> tuple:
         :func:`dot_position_errors`: known ``z``, errors ``dx, dy, dz`` and least-squares
         standard errors ``sigma_x, sigma_y, sigma_z`` of each dot, mm.
     max_depths : int
-        Dots on at most this many distinct depths are grouped by depth (one group per
-        dot card); otherwise into ``max_depths // 2`` bins of equal dot count.
+        Dots on at most this many distinct depths (or groups) are grouped by depth (one
+        group per dot card); otherwise into ``max_depths // 2`` bins of equal dot count.
+    groups : (n,) array-like, optional
+        A group label per row of ``errors`` (its dot card): grouped by label instead of
+        by distinct depth, each group at the mean depth of its dots (the dots of a card
+        tilted on its mount lie at many depths). NaN labels are left out.
 
     Returns
     -------
@@ -904,15 +919,23 @@ def model_error_by_depth(errors: pd.DataFrame, max_depths: int = 25) -> tuple:
         Empty when no group has 5 dots.
     """
     z = errors["z"].to_numpy(float)
-    depths, group = np.unique(z, return_inverse=True)
+    labelled = np.ones(len(z), dtype=bool)
+    if groups is None:
+        depths, group = np.unique(z, return_inverse=True)
+    else:
+        label = pd.Series(np.asarray(groups)).reset_index(drop=True)
+        labelled = label.notna().to_numpy()
+        codes, depths = pd.factorize(label)
+        group = np.asarray(codes)
     if len(depths) > max_depths:
         edges = np.quantile(z, np.linspace(0, 1, max_depths // 2 + 1)[1:-1])
         group = np.searchsorted(edges, z, side="right")
+        labelled = np.ones(len(z), dtype=bool)
     err = errors[["dx", "dy", "dz"]].to_numpy(float)
     noise = errors[["sigma_x", "sigma_y", "sigma_z"]].to_numpy(float)
     rows = []
-    for g in np.unique(group):
-        mine = group == g
+    for g in np.unique(group[labelled]):
+        mine = (group == g) & labelled
         if mine.sum() >= _MIN_DOTS_PER_DEPTH:
             excess = np.mean(err[mine] ** 2, axis=0) - np.nanmean(noise[mine] ** 2, axis=0)
             e = np.sqrt(np.maximum(np.nan_to_num(excess, nan=0.0), 0.0))
