@@ -373,7 +373,7 @@ def test_calibration_file_round_trip(calibrated, tmp_path):
                                   calib.dlfc.predict(*x, 2.0, -1.0))
     doc = json.loads(path.read_text())
     assert doc["format"] == "plenoptrack-calibration" and doc["version"] == 1
-    assert doc["dlfc"]["order"] == 4 and doc["dlfc"]["fit"]["group_by"] == "z_card"
+    assert doc["dlfc"]["order"] == 4 and doc["dlfc"]["fit"]["group_by"] == "z"
 
 
 def test_calibration_measures_the_views_edge_blur(calibrated, dataset, tmp_path):
@@ -550,8 +550,8 @@ def test_calibrate_measures_and_applies_the_cards_tilts(tmp_path):
     """Cards tilted on their mount (up to 1 degree, the simulator's target effects alone):
     calibrate reads each card's tilt from its dots' parallax within 3 standard errors
     (and 0.001) of the truth, applies the significant ones, and the DLFC then fits the
-    dots better than with every card taken as perpendicular; --no-card-tilt reports the
-    same tilts and applies none."""
+    dots better than with every card taken as perpendicular; without card_tilt (the
+    default) the same tilts are reported and none applied."""
     import dataclasses
 
     from plenoptrack.simulate.realism import Realism, TargetEffects
@@ -563,8 +563,8 @@ def test_calibrate_measures_and_applies_the_cards_tilts(tmp_path):
     truth = np.array([card["tilt"] for card in
                       json.loads((sim.out_dir / "truth_optics.json").read_text())["dotcards"]])
     white = read_raw(sim.white_path)
-    _, tilted = calibrate(white, sim.out_dir / "dotcards", sim.camera)
-    _, flat = calibrate(white, sim.out_dir / "dotcards", sim.camera, card_tilt=False)
+    _, tilted = calibrate(white, sim.out_dir / "dotcards", sim.camera, card_tilt=True)
+    _, flat = calibrate(white, sim.out_dir / "dotcards", sim.camera)      # off by default
     measured = tilted.cards[["tilt_x", "tilt_y"]].to_numpy()
     error = tilted.cards[["tilt_x_error", "tilt_y_error"]].to_numpy()
     print("true tilts", np.round(truth, 4).tolist())

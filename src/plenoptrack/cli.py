@@ -367,7 +367,7 @@ def calibrate_cmd(
     out_file: Path = typer.Option(Path("calib.json"), "--out", "-o", help="Calibration file to write."),
     order: int = typer.Option(4, "--order", min=1, max=6, help="DLFC total polynomial order (1-6)."),
     check_depths: bool = typer.Option(True, "--check-depths/--no-check-depths", help="Check the card depths of dotcards.toml against the depths the dots' parallax shows (refuse a wrong sign or unit, warn about single cards)."),
-    card_tilt: bool = typer.Option(True, "--card-tilt/--no-card-tilt", help="Measure each card's tilt on its mount from its dots' parallax and fit the DLFC to where the tilted card puts its dots (--no-card-tilt: every card perpendicular to the optical axis; the tilts are still printed)."),
+    card_tilt: bool = typer.Option(False, "--card-tilt/--no-card-tilt", help="Fit the DLFC to where each card's tilt on its mount, measured from its dots' parallax, puts its dots (default: every card perpendicular to the optical axis; the tilts are printed either way). Reliable on a wide field of view (hall2019: within 0.0003); on a small one the optics bias the measured tilts."),
 ) -> None:
     """Calibrate: lenslet grid from a white image, DLFC from dot cards; write a calibration file.
 
