@@ -203,3 +203,30 @@ def test_study_command_refuses_unknown_method(tmp_path):
                                       "--methods", "perspective,magic"])
     assert result.exit_code == 2
     assert "methods must be" in result.stderr
+
+
+def test_card_tilt_reaches_the_calibration_and_round_trips(tmp_path, monkeypatch):
+    """StudyConfig.card_tilt is passed to calibrate, survives config.json, and a
+    config.json written before the option existed loads with it off."""
+    import plenoptrack.calibrate as calibrate_module
+    import plenoptrack.calibration as calibration_module
+    import plenoptrack.simulate as simulate_module
+    from plenoptrack.study import _prepare
+
+    seen = {}
+
+    def fake_calibrate(white, dotcards, camera, **kwargs):
+        seen.update(kwargs)
+        return "calibration", None
+
+    monkeypatch.setattr(simulate_module, "simulate_dataset", lambda *a, **k: None)
+    monkeypatch.setattr(calibrate_module, "calibrate", fake_calibrate)
+    monkeypatch.setattr(calibration_module, "save_calibration", lambda calib, path: None)
+    for tilt in (True, False):
+        config = StudyConfig(preset("small"), card_tilt=tilt)
+        _prepare(tmp_path / str(tilt), config, None)
+        assert seen["card_tilt"] is tilt
+        assert StudyConfig.from_dict(json.loads(json.dumps(config.to_dict()))).card_tilt is tilt
+    old = StudyConfig(preset("small")).to_dict()
+    del old["card_tilt"]
+    assert StudyConfig.from_dict(old).card_tilt is False

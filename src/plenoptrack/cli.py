@@ -846,6 +846,7 @@ def study(
     diameter: Optional[float] = typer.Option(None, "--diameter", callback=_finite(positive=True), help="Pin-head diameter, mm (default per preset)."),
     seed: int = typer.Option(0, "--seed", help="Master seed (field, traverse zero offset, optics, noise)."),
     optics_mode: str = typer.Option("realistic", "--optics", help="realistic (default) or ideal."),
+    card_tilt: bool = typer.Option(False, "--card-tilt", help="Calibrate with the dot cards' tilts on their mounts measured from their parallax and applied (as calibrate --card-tilt)."),
 ) -> None:
     """Translation-stage uncertainty study: depth accuracy and precision against depth for
     each method (a simulated rigid field of pin heads moved along the optical axis)."""
@@ -860,7 +861,8 @@ def study(
     chosen = tuple(m.strip() for m in methods.split(",") if m.strip())
     configs = [StudyConfig(c, travel_mm=travel, step_mm=step, repeats=repeats,
                            refocus_repeats=refocus_repeats, methods=chosen, n_particles=particles,
-                           diameter_mm=diameter, seed=seed, realism=optics_mode)
+                           diameter_mm=diameter, seed=seed, realism=optics_mode,
+                           card_tilt=card_tilt)
                for c in cameras]
     t0 = time.perf_counter()
     summary = run_study(configs, out_dir, workers=workers, progress=True)
