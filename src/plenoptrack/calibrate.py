@@ -498,6 +498,27 @@ def card_tilts(points: pd.DataFrame, geometry: ProjectionGeometry, camera: Camer
     error = np.full((n_cards, 2), np.nan)
     if n_cards == 0:
         return out, error
+    card, x, y, at_centre, parallax = _dot_parallax(points, min_views)
+    depth = implied_depths(parallax, geometry, camera)
+    cx, cy = _expansion_centre(card, x, y, at_centre[:, 0], at_centre[:, 1])
+    for k in range(n_cards):
+        mine = (card == k) & np.isfinite(depth)
+        if mine.sum() < min_dots:
+            continue
+        radial = (x[mine] - cx) ** 2 + (y[mine] - cy) ** 2
+        plane = np.stack([np.ones(mine.sum()), x[mine], y[mine], radial], axis=1)
+        fitted = _clipped_fit(plane, depth[mine], clip=clip, min_points=min_dots)
+        if fitted is not None:
+            out[k] = fitted[0][1:3] / scale
+            error[k] = fitted[1][1:3] / scale
+    return out, error
+
+
+def _dot_parallax(points: pd.DataFrame, min_views: int):
+    """Per dot (one row per ``card, i, j``): its card, ``x, y`` (mm), its centroid at
+    ``u = v = 0`` (``(n, 2)`` view pixels) and its parallax, the mean of ``ds/du`` and
+    ``dt/dv`` from least squares ``s = s0 + a u + b v`` (and ``t`` alike) over its views;
+    NaN for dots seen in fewer than ``min_views`` views."""
     key = points[["card", "i", "j"]].to_numpy(np.int64)
     dots, dot = np.unique(key, axis=0, return_inverse=True)
     dot = dot.ravel()
@@ -513,38 +534,32 @@ def card_tilts(points: pd.DataFrame, geometry: ProjectionGeometry, camera: Camer
     coef = np.full((len(dots), 3, 2), np.nan)
     if ok.any():
         coef[ok] = np.linalg.solve(gram[ok], rhs[ok])
-    parallax = 0.5 * (coef[:, 1, 0] + coef[:, 2, 1])      # ds/du and dt/dv
-    depth = implied_depths(parallax, geometry, camera)
     first = np.zeros(len(dots), dtype=np.int64)
     first[dot[::-1]] = np.arange(len(dot))[::-1]
-    x = points["x"].to_numpy(float)[first]
-    y = points["y"].to_numpy(float)[first]
-    cx, cy = _expansion_centre(dots[:, 0], x, y, coef[:, 0, 0], coef[:, 0, 1])
-    for k in range(n_cards):
-        mine = (dots[:, 0] == k) & np.isfinite(depth)
-        if mine.sum() < min_dots:
-            continue
-        radial = (x[mine] - cx) ** 2 + (y[mine] - cy) ** 2
-        plane = np.stack([np.ones(mine.sum()), x[mine], y[mine], radial], axis=1)
-        z = depth[mine]
-        inside = np.ones(len(z), dtype=bool)
-        for _ in range(5):
-            fit, *_ = np.linalg.lstsq(plane[inside], z[inside], rcond=None)
-            residual = z - plane @ fit
-            spread = 1.4826 * np.median(np.abs(residual[inside]))
-            keep = np.abs(residual) <= clip * spread if spread > 0 else inside
-            if keep.sum() < min_dots or np.array_equal(keep, inside):
-                break
-            inside = keep
-        dof = int(inside.sum()) - plane.shape[1]
-        if dof < 1:
-            continue
-        variance = float(np.sum(residual[inside] ** 2)) / dof
-        with np.errstate(invalid="ignore"):
-            cov = variance * np.linalg.pinv(plane[inside].T @ plane[inside])
-        out[k] = fit[1:3] / scale
-        error[k] = np.sqrt(np.diag(cov)[1:3]) / scale
-    return out, error
+    return (dots[:, 0], points["x"].to_numpy(float)[first], points["y"].to_numpy(float)[first],
+            coef[:, 0, :], 0.5 * (coef[:, 1, 0] + coef[:, 2, 1]))
+
+
+def _clipped_fit(design: np.ndarray, values: np.ndarray, *, clip: float, min_points: int):
+    """Least squares ``values ~ design``, refitted (at most 5 times) to the points within
+    ``clip`` times the residuals' 1.4826 MAD: ``(coefficients, standard errors)`` from the
+    kept points' scatter, or None when fewer points than coefficients plus one remain."""
+    inside = np.ones(len(values), dtype=bool)
+    for _ in range(5):
+        fit, *_ = np.linalg.lstsq(design[inside], values[inside], rcond=None)
+        residual = values - design @ fit
+        spread = 1.4826 * np.median(np.abs(residual[inside]))
+        keep = np.abs(residual) <= clip * spread if spread > 0 else inside
+        if keep.sum() < min_points or np.array_equal(keep, inside):
+            break
+        inside = keep
+    dof = int(inside.sum()) - design.shape[1]
+    if dof < 1:
+        return None
+    variance = float(np.sum(residual[inside] ** 2)) / dof
+    with np.errstate(invalid="ignore"):
+        cov = variance * np.linalg.pinv(design[inside].T @ design[inside])
+    return fit, np.sqrt(np.diag(cov))
 
 
 # --- card depths ---------------------------------------------------------------------
@@ -766,8 +781,9 @@ class CalibrationReport:
         standard errors), ``tilt_x_applied, tilt_y_applied`` (the slopes given to the
         dots' depths: those at least :data:`TILT_SIGNIFICANCE` standard errors from 0,
         0 otherwise and with ``card_tilt=False``), ``reindexed`` (bool: the card's dot
-        ``(0, 0)`` was moved a whole dot to agree with the other cards) and ``origin_miss`` (distance of the card's nearest dot
-        position from the cards' common dot ``(0, 0)``, dot spacings).
+        ``(0, 0)`` was moved a whole dot to agree with the other cards) and
+        ``origin_miss`` (distance of the card's nearest dot position from the cards'
+        common dot ``(0, 0)``, dot spacings).
     order : int
         DLFC polynomial order.
     seconds : dict

@@ -1149,9 +1149,7 @@ def split_bar(fit_error: np.ndarray, settings: CheckSettings) -> float:
     its explained images typically are, which differs from camera to camera (about 0.04
     of the background on the ``small`` camera with realistic optics, 0.05 on hall2019).
     A merged pair must stand out from that, not from a fixed figure."""
-    fitted = np.asarray(fit_error, dtype=float)
-    fitted = fitted[np.isfinite(fitted)]
-    floor = float(np.median(fitted)) if len(fitted) else 0.0
+    floor = _typical_fit_error(fit_error)
     bar = max(settings.split_max_model_error, settings.split_floor_ratio * floor)
     return min(bar, max(settings.refine_max_model_error, settings.split_max_model_error))
 
@@ -1176,11 +1174,16 @@ def split_gain_bar(fit_error: np.ndarray, settings: CheckSettings) -> float:
     bar = split_bar(fit_error, settings)
     if settings.split_floor_ratio == 0:
         return bar ** 2
+    typical = min(_typical_fit_error(fit_error), bar / max(settings.split_floor_ratio, 1.0))
+    return bar ** 2 - typical ** 2
+
+
+def _typical_fit_error(fit_error: np.ndarray) -> float:
+    """The frame's median image-fit model error (NaN entries, particles not fitted, left
+    out); 0 when none was fitted."""
     fitted = np.asarray(fit_error, dtype=float)
     fitted = fitted[np.isfinite(fitted)]
-    typical = min(float(np.median(fitted)) if len(fitted) else 0.0,
-                  bar / max(settings.split_floor_ratio, 1.0))
-    return bar ** 2 - typical ** 2
+    return float(np.median(fitted)) if len(fitted) else 0.0
 
 
 def _view_subgrid(view_rc: np.ndarray, stride: int, *, min_views: int = 12) -> np.ndarray:
