@@ -1,0 +1,222 @@
+"""Depth error of isolated particles against their place on the microlens grid.
+
+    python benchmarks/near_focus_pattern.py                     # small camera, ideal optics
+    python benchmarks/near_focus_pattern.py --preset small-rect # square lattice: no resampling
+    python benchmarks/near_focus_pattern.py --optics realistic --fit
+
+Eight spheres (``--size``, default 0.4 mm) at the depths ``--depths``, far apart on a
+4 x 2 grid, are moved sideways together in ``--steps`` steps of ``--step-um`` along x
+(default 24 steps of 14 um: 2.2 microlens pitches in object space at magnification
+-0.5), each position rendered ``--repeats`` times with fresh noise, and located with the
+default locator on the accuracy matrix's calibration of the camera (simulated white image
+and dot cards, ``calibrate`` defaults). A particle's depth error then splits into the
+part its noise draws share (the same at the same place: sampling by the microlenses) and
+the rest (noise). With ``--fit`` every located particle is also refitted alone to its
+view pixels with the image model (one blurred disc,
+:func:`plenoptrack.locate.refine.fit_images`), which the locator otherwise does only for
+particles whose images overlap.
+
+Per depth the script prints and writes (``--out``): the spread over the positions of the
+error the draws share (``fixed sd``), of the rest (``noise sd``), the correlation of the
+draws, the mean error, and the share of the fixed error's variance at the object-space
+microlens pitch and its harmonics (``at pitch``: 1 for a pattern that repeats with the
+lens grid).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).parent))
+import accuracy_matrix as am  # noqa: E402
+
+DEPTHS = (-7.5, -5.0, -2.5, -1.0, 1.0, 2.5, 5.0, 7.5)
+
+
+def scene_truth(volume, size: float, depths, steps: int, step_mm: float, repeats: int,
+                seed: int) -> pd.DataFrame:
+    """One frame per (repeat, step): the particles at ``depths`` on a 4 x 2 grid filling
+    60-70 % of the volume's cross-section, shifted by ``step * step_mm`` along x."""
+    from plenoptrack.simulate import random_particles
+
+    n = len(depths)
+    cols = int(np.ceil(n / 2))
+    b = volume.bounds
+    xs = np.linspace(0.7 * b[0, 0], 0.7 * b[0, 1] - steps * step_mm, cols)
+    ys = np.linspace(0.6 * b[1, 0], 0.6 * b[1, 1], 2)
+    gx, gy = (a.ravel()[:n] for a in np.meshgrid(xs, ys))
+    base = random_particles(n, volume=volume, diameter_mm=size,
+                            seed=np.random.default_rng([seed, 77]))
+    base = base.assign(x=gx, y=gy, z=np.asarray(depths, dtype=float))
+    frames = []
+    for r in range(repeats):
+        for k in range(steps):
+            f = r * steps + k
+            frames.append(base.assign(x=gx + k * step_mm, frame=f, particle=np.arange(n) + n * f,
+                                      slot=np.arange(n), step=k, repeat=r))
+    return pd.concat(frames, ignore_index=True)
+
+
+def locate_all(sim, truth: pd.DataFrame, calib, white, magnification: float,
+               fit: bool) -> pd.DataFrame:
+    """Depth error (mm) of each particle at each frame: the located position's and, with
+    ``fit``, the lone image fit's."""
+    from plenoptrack.evaluate import match_particles
+    from plenoptrack.io import read_raw
+    from plenoptrack.locate import PerspectiveLocator, locate_frame
+    from plenoptrack.locate.perspective import (FrameContext, _decoded, _fit_views,
+                                                segment_frame)
+    from plenoptrack.locate.refine import fit_images
+
+    locator = PerspectiveLocator()
+    tl, tz = am.tolerances(magnification)
+    rows = []
+    for f, path in enumerate(sim.frame_paths):
+        t = truth[truth.frame == f].reset_index(drop=True)
+        lf = _decoded(read_raw(path), calib, f, white)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            found = locate_frame(lf, calib, frame=f, locator=locator).particles
+        if len(found) == 0:
+            continue
+        pairs = match_particles(found.assign(x=found.x / tl, y=found.y / tl, z=found.z / tz),
+                                t.assign(x=t.x / tl, y=t.y / tl, z=t.z / tz), tolerance_mm=1.0)
+        ctx = views_uv = view_rc = None
+        if fit:
+            ctx = FrameContext.build(lf, calib, segment_frame(lf, locator.segment, frame=f),
+                                     locator)
+            views_uv, view_rc = _fit_views(ctx)
+        for m, i in zip(pairs["measured_index"], pairs["truth_index"]):
+            p, true = found.iloc[m], t.iloc[i]
+            row = {"slot": int(true["slot"]), "step": int(true["step"]), "repeat": int(true["repeat"]),
+                   "z_true": float(true["z"]), "located": float(p["z"] - true["z"])}
+            if fit:
+                xyz = p[["x", "y", "z"]].to_numpy(float)[None]
+                radius = 0.5 * float(p.diameter) * float(ctx.dlfc.local_magnification(*xyz.T)[0])
+                lone = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, xyz,
+                                  np.array([[radius, 0.9]]), np.zeros((0, 3)), np.zeros((0, 2)))
+                row["image fit"] = float(lone.params[0, 2] - true["z"]) if lone is not None else np.nan
+            rows.append(row)
+    return pd.DataFrame(rows)
+
+
+def pitch_share(values: np.ndarray, step_mm: float, pitch_mm: float) -> float:
+    """Share of the variance of ``values`` (one per step) that sinusoids at the
+    object-space pitch and its second harmonic explain (least squares)."""
+    y = np.asarray(values, dtype=float)
+    ok = np.isfinite(y)
+    if ok.sum() < 6:
+        return float("nan")
+    x = np.arange(len(y))[ok] * step_mm
+    y = y[ok] - y[ok].mean()
+    w = 2 * np.pi / pitch_mm
+    design = np.column_stack([np.cos(w * x), np.sin(w * x), np.cos(2 * w * x),
+                              np.sin(2 * w * x)])
+    coef, *_ = np.linalg.lstsq(design, y, rcond=None)
+    total = float(np.sum(y ** 2))
+    return float(np.sum((design @ coef) ** 2) / total) if total > 0 else float("nan")
+
+
+def summarise(errors: pd.DataFrame, step_mm: float, pitch_mm: float) -> pd.DataFrame:
+    """Per depth and solution: fixed sd, noise sd, correlation of the draws, mean, share
+    at the pitch (mm where a length)."""
+    rows = []
+    columns = [c for c in ("located", "image fit") if c in errors.columns]
+    for (slot, z), g in errors.groupby(["slot", "z_true"]):
+        for col in columns:
+            table = g.pivot_table(index="step", columns="repeat", values=col)
+            if table.shape[1] < 2:
+                continue
+            a, b = table.iloc[:, 0].to_numpy(), table.iloc[:, 1].to_numpy()
+            both = np.isfinite(a) & np.isfinite(b)
+            fixed = table.mean(axis=1).to_numpy()
+            noise = (a - b)[both] / np.sqrt(2)
+            rows.append({"z_mm": z, "solution": col, "positions": int(both.sum()),
+                         "mean_um": 1e3 * float(np.nanmean(fixed)),
+                         "fixed_sd_um": 1e3 * float(np.nanstd(fixed, ddof=1)),
+                         "noise_sd_um": 1e3 * float(np.std(noise, ddof=1)),
+                         "draws_corr": float(np.corrcoef(a[both], b[both])[0, 1]),
+                         "at_pitch": pitch_share(fixed, step_mm, pitch_mm)})
+    return pd.DataFrame(rows).sort_values(["solution", "z_mm"]).reset_index(drop=True)
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="small", choices=("small", "small-rect"))
+    parser.add_argument("--optics", default="ideal", choices=am.OPTICS)
+    parser.add_argument("--seed", type=int, default=am.DEV_SEEDS[0])
+    parser.add_argument("--size", type=float, default=0.4, help="sphere diameter, mm")
+    parser.add_argument("--depths", type=float, nargs="+", default=list(DEPTHS),
+                        help="one particle at each depth, mm (at most 8)")
+    parser.add_argument("--steps", type=int, default=24)
+    parser.add_argument("--step-um", type=float, default=14.0)
+    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--fit", action="store_true",
+                        help="also refit each particle alone with the image model")
+    parser.add_argument("--out", type=Path, default=None,
+                        help="markdown file (default benchmarks/results/"
+                             "near_focus_pattern_PRESET_OPTICS.md)")
+    args = parser.parse_args(argv)
+    if not 1 <= len(args.depths) <= 8 or args.steps < 6 or args.repeats < 2:
+        parser.error("give 1-8 depths, at least 6 steps and at least 2 repeats")
+    if args.size <= 0 or args.step_um <= 0:
+        parser.error("--size and --step-um must be positive")
+    out = args.out or (Path(__file__).parent / "results"
+                       / f"near_focus_pattern_{args.preset}_{args.optics}.md")
+    from plenoptrack.simulate import simulate_dataset
+    from plenoptrack.simulate.scene import Scene
+
+    cell = am._cell("size", preset=args.preset, size=args.size, density=0.001)
+    camera, volume = am._camera(cell), am._volume(cell)
+    step_mm = args.step_um / 1000
+    pitch_mm = camera.microlens_pitch_um / 1000 / abs(camera.magnification)
+    t0 = time.perf_counter()
+    with tempfile.TemporaryDirectory() as tmp:
+        runner = am.Runner(Path(tmp), 80, t0)
+        calib, white, _ = runner.calibrate(cell.preset, cell.magnification, args.optics,
+                                           args.seed)
+        if calib is None:
+            raise SystemExit(f"calibration failed for seed {args.seed}")
+        truth = scene_truth(volume, args.size, args.depths, args.steps, step_mm,
+                            args.repeats, args.seed)
+        scene = Scene(camera=camera, volume=volume,
+                      truth=truth.drop(columns=["slot", "step", "repeat"]), seed=args.seed)
+        sim = simulate_dataset(cell.preset, Path(tmp) / "frames", seed=args.seed, scene=scene,
+                               magnification=cell.magnification,
+                               realism=am.realism_of(args.optics), dotcard_depths=[])
+        # the data set's truth is in the calibration's frame (the traverse zero and the
+        # dot grid's origin), row for row the scene's
+        target = sim.truth.reset_index(drop=True).assign(
+            slot=truth["slot"].to_numpy(), step=truth["step"].to_numpy(),
+            repeat=truth["repeat"].to_numpy())
+        errors = locate_all(sim, target, calib, white, cell.magnification, args.fit)
+    wall = time.perf_counter() - t0
+    table = summarise(errors, step_mm, pitch_mm)
+    pd.set_option("display.width", 200)
+    print(table.round(3).to_string(index=False))
+    command = " ".join(["python benchmarks/near_focus_pattern.py", *(argv or sys.argv[1:])])
+    lines = ["# Depth error of isolated particles against their place on the microlens grid",
+             "", f"`{command}` ({wall:.0f} s): `{args.preset}` camera, {args.optics} optics, "
+             f"magnification {cell.magnification:g}, spheres of {args.size:g} mm, "
+             f"{args.steps} sideways steps of {args.step_um:g} um (object-space microlens "
+             f"pitch {1e3 * pitch_mm:.0f} um), {args.repeats} noise draws per step, seed "
+             f"{args.seed}. `fixed sd`: spread over the positions of the error the draws "
+             "share; `noise sd`: of the rest; `at pitch`: share of the fixed error's "
+             "variance at the microlens pitch and its second harmonic.", "",
+             *am.markdown_table(table, lambda v, c: f"{v:.3g}" if isinstance(v, float)
+                                else str(v)), ""]
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text("\n".join(lines))
+    print(f"wrote {out} ({wall:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
