@@ -5,9 +5,9 @@
     python benchmarks/near_focus_pattern.py --optics realistic --fit
 
 Eight spheres (``--size``, default 0.4 mm) at the depths ``--depths``, far apart on a
-4 x 2 grid, are moved sideways together in ``--steps`` steps of ``--step-um`` along x
-(default 24 steps of 14 um: 2.2 microlens pitches in object space at magnification
--0.5), each position rendered ``--repeats`` times with fresh noise, and located with the
+4 x 2 grid, are moved sideways together in ``--steps`` steps of ``--step-um`` along
+``--axis`` (default x, along the lens rows; 24 steps of 14 um: 2.2 microlens pitches in
+object space at magnification -0.5), each position rendered ``--repeats`` times with fresh noise, and located with the
 default locator on the accuracy matrix's calibration of the camera (simulated white image
 and dot cards, ``calibrate`` defaults). A particle's depth error then splits into the
 part its noise draws share (the same at the same place: sampling by the microlenses) and
@@ -19,13 +19,16 @@ particles whose images overlap.
 Per depth the script prints and writes (``--out``): the spread over the positions of the
 error the draws share (``fixed sd``), of the rest (``noise sd``), the correlation of the
 draws, the mean error, and the share of the fixed error's variance at the object-space
-microlens pitch and its harmonics (``at pitch``: 1 for a pattern that repeats with the
-lens grid).
+lattice's repeat distance along the steps and its second harmonic (``at lattice``: 1 for
+a pattern that repeats with the lens grid; the repeat is the microlens pitch along x, and
+along y the pitch on a square lattice and two lens rows, 1.73 pitches, on a hexagonal
+one).
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 import tempfile
 import time
@@ -42,16 +45,19 @@ DEPTHS = (-7.5, -5.0, -2.5, -1.0, 1.0, 2.5, 5.0, 7.5)
 
 
 def scene_truth(volume, size: float, depths, steps: int, step_mm: float, repeats: int,
-                seed: int) -> pd.DataFrame:
+                seed: int, axis: str = "x") -> pd.DataFrame:
     """One frame per (repeat, step): the particles at ``depths`` on a 4 x 2 grid filling
-    60-70 % of the volume's cross-section, shifted by ``step * step_mm`` along x."""
+    60-70 % of the volume's cross-section, shifted by ``step * step_mm`` along ``axis``
+    (``"x"``, along the lens rows, or ``"y"``)."""
     from plenoptrack.simulate import random_particles
 
     n = len(depths)
     cols = int(np.ceil(n / 2))
     b = volume.bounds
-    xs = np.linspace(0.7 * b[0, 0], 0.7 * b[0, 1] - steps * step_mm, cols)
-    ys = np.linspace(0.6 * b[1, 0], 0.6 * b[1, 1], 2)
+    room_x = steps * step_mm if axis == "x" else 0.0
+    room_y = steps * step_mm if axis == "y" else 0.0
+    xs = np.linspace(0.7 * b[0, 0], 0.7 * b[0, 1] - room_x, cols)
+    ys = np.linspace(0.6 * b[1, 0], 0.6 * b[1, 1] - room_y, 2)
     gx, gy = (a.ravel()[:n] for a in np.meshgrid(xs, ys))
     base = random_particles(n, volume=volume, diameter_mm=size,
                             seed=np.random.default_rng([seed, 77]))
@@ -60,7 +66,8 @@ def scene_truth(volume, size: float, depths, steps: int, step_mm: float, repeats
     for r in range(repeats):
         for k in range(steps):
             f = r * steps + k
-            frames.append(base.assign(x=gx + k * step_mm, frame=f, particle=np.arange(n) + n * f,
+            shift = {axis: (gx if axis == "x" else gy) + k * step_mm}
+            frames.append(base.assign(**shift, frame=f, particle=np.arange(n) + n * f,
                                       slot=np.arange(n), step=k, repeat=r))
     return pd.concat(frames, ignore_index=True)
 
@@ -108,16 +115,17 @@ def locate_all(sim, truth: pd.DataFrame, calib, white, magnification: float,
     return pd.DataFrame(rows)
 
 
-def pitch_share(values: np.ndarray, step_mm: float, pitch_mm: float) -> float:
+def lattice_share(values: np.ndarray, step_mm: float, repeat_mm: float) -> float:
     """Share of the variance of ``values`` (one per step) that sinusoids at the
-    object-space pitch and its second harmonic explain (least squares)."""
+    lattice's object-space repeat distance and its second harmonic explain (least
+    squares)."""
     y = np.asarray(values, dtype=float)
     ok = np.isfinite(y)
     if ok.sum() < 6:
         return float("nan")
     x = np.arange(len(y))[ok] * step_mm
     y = y[ok] - y[ok].mean()
-    w = 2 * np.pi / pitch_mm
+    w = 2 * np.pi / repeat_mm
     design = np.column_stack([np.cos(w * x), np.sin(w * x), np.cos(2 * w * x),
                               np.sin(2 * w * x)])
     coef, *_ = np.linalg.lstsq(design, y, rcond=None)
@@ -125,9 +133,9 @@ def pitch_share(values: np.ndarray, step_mm: float, pitch_mm: float) -> float:
     return float(np.sum((design @ coef) ** 2) / total) if total > 0 else float("nan")
 
 
-def summarise(errors: pd.DataFrame, step_mm: float, pitch_mm: float) -> pd.DataFrame:
-    """Per depth and solution: fixed sd, noise sd, correlation of the draws, mean, share
-    at the pitch (mm where a length)."""
+def summarise(errors: pd.DataFrame, step_mm: float, repeat_mm: float) -> pd.DataFrame:
+    """Per depth and solution: fixed sd, noise sd, correlation of the draws, mean (um),
+    share at the lattice's repeat distance."""
     rows = []
     columns = [c for c in ("located", "image fit") if c in errors.columns]
     for (slot, z), g in errors.groupby(["slot", "z_true"]):
@@ -144,7 +152,7 @@ def summarise(errors: pd.DataFrame, step_mm: float, pitch_mm: float) -> pd.DataF
                          "fixed_sd_um": 1e3 * float(np.nanstd(fixed, ddof=1)),
                          "noise_sd_um": 1e3 * float(np.std(noise, ddof=1)),
                          "draws_corr": float(np.corrcoef(a[both], b[both])[0, 1]),
-                         "at_pitch": pitch_share(fixed, step_mm, pitch_mm)})
+                         "at_lattice": lattice_share(fixed, step_mm, repeat_mm)})
     return pd.DataFrame(rows).sort_values(["solution", "z_mm"]).reset_index(drop=True)
 
 
@@ -159,6 +167,8 @@ def main(argv=None) -> None:
     parser.add_argument("--steps", type=int, default=24)
     parser.add_argument("--step-um", type=float, default=14.0)
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--axis", default="x", choices=("x", "y"),
+                        help="direction of the steps (x runs along the lens rows)")
     parser.add_argument("--fit", action="store_true",
                         help="also refit each particle alone with the image model")
     parser.add_argument("--out", type=Path, default=None,
@@ -170,7 +180,8 @@ def main(argv=None) -> None:
     if args.size <= 0 or args.step_um <= 0:
         parser.error("--size and --step-um must be positive")
     out = args.out or (Path(__file__).parent / "results"
-                       / f"near_focus_pattern_{args.preset}_{args.optics}.md")
+                       / f"near_focus_pattern_{args.preset}_{args.optics}"
+                          f"{'' if args.axis == 'x' else '_y'}.md")
     from plenoptrack.simulate import simulate_dataset
     from plenoptrack.simulate.scene import Scene
 
@@ -178,6 +189,8 @@ def main(argv=None) -> None:
     camera, volume = am._camera(cell), am._volume(cell)
     step_mm = args.step_um / 1000
     pitch_mm = camera.microlens_pitch_um / 1000 / abs(camera.magnification)
+    repeat_mm = (pitch_mm * math.sqrt(3.0) if args.axis == "y" and camera.grid_type == "hex"
+                 else pitch_mm)
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         runner = am.Runner(Path(tmp), 80, t0)
@@ -186,7 +199,7 @@ def main(argv=None) -> None:
         if calib is None:
             raise SystemExit(f"calibration failed for seed {args.seed}")
         truth = scene_truth(volume, args.size, args.depths, args.steps, step_mm,
-                            args.repeats, args.seed)
+                            args.repeats, args.seed, args.axis)
         scene = Scene(camera=camera, volume=volume,
                       truth=truth.drop(columns=["slot", "step", "repeat"]), seed=args.seed)
         sim = simulate_dataset(cell.preset, Path(tmp) / "frames", seed=args.seed, scene=scene,
@@ -199,18 +212,19 @@ def main(argv=None) -> None:
             repeat=truth["repeat"].to_numpy())
         errors = locate_all(sim, target, calib, white, cell.magnification, args.fit)
     wall = time.perf_counter() - t0
-    table = summarise(errors, step_mm, pitch_mm)
+    table = summarise(errors, step_mm, repeat_mm)
     pd.set_option("display.width", 200)
     print(table.round(3).to_string(index=False))
     command = " ".join(["python benchmarks/near_focus_pattern.py", *(argv or sys.argv[1:])])
     lines = ["# Depth error of isolated particles against their place on the microlens grid",
              "", f"`{command}` ({wall:.0f} s): `{args.preset}` camera, {args.optics} optics, "
              f"magnification {cell.magnification:g}, spheres of {args.size:g} mm, "
-             f"{args.steps} sideways steps of {args.step_um:g} um (object-space microlens "
+             f"{args.steps} steps of {args.step_um:g} um along {args.axis} (object-space microlens "
              f"pitch {1e3 * pitch_mm:.0f} um), {args.repeats} noise draws per step, seed "
              f"{args.seed}. `fixed sd`: spread over the positions of the error the draws "
-             "share; `noise sd`: of the rest; `at pitch`: share of the fixed error's "
-             "variance at the microlens pitch and its second harmonic.", "",
+             "share; `noise sd`: of the rest; `at lattice`: share of the fixed error's "
+             f"variance at the lattice's repeat distance along {args.axis} "
+             f"({1e3 * repeat_mm:.0f} um) and its second harmonic.", "",
              *am.markdown_table(table, lambda v, c: f"{v:.3g}" if isinstance(v, float)
                                 else str(v)), ""]
     out.parent.mkdir(parents=True, exist_ok=True)
