@@ -7,8 +7,10 @@
 Eight spheres (``--size``, default 0.4 mm) at the depths ``--depths``, far apart on a
 4 x 2 grid, are moved sideways together in ``--steps`` steps of ``--step-um`` along
 ``--axis`` (default x, along the lens rows; 24 steps of 14 um: 2.2 microlens pitches in
-object space at magnification -0.5), each position rendered ``--repeats`` times with fresh noise, and located with the
-default locator on the accuracy matrix's calibration of the camera (simulated white image
+object space at magnification -0.5), on ``--lines`` lines offset across the steps by
+equal fractions of the lattice's repeat distance that way (one line crosses the
+lattice's cell at one place only), each position rendered ``--repeats`` times with fresh
+noise, and located with the default locator on the accuracy matrix's calibration of the camera (simulated white image
 and dot cards, ``calibrate`` defaults). A particle's depth error then splits into the
 part its noise draws share (the same at the same place: sampling by the microlenses) and
 the rest (noise). With ``--fit`` every located particle is also refitted alone to its
@@ -45,30 +47,36 @@ DEPTHS = (-7.5, -5.0, -2.5, -1.0, 1.0, 2.5, 5.0, 7.5)
 
 
 def scene_truth(volume, size: float, depths, steps: int, step_mm: float, repeats: int,
-                seed: int, axis: str = "x") -> pd.DataFrame:
-    """One frame per (repeat, step): the particles at ``depths`` on a 4 x 2 grid filling
-    60-70 % of the volume's cross-section, shifted by ``step * step_mm`` along ``axis``
-    (``"x"``, along the lens rows, or ``"y"``)."""
+                seed: int, axis: str = "x", lines: int = 1,
+                across_mm: float = 0.0) -> pd.DataFrame:
+    """One frame per (line, repeat, step): the particles at ``depths`` on a 4 x 2 grid
+    filling 60-70 % of the volume's cross-section, shifted by ``step * step_mm`` along
+    ``axis`` (``"x"``, along the lens rows, or ``"y"``) and, for line ``i`` of
+    ``lines``, by ``i / lines * across_mm`` across it (each line crosses the lattice's
+    cell at another place)."""
     from plenoptrack.simulate import random_particles
 
     n = len(depths)
     cols = int(np.ceil(n / 2))
     b = volume.bounds
-    room_x = steps * step_mm if axis == "x" else 0.0
-    room_y = steps * step_mm if axis == "y" else 0.0
+    room_x = steps * step_mm if axis == "x" else across_mm
+    room_y = steps * step_mm if axis == "y" else across_mm
     xs = np.linspace(0.7 * b[0, 0], 0.7 * b[0, 1] - room_x, cols)
     ys = np.linspace(0.6 * b[1, 0], 0.6 * b[1, 1] - room_y, 2)
     gx, gy = (a.ravel()[:n] for a in np.meshgrid(xs, ys))
     base = random_particles(n, volume=volume, diameter_mm=size,
                             seed=np.random.default_rng([seed, 77]))
     base = base.assign(x=gx, y=gy, z=np.asarray(depths, dtype=float))
+    other = "y" if axis == "x" else "x"
     frames = []
-    for r in range(repeats):
-        for k in range(steps):
-            f = r * steps + k
-            shift = {axis: (gx if axis == "x" else gy) + k * step_mm}
-            frames.append(base.assign(**shift, frame=f, particle=np.arange(n) + n * f,
-                                      slot=np.arange(n), step=k, repeat=r))
+    for line in range(lines):
+        for r in range(repeats):
+            for k in range(steps):
+                f = len(frames)
+                shift = {axis: base[axis].to_numpy() + k * step_mm,
+                         other: base[other].to_numpy() + line / lines * across_mm}
+                frames.append(base.assign(**shift, frame=f, particle=np.arange(n) + n * f,
+                                          slot=np.arange(n), step=k, repeat=r, line=line))
     return pd.concat(frames, ignore_index=True)
 
 
@@ -103,7 +111,8 @@ def locate_all(sim, truth: pd.DataFrame, calib, white, magnification: float,
             views_uv, view_rc = _fit_views(ctx)
         for m, i in zip(pairs["measured_index"], pairs["truth_index"]):
             p, true = found.iloc[m], t.iloc[i]
-            row = {"slot": int(true["slot"]), "step": int(true["step"]), "repeat": int(true["repeat"]),
+            row = {"slot": int(true["slot"]), "line": int(true["line"]),
+                   "step": int(true["step"]), "repeat": int(true["repeat"]),
                    "z_true": float(true["z"]), "located": float(p["z"] - true["z"])}
             if fit:
                 xyz = p[["x", "y", "z"]].to_numpy(float)[None]
@@ -134,11 +143,29 @@ def lattice_share(values: np.ndarray, step_mm: float, repeat_mm: float) -> float
 
 
 def summarise(errors: pd.DataFrame, step_mm: float, repeat_mm: float) -> pd.DataFrame:
-    """Per depth and solution: fixed sd, noise sd, correlation of the draws, mean (um),
-    share at the lattice's repeat distance."""
+    """Per depth and solution, over the lines: fixed sd (RMS over the lines, and the
+    least and largest line's), noise sd (RMS), correlation of the draws and share at the
+    lattice's repeat distance (means over the lines), mean error; um where a length."""
+    per_line = _per_line(errors, step_mm, repeat_mm)
+    rows = []
+    for (z, col), g in per_line.groupby(["z_mm", "solution"]):
+        rows.append({"z_mm": z, "solution": col, "lines": len(g),
+                     "positions": int(g["positions"].sum()),
+                     "mean_um": float(g["mean_um"].mean()),
+                     "fixed_sd_um": float(np.sqrt(np.mean(g["fixed_sd_um"] ** 2))),
+                     "fixed_sd_lines_um": f"{g['fixed_sd_um'].min():.0f}-"
+                                          f"{g['fixed_sd_um'].max():.0f}",
+                     "noise_sd_um": float(np.sqrt(np.mean(g["noise_sd_um"] ** 2))),
+                     "draws_corr": float(g["draws_corr"].mean()),
+                     "at_lattice": float(g["at_lattice"].mean())})
+    return pd.DataFrame(rows).sort_values(["solution", "z_mm"]).reset_index(drop=True)
+
+
+def _per_line(errors: pd.DataFrame, step_mm: float, repeat_mm: float) -> pd.DataFrame:
+    """:func:`summarise`'s figures for each particle's line."""
     rows = []
     columns = [c for c in ("located", "image fit") if c in errors.columns]
-    for (slot, z), g in errors.groupby(["slot", "z_true"]):
+    for (slot, line, z), g in errors.groupby(["slot", "line", "z_true"]):
         for col in columns:
             table = g.pivot_table(index="step", columns="repeat", values=col)
             if table.shape[1] < 2:
@@ -153,7 +180,7 @@ def summarise(errors: pd.DataFrame, step_mm: float, repeat_mm: float) -> pd.Data
                          "noise_sd_um": 1e3 * float(np.std(noise, ddof=1)),
                          "draws_corr": float(np.corrcoef(a[both], b[both])[0, 1]),
                          "at_lattice": lattice_share(fixed, step_mm, repeat_mm)})
-    return pd.DataFrame(rows).sort_values(["solution", "z_mm"]).reset_index(drop=True)
+    return pd.DataFrame(rows)
 
 
 def main(argv=None) -> None:
@@ -169,14 +196,18 @@ def main(argv=None) -> None:
     parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("--axis", default="x", choices=("x", "y"),
                         help="direction of the steps (x runs along the lens rows)")
+    parser.add_argument("--lines", type=int, default=3,
+                        help="lines of steps, offset across the steps by equal fractions "
+                             "of the lattice's repeat distance across them")
     parser.add_argument("--fit", action="store_true",
                         help="also refit each particle alone with the image model")
     parser.add_argument("--out", type=Path, default=None,
                         help="markdown file (default benchmarks/results/"
                              "near_focus_pattern_PRESET_OPTICS.md)")
     args = parser.parse_args(argv)
-    if not 1 <= len(args.depths) <= 8 or args.steps < 6 or args.repeats < 2:
-        parser.error("give 1-8 depths, at least 6 steps and at least 2 repeats")
+    if (not 1 <= len(args.depths) <= 8 or args.steps < 6 or args.repeats < 2
+            or args.lines < 1):
+        parser.error("give 1-8 depths, at least 6 steps, at least 2 repeats and 1 line")
     if args.size <= 0 or args.step_um <= 0:
         parser.error("--size and --step-um must be positive")
     out = args.out or (Path(__file__).parent / "results"
@@ -189,8 +220,9 @@ def main(argv=None) -> None:
     camera, volume = am._camera(cell), am._volume(cell)
     step_mm = args.step_um / 1000
     pitch_mm = camera.microlens_pitch_um / 1000 / abs(camera.magnification)
-    repeat_mm = (pitch_mm * math.sqrt(3.0) if args.axis == "y" and camera.grid_type == "hex"
-                 else pitch_mm)
+    hex_rows = pitch_mm * math.sqrt(3.0)      # two lens rows of a hexagonal lattice
+    repeat_mm = hex_rows if args.axis == "y" and camera.grid_type == "hex" else pitch_mm
+    across_mm = hex_rows if args.axis == "x" and camera.grid_type == "hex" else pitch_mm
     t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         runner = am.Runner(Path(tmp), 80, t0)
@@ -199,9 +231,10 @@ def main(argv=None) -> None:
         if calib is None:
             raise SystemExit(f"calibration failed for seed {args.seed}")
         truth = scene_truth(volume, args.size, args.depths, args.steps, step_mm,
-                            args.repeats, args.seed, args.axis)
+                            args.repeats, args.seed, args.axis, args.lines, across_mm)
         scene = Scene(camera=camera, volume=volume,
-                      truth=truth.drop(columns=["slot", "step", "repeat"]), seed=args.seed)
+                      truth=truth.drop(columns=["slot", "step", "repeat", "line"]),
+                      seed=args.seed)
         sim = simulate_dataset(cell.preset, Path(tmp) / "frames", seed=args.seed, scene=scene,
                                magnification=cell.magnification,
                                realism=am.realism_of(args.optics), dotcard_depths=[])
@@ -209,26 +242,28 @@ def main(argv=None) -> None:
         # dot grid's origin), row for row the scene's
         target = sim.truth.reset_index(drop=True).assign(
             slot=truth["slot"].to_numpy(), step=truth["step"].to_numpy(),
-            repeat=truth["repeat"].to_numpy())
+            repeat=truth["repeat"].to_numpy(), line=truth["line"].to_numpy())
         errors = locate_all(sim, target, calib, white, cell.magnification, args.fit)
     wall = time.perf_counter() - t0
     table = summarise(errors, step_mm, repeat_mm)
     pd.set_option("display.width", 200)
     print(table.round(3).to_string(index=False))
     command = " ".join(["python benchmarks/near_focus_pattern.py", *(argv or sys.argv[1:])])
-    lines = ["# Depth error of isolated particles against their place on the microlens grid",
+    text = ["# Depth error of isolated particles against their place on the microlens grid",
              "", f"`{command}` ({wall:.0f} s): `{args.preset}` camera, {args.optics} optics, "
              f"magnification {cell.magnification:g}, spheres of {args.size:g} mm, "
              f"{args.steps} steps of {args.step_um:g} um along {args.axis} (object-space microlens "
-             f"pitch {1e3 * pitch_mm:.0f} um), {args.repeats} noise draws per step, seed "
-             f"{args.seed}. `fixed sd`: spread over the positions of the error the draws "
-             "share; `noise sd`: of the rest; `at lattice`: share of the fixed error's "
+             f"pitch {1e3 * pitch_mm:.0f} um) on {args.lines} lines offset across them by "
+             f"1/{args.lines} of {1e3 * across_mm:.0f} um, {args.repeats} noise draws per "
+             f"step, seed {args.seed}. `fixed sd`: spread over the positions of the error the "
+             "draws share (RMS over the lines; `fixed sd lines`: the least and largest "
+             "line's); `noise sd`: of the rest; `at lattice`: share of the fixed error's "
              f"variance at the lattice's repeat distance along {args.axis} "
              f"({1e3 * repeat_mm:.0f} um) and its second harmonic.", "",
              *am.markdown_table(table, lambda v, c: f"{v:.3g}" if isinstance(v, float)
                                 else str(v)), ""]
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text("\n".join(lines))
+    out.write_text("\n".join(text))
     print(f"wrote {out} ({wall:.0f} s)")
 
 
