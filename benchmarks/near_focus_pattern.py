@@ -126,20 +126,21 @@ def locate_all(sim, truth: pd.DataFrame, calib, white, magnification: float,
 
 def lattice_share(values: np.ndarray, step_mm: float, repeat_mm: float) -> float:
     """Share of the variance of ``values`` (one per step) that sinusoids at the
-    lattice's object-space repeat distance and its second harmonic explain (least
-    squares)."""
+    lattice's object-space repeat distance and its second harmonic explain: ``R^2`` of
+    their least-squares fit with a constant."""
     y = np.asarray(values, dtype=float)
     ok = np.isfinite(y)
     if ok.sum() < 6:
         return float("nan")
     x = np.arange(len(y))[ok] * step_mm
-    y = y[ok] - y[ok].mean()
+    y = y[ok]
     w = 2 * np.pi / repeat_mm
-    design = np.column_stack([np.cos(w * x), np.sin(w * x), np.cos(2 * w * x),
-                              np.sin(2 * w * x)])
+    design = np.column_stack([np.ones_like(x), np.cos(w * x), np.sin(w * x),
+                              np.cos(2 * w * x), np.sin(2 * w * x)])
     coef, *_ = np.linalg.lstsq(design, y, rcond=None)
-    total = float(np.sum(y ** 2))
-    return float(np.sum((design @ coef) ** 2) / total) if total > 0 else float("nan")
+    total = float(np.sum((y - y.mean()) ** 2))
+    left = float(np.sum((y - design @ coef) ** 2))
+    return 1.0 - left / total if total > 0 else float("nan")
 
 
 def summarise(errors: pd.DataFrame, step_mm: float, repeat_mm: float) -> pd.DataFrame:
