@@ -1,24 +1,12 @@
 """The acceptance envelope's cells (``benchmarks/accuracy_matrix.py``): what "sparse" means."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import pytest
-
-_SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "accuracy_matrix.py"
 
 
 @pytest.fixture(scope="module")
-def matrix():
-    spec = importlib.util.spec_from_file_location("accuracy_matrix", _SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module          # dataclasses look their module up there
-    try:
-        spec.loader.exec_module(module)
+def matrix(benchmark_module):
+    with benchmark_module("accuracy_matrix") as module:
         yield module
-    finally:
-        sys.modules.pop(spec.name, None)
 
 
 def test_sparse_cells_are_sparse_where_their_particles_are(matrix):

@@ -1,28 +1,13 @@
 """The pieces of ``benchmarks/near_focus_pattern.py`` that its numbers rest on."""
 
-import importlib.util
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
-_SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "near_focus_pattern.py"
-
 
 @pytest.fixture(scope="module")
-def script():
-    sys.path.insert(0, str(_SCRIPT.parent))
-    spec = importlib.util.spec_from_file_location("near_focus_pattern", _SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    try:
-        spec.loader.exec_module(module)
+def script(benchmark_module):
+    with benchmark_module("near_focus_pattern") as module:
         yield module
-    finally:
-        sys.modules.pop(spec.name, None)
-        sys.modules.pop("accuracy_matrix", None)
-        sys.path.remove(str(_SCRIPT.parent))
 
 
 def test_lattice_share_finds_a_pattern_that_repeats_with_the_lattice(script):
