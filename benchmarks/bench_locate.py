@@ -165,15 +165,8 @@ def _load_previous():
 @contextlib.contextmanager
 def _previous_steps(previous):
     """Put the previous steps back into the locator for the duration of the block."""
-    from plenoptrack.locate import cluster, perspective, refine, triangulate
-
-    swaps = [(perspective, name) for name in ("_add_centroids", "_merge_duplicates",
-                                              "_release_unclaimed",
-                                              "_explained_away", "_trim_refit",
-                                              "ImageSpans")]
-    swaps += [(refine, "_robust_sd")]
-    swaps += [(cluster, name) for name in ("_lloyd", "_kmeanspp_topup")]
-    swaps += [(triangulate, "_triangulate")]
+    swaps = [(importlib.import_module(module), name)
+             for module, names in previous.REPLACED.items() for name in names]
     saved = [(mod, name, getattr(mod, name)) for mod, name in swaps]
     try:
         for mod, name in swaps:

@@ -4,10 +4,12 @@ inputs (NaN predictions, views without centroids, tied distances, confidences an
 centroid counts) and, with every replaced step (k-means and triangulation included) put
 back, identical particle tables from :func:`locate_frame`."""
 
+import sys
+
 import numpy as np
 import pytest
 
-from plenoptrack.locate import _assign, cluster, perspective, triangulate
+from plenoptrack.locate import _assign, perspective
 from plenoptrack.locate.dlfc import fit_dlfc
 from plenoptrack.simulate import make_scene
 
@@ -239,12 +241,9 @@ def test_trim_refit_matches_per_particle_scan():
 
 
 def _use_previous_steps(monkeypatch):
-    for name in ("_add_centroids", "_merge_duplicates", "_release_unclaimed",
-                 "_explained_away", "_trim_refit"):
-        monkeypatch.setattr(perspective, name, getattr(previous, name))
-    for name in ("_lloyd", "_kmeanspp_topup"):
-        monkeypatch.setattr(cluster, name, getattr(previous, name))
-    monkeypatch.setattr(triangulate, "_triangulate", previous._triangulate)
+    for module, names in previous.REPLACED.items():
+        for name in names:
+            monkeypatch.setattr(sys.modules[module], name, getattr(previous, name))
 
 
 @pytest.mark.parametrize("n_particles, diameter_mm", [(80, 0.2), (30, None)])
