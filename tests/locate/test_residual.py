@@ -4,11 +4,13 @@
 import dataclasses
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from plenoptrack.evaluate import match_particles
 from plenoptrack.lightfield import LightField
-from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
+from plenoptrack.locate import perspective
+from plenoptrack.locate.perspective import ParticleState, PerspectiveLocator, locate_frame
 from plenoptrack.locate.refine import disc_image
 from plenoptrack.locate.residual import residual_light_field, transmission_model
 from plenoptrack.simulate import make_scene, render_frame
@@ -102,10 +104,77 @@ def test_the_second_search_finds_hidden_particles(mixed_scenes):
     assert gained >= 9
 
 
+def test_further_rounds_find_particles_the_first_left_hidden(mixed_scenes):
+    """Frame 11: the particles found in the first search, divided out with the located
+    ones, uncover two more true particles (47 matched against 45 with one round), at
+    the cost of at most one unmatched particle more."""
+    calib, scenes = mixed_scenes
+    truth, raw = scenes[0]
+    counts = {}
+    for rounds in (1, 4):
+        locator = PerspectiveLocator.from_dict({"check": {"hidden_rounds": rounds}})
+        found = locate_frame(raw, calib, locator=locator).particles
+        matched = len(match_particles(found, truth, tolerance_mm=1.0))
+        counts[rounds] = (matched, len(found) - matched)
+    assert counts[4][0] >= counts[1][0] + 2
+    assert counts[4][1] <= counts[1][1] + 1
+
+
+class _Rounds:
+    """Stand-ins for the stages :func:`search_hidden_rounds` calls: round ``i`` of
+    ``script`` finds ``found`` particles of which the refit drops ``dropped``."""
+
+    def __init__(self, script):
+        self.script = list(script)
+        self.calls = 0
+
+    def state(self, n):
+        table = pd.DataFrame({"n_views": np.full(n, 20)})
+        return ParticleState(owner=np.zeros(0, dtype=np.int64), initial=np.zeros((n, 3)),
+                             positions=np.zeros((n, 3)), table=table)
+
+    def find(self, ctx, state, locator, calibration, *, frame=0):
+        found, self.dropped = self.script[self.calls]
+        self.calls += 1
+        grown = dataclasses.replace(
+            state, positions=np.zeros((state.n_particles + found, 3)),
+            initial=np.zeros((state.n_particles + found, 3)),
+            table=pd.concat([state.table, self.state(found).table], ignore_index=True))
+        return ctx, grown, found
+
+    def drop(self, state, first, n):
+        table = state.table.copy()
+        table.loc[first + np.arange(self.dropped), "n_views"] = 0
+        return dataclasses.replace(state, table=table)
+
+
+@pytest.mark.parametrize("script, rounds, calls, kept", [
+    ([(2, 0), (0, 0), (5, 0)], 4, 2, 2),          # a round that finds nothing ends them
+    ([(2, 0), (1, 1), (5, 0)], 4, 2, 2),          # so does one whose finds are all dropped
+    ([(2, 1), (3, 0), (1, 0), (4, 0)], 3, 3, 5),  # at most hidden_rounds
+    ([(3, 0)], 1, 1, 3),
+])
+def test_hidden_rounds_stop_when_a_round_keeps_nothing_more(monkeypatch, script, rounds,
+                                                             calls, kept):
+    fake = _Rounds(script)
+    monkeypatch.setattr(perspective, "find_hidden_particles", fake.find)
+    monkeypatch.setattr(perspective, "_drop_unexplained_hidden", fake.drop)
+    monkeypatch.setattr(perspective, "_near_particles", lambda ctx, state, rows: None)
+    monkeypatch.setattr(perspective, "refine_particles", lambda ctx, state, *a, **k: state)
+    monkeypatch.setattr(perspective, "split_merged_particles",
+                        lambda ctx, state, *a, **k: state)
+    locator = PerspectiveLocator.from_dict({"check": {"hidden_rounds": rounds}})
+    _, state = perspective.search_hidden_rounds(None, fake.state(10), locator, None)
+    assert fake.calls == calls
+    assert perspective._n_live(state, locator.solve.min_views) == 10 + kept
+
+
 def test_hidden_search_settings_are_checked():
     from plenoptrack.errors import SettingsError
 
-    for bad in ({"hidden_floor": 0.0}, {"hidden_floor": 1.0}, {"hidden_floor": -0.5}):
+    for bad in ({"hidden_floor": 0.0}, {"hidden_floor": 1.0}, {"hidden_floor": -0.5},
+                {"hidden_rounds": 0}, {"hidden_rounds": 1.5}, {"hidden_rounds": True}):
         with pytest.raises(SettingsError):
             PerspectiveLocator.from_dict({"check": bad})
-    assert dataclasses.asdict(PerspectiveLocator().check)["hidden_floor"] == 0.5
+    check = dataclasses.asdict(PerspectiveLocator().check)
+    assert check["hidden_floor"] == 0.5 and check["hidden_rounds"] == 4

@@ -317,17 +317,8 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
             if locator.check.split_merged:
                 state = split_merged_particles(ctx, state, locator.check)
             if locator.check.find_hidden:
-                ctx, state, n_hidden = find_hidden_particles(ctx, state, locator, calibration,
-                                                             frame=frame)
-                if n_hidden:
-                    # only the particles found and those their images touch are
-                    # refitted (and tried as splits) again
-                    n_before = state.n_particles - n_hidden
-                    near = _near_particles(ctx, state, np.arange(n_before, state.n_particles))
-                    state = refine_particles(ctx, state, locator, only=near)
-                    if locator.check.split_merged:
-                        state = split_merged_particles(ctx, state, locator.check, only=near)
-                    state = _drop_unexplained_hidden(state, n_before, n_hidden)
+                ctx, state = search_hidden_rounds(ctx, state, locator, calibration,
+                                                  frame=frame)
     with clock("checks"):
         particles, detections = measure_particles(
             ctx, state, locator.solve, frame=frame,
@@ -792,6 +783,39 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                         ignore_index=True))
     return (FrameContext.build(lf, calibration, detections, locator), joined,
             int(new.sum()))
+
+
+def search_hidden_rounds(ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator,
+                         calibration, *, frame: int = 0) -> tuple[FrameContext, ParticleState]:
+    """Stage 5d repeated: up to ``check.hidden_rounds`` rounds of
+    :func:`find_hidden_particles`, each followed by a refit (and split trial) of the
+    particles found and of those their images touch; the particles found whose refit
+    leaves their pixels unexplained are dropped again. The rounds stop at the first that
+    keeps no particle more than the frame had before it (a particle found and dropped
+    again in every round would otherwise repeat the same search)."""
+    for _round in range(locator.check.hidden_rounds):
+        n_live = _n_live(state, locator.solve.min_views)
+        ctx, state, n_hidden = find_hidden_particles(ctx, state, locator, calibration,
+                                                     frame=frame)
+        if not n_hidden:
+            break
+        # only the particles found and those their images touch are refitted (and
+        # tried as splits) again
+        n_before = state.n_particles - n_hidden
+        near = _near_particles(ctx, state, np.arange(n_before, state.n_particles))
+        state = refine_particles(ctx, state, locator, only=near)
+        if locator.check.split_merged:
+            state = split_merged_particles(ctx, state, locator.check, only=near)
+        state = _drop_unexplained_hidden(state, n_before, n_hidden)
+        if _n_live(state, locator.solve.min_views) <= n_live:
+            break
+    return ctx, state
+
+
+def _n_live(state: ParticleState, min_views: int) -> int:
+    """Particles with a finite position seen in at least ``min_views`` views."""
+    return int(np.sum((state.table["n_views"].to_numpy(float) >= min_views)
+                      & np.all(np.isfinite(state.positions), axis=1)))
 
 
 def _near_particles(ctx: FrameContext, state: ParticleState, rows: np.ndarray) -> np.ndarray:

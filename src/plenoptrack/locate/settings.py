@@ -423,6 +423,17 @@ class CheckSettings:
         matrix's validation cells it adds +0.45 recall and +0.16 precision summed over
         the cells, at 1.18 times the time per frame (docs: locating). Needs
         ``refine_images``.
+    hidden_rounds : int
+        At most this many rounds of that search, each on the residual of every particle
+        located so far (found in the rounds before included), as iterative particle
+        reconstruction repeats its residual triangulation: a particle found in one
+        round takes its images out of the next, which can uncover the particles its
+        images hid. The rounds stop early at the first that keeps no particle more.
+        At 0.05 particles per microlens (`small`, realistic optics, one frame per
+        seed), 4 rounds against 1: recall 0.746 -> 0.759 on the accuracy matrix's
+        development seeds, 0.742 -> 0.759 on its validation seeds, precision equal or
+        higher but for one frame (-0.005), up to 1.8 times the time per frame; a sparse
+        frame, where the first round finds nothing, pays nothing. 1: one search.
     hidden_floor : float
         Pixels the located particles' model lets through less than this fraction of the
         back-light are set to the background in that search: nothing behind an opaque
@@ -452,6 +463,7 @@ class CheckSettings:
     split_max_images: int = 3
     split_trial_stride: int = 2
     find_hidden: bool = True
+    hidden_rounds: int = 4
     hidden_floor: float = 0.5
     merge_pieces: bool = True
 
@@ -483,6 +495,8 @@ class CheckSettings:
         _require(_is_int(self.split_trial_stride) and self.split_trial_stride >= 1,
                  "split_trial_stride", "a whole number of at least 1", self.split_trial_stride)
         _require(0 < self.hidden_floor < 1, "hidden_floor", "in (0, 1)", self.hidden_floor)
+        _require(_is_int(self.hidden_rounds) and self.hidden_rounds >= 1, "hidden_rounds",
+                 "a whole number of at least 1", self.hidden_rounds)
 
 
 _SECTIONS = {"segment": SegmentSettings, "cluster": ClusterSettings, "solve": SolveSettings,
