@@ -311,6 +311,8 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         return _finish_empty(detections, frame, clock.seconds, coverage)
     with clock("checks"):
         state = check_particles(ctx, state, locator)
+        if locator.solve.locking_correction:
+            ctx, state = correct_pixel_locking(ctx, state, locator, calibration)
     if locator.check.refine_images:
         with clock("refine"):
             state = refine_particles(ctx, state, locator)
@@ -527,6 +529,59 @@ def check_particles(ctx: FrameContext, state: ParticleState,
         state = grow_particles(ctx, state, locator.grow)
         state = solve_particles(ctx, state, locator.solve)
     return state
+
+
+def correct_pixel_locking(ctx: FrameContext, state: ParticleState,
+                          locator: PerspectiveLocator,
+                          calibration) -> tuple[FrameContext, ParticleState]:
+    """Stage 5a: correct every centroid for the frame's pixel-locking bias and solve
+    again (:mod:`~plenoptrack.locate.pixel_locking`).
+
+    The bias is learned from the kept centroids of the particles whose image travels
+    across at least ``solve.locking_min_travel_px`` view pixels
+    (:func:`learn_pixel_locking`); the frame is returned unchanged when they are too few
+    for ``solve.locking_harmonics``. Each centroid is corrected at its particle's travel
+    (one of no particle at the middle of the fitted range). The detections' ``s, t``
+    become the corrected centroids.
+    """
+    from .pixel_locking import lattice_phase
+
+    pattern, travel = learn_pixel_locking(ctx, state, locator.solve, calibration.grid)
+    if pattern is None:
+        return ctx, state
+    owner = state.owner
+    own_travel = np.where(owner >= 0, travel[np.clip(owner, 0, max(len(travel) - 1, 0))],
+                          np.nan)
+    corrected = ctx.st - pattern.bias(lattice_phase(calibration.grid, ctx.lf, ctx.st),
+                                      own_travel)
+    detections = ctx.detections.assign(s=corrected[:, 0], t=corrected[:, 1])
+    ctx = FrameContext.build(ctx.lf, calibration, detections, locator)
+    return ctx, solve_particles(ctx, state, locator.solve)
+
+
+def learn_pixel_locking(ctx: FrameContext, state: ParticleState, settings: SolveSettings,
+                        grid):
+    """The frame's pixel-locking pattern (:class:`~plenoptrack.locate.pixel_locking.
+    LockingPattern`, or None when too few centroids show it) from the kept centroids of
+    its particles whose image travels at least ``settings.locking_min_travel_px`` view
+    pixels, and every particle's travel (P,), view pixels."""
+    from .pixel_locking import fit_locking_pattern, lattice_phase
+
+    n = state.n_particles
+    travel = image_travel_px(ctx.dlfc, state.positions, state.owner, ctx.views[ctx.view])
+    live = ((state.table["n_views"].to_numpy(float) >= settings.min_views)
+            & np.all(np.isfinite(state.positions), axis=1))
+    with np.errstate(invalid="ignore"):
+        learn = live & (travel >= settings.locking_min_travel_px)
+    rows = np.flatnonzero((state.owner >= 0) & learn[np.clip(state.owner, 0, max(n - 1, 0))])
+    if len(rows) == 0:
+        return None, travel
+    pred = _predict_all(ctx.dlfc, np.where(learn[:, None], state.positions, np.nan),
+                        ctx.views)[state.owner[rows], ctx.view[rows]]        # (m, 2)
+    pattern = fit_locking_pattern(ctx.st[rows] - pred, lattice_phase(grid, ctx.lf, pred),
+                                  travel[state.owner[rows]],
+                                  harmonics=settings.locking_harmonics)
+    return pattern, travel
 
 
 def refine_particles(ctx: FrameContext, state: ParticleState,

@@ -260,6 +260,21 @@ class SolveSettings:
         calibration measured on its dot cards (:mod:`~plenoptrack.locate.opacity`). A
         particle that passes 10 % of the light otherwise reads 5 % small. No effect with
         a calibration that has no edge blur (re-run ``plenoptrack calibrate``).
+    locking_correction : bool
+        Correct every centroid for the pixel-locking bias the frame's own particles
+        show (:mod:`~plenoptrack.locate.pixel_locking`): a view pixel is one microlens,
+        and a centroid is pulled towards the lens centres by an amount that repeats with
+        the lattice; near the focal plane that bias moves a particle's depth. Learned
+        from the centroid residuals of the particles whose image travels across at least
+        ``locking_min_travel_px`` view pixels, as a Fourier series in the lattice phase
+        up to ``locking_harmonics``, after the consistency checks; every particle is then
+        solved again. A frame with too few such residuals (40 per fitted term) is left
+        as it is.
+    locking_min_travel_px : float
+        See ``locking_correction``: particles whose image moves less than this across
+        the aperture (view pixels) see too few phases to show the bias.
+    locking_harmonics : int
+        See ``locking_correction``.
     """
 
     reject_k: float = 3.0
@@ -272,10 +287,19 @@ class SolveSettings:
     unexplained_error: bool = True
     shape_error: float = 0.0
     opacity: bool = True
+    locking_correction: bool = True
+    locking_min_travel_px: float = 2.0
+    locking_harmonics: int = 1
 
     def __post_init__(self) -> None:
         _require_switches(self)
         _require(self.reject_k > 0, "reject_k", "positive", self.reject_k)
+        _require(isinstance(self.locking_min_travel_px, numbers.Real)
+                 and not isinstance(self.locking_min_travel_px, bool)
+                 and self.locking_min_travel_px >= 0, "locking_min_travel_px",
+                 "a number of view pixels of at least 0", self.locking_min_travel_px)
+        _require(_is_int(self.locking_harmonics) and 1 <= self.locking_harmonics <= 4,
+                 "locking_harmonics", "a whole number from 1 to 4", self.locking_harmonics)
         _require(isinstance(self.shape_error, numbers.Real)
                  and not isinstance(self.shape_error, bool) and 0 <= self.shape_error < 1,
                  "shape_error", "a fraction from 0 to below 1", self.shape_error)

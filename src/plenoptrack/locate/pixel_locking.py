@@ -1,0 +1,178 @@
+"""Pixel-locking correction of the view centroids, learned from the frame itself.
+
+A view pixel is one microlens: it integrates the particle's image over the lens's cell,
+and a centroid of a few such samples is pulled towards the nearest lens centre by an
+amount that repeats with the lens lattice, a function of where the image centre lies in
+the lattice cell (its *phase*). Far from the focal plane a particle's image crosses many
+lens cells from one side of the aperture to the other, the views sample every phase and
+the solve averages the bias out. Near focus every view sees the image at about the same
+phase; the bias then changes slowly and almost linearly across the aperture, which is
+what a change of depth looks like, and the particle's depth is off by a fixed amount
+that depends on its place on the grid (``benchmarks/near_focus_pattern.py``: about
+80 um at 1 mm from focus on the `small` camera's hexagonal lattice).
+
+The bias is measured on the frame's own particles whose image travels across at least
+``min_travel_px`` view pixels over the aperture: their centroids scatter about their
+solution by the bias at each view's phase, which the solve did not absorb. Each of the
+two residual components ``(s, t)`` is fitted as a Fourier series in the two lattice
+phases (:func:`lattice_phase`) up to ``harmonics``, with three rounds of rejection at
+3 robust standard deviations (overlapping images, wrong members); the constant is left
+out of the correction (a common offset is not a locking effect). Every centroid of the
+frame is then corrected by the pattern at its own phase.
+
+A raw image's centroids cannot be told apart from ground truth here: the pattern is
+learned only from the scatter of centroids about the particles located from them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+__all__ = ["LockingPattern", "lattice_phase", "fourier_terms", "fit_locking_pattern"]
+
+_MAD_TO_SIGMA = 1.4826
+
+
+def lattice_phase(grid, lf, st: np.ndarray) -> np.ndarray:
+    """Place of each view position in the lens lattice's cell.
+
+    Parameters
+    ----------
+    grid : LensletGrid
+        The calibration's lenslet grid (``calibration.grid``).
+    lf : LightField
+        The decoded frame (its spatial sampling maps ``(s, t)`` to the sensor).
+    st : (M, 2) float ndarray
+        View positions ``(s, t)``, view pixels.
+
+    Returns
+    -------
+    (M, 2) float ndarray
+        Fractional lattice coordinates in ``[0, 1)``: along the lens rows' step
+        between rows (``row_step_px``, which a hexagonal lattice's odd-row shift makes
+        a primitive vector) and along the rows (``col_step_px``).
+    """
+    st = np.asarray(st, dtype=float).reshape(-1, 2)
+    ij = grid.lattice_coords(lf.to_sensor(st[:, 0], st[:, 1])).reshape(-1, 2)
+    a = ij[:, 0]
+    b = ij[:, 1] - grid.odd_row_shift * a
+    return np.column_stack([a % 1.0, b % 1.0])
+
+
+def _orders(harmonics: int) -> list[tuple[int, int]]:
+    """Integer wave vectors ``(m, n)`` up to ``harmonics``, one of each +- pair."""
+    return [(m, n) for m in range(-harmonics, harmonics + 1) for n in range(harmonics + 1)
+            if n > 0 or m > 0]
+
+
+def fourier_terms(phase: np.ndarray, harmonics: int) -> np.ndarray:
+    """(M, K) cosines and sines of ``2 pi (m a + n b)`` over :func:`_orders`, for the
+    phases ``(a, b)`` ``phase`` (M, 2); ``K = 2 (2 h (h + 1))`` for ``h`` harmonics."""
+    phase = np.asarray(phase, dtype=float).reshape(-1, 2)
+    cols = []
+    for m, n in _orders(harmonics):
+        arg = 2.0 * math.pi * (m * phase[:, 0] + n * phase[:, 1])
+        cols += [np.cos(arg), np.sin(arg)]
+    return np.column_stack(cols) if cols else np.zeros((len(phase), 0))
+
+
+@dataclasses.dataclass(frozen=True)
+class LockingPattern:
+    """A frame's pixel-locking bias as a function of lattice phase and image travel
+    (:func:`fit_locking_pattern`).
+
+    The bias at phase ``p`` of an image that travels ``T`` view pixels across the
+    aperture is ``(c + d T) . F(p)``, ``F`` the :func:`fourier_terms`: a sharp image near
+    focus is pulled harder than a blurred one far from it. ``T`` is held within the
+    range the pattern was fitted on.
+
+    Attributes
+    ----------
+    coef : (2, 2, K) float ndarray
+        ``[c, d]`` of the ``s`` and ``t`` bias (view pixels, and view pixels per view
+        pixel of travel).
+    harmonics : int
+        Harmonics of the series.
+    travel_range : (float, float)
+        Least and largest travel of the fitted residuals' particles, view pixels.
+    n_residuals : int
+        Centroid residuals the fit kept.
+    rms_px : (2,) float ndarray
+        RMS of the fitted bias over the kept residuals, ``s`` and ``t``, view pixels.
+    """
+
+    coef: np.ndarray
+    harmonics: int
+    travel_range: tuple[float, float]
+    n_residuals: int
+    rms_px: np.ndarray
+
+    def bias(self, phase: np.ndarray, travel) -> np.ndarray:
+        """(M, 2) bias ``(s, t)`` at the phases ``phase`` (M, 2) of images that travel
+        ``travel`` (scalar or (M,), view pixels; NaN: the middle of the fitted range),
+        view pixels: what to subtract from centroids there."""
+        terms = fourier_terms(phase, self.harmonics)
+        lo, hi = self.travel_range
+        travel = np.broadcast_to(np.asarray(travel, dtype=float), (len(terms),))
+        travel = np.clip(np.where(np.isfinite(travel), travel, 0.5 * (lo + hi)), lo, hi)
+        return np.column_stack([terms @ self.coef[c, 0] + travel * (terms @ self.coef[c, 1])
+                                for c in range(2)])
+
+
+def fit_locking_pattern(residual: np.ndarray, phase: np.ndarray, travel: np.ndarray, *,
+                        harmonics: int = 1, min_per_term: int = 40) -> LockingPattern | None:
+    """Fit the bias of centroids as a Fourier series in their lattice phase whose
+    amplitudes change linearly with the image's travel.
+
+    Parameters
+    ----------
+    residual : (M, 2) float ndarray
+        Centroids minus their particles' predictions ``(s, t)``, view pixels, of
+        particles whose images travel across many lens cells.
+    phase : (M, 2) float ndarray
+        :func:`lattice_phase` of those centroids.
+    travel : (M,) float ndarray
+        Travel of each centroid's particle across the aperture, view pixels
+        (:func:`~plenoptrack.locate.uncertainty.image_travel_px`).
+    harmonics : int
+        Highest harmonic of the series (1: 8 terms per component and amplitude).
+    min_per_term : int
+        At least this many residuals per fitted term, or no pattern (None): with fewer,
+        the fitted pattern's own noise (about ``sd sqrt(K / M)``) approaches the bias
+        it corrects.
+
+    Returns
+    -------
+    LockingPattern or None
+    """
+    residual = np.asarray(residual, dtype=float).reshape(-1, 2)
+    phase = np.asarray(phase, dtype=float).reshape(-1, 2)
+    travel = np.asarray(travel, dtype=float).ravel()
+    ok = (np.all(np.isfinite(residual), axis=1) & np.all(np.isfinite(phase), axis=1)
+          & np.isfinite(travel))
+    residual, phase, travel = residual[ok], phase[ok], travel[ok]
+    terms = fourier_terms(phase, harmonics)
+    k = terms.shape[1]
+    design = np.column_stack([np.ones(len(phase)), travel, terms, terms * travel[:, None]])
+    if len(residual) < min_per_term * design.shape[1]:
+        return None
+    keep = np.ones(len(residual), dtype=bool)
+    coef = np.zeros((2, design.shape[1]))
+    for _round in range(3):
+        for c in range(2):
+            coef[c] = np.linalg.lstsq(design[keep], residual[keep, c], rcond=None)[0]
+        misfit = residual - design @ coef.T
+        scale = _MAD_TO_SIGMA * np.median(np.abs(misfit[keep]), axis=0)
+        keep = np.all(np.abs(misfit) <= 3.0 * np.maximum(scale, 1e-12), axis=1)
+        if keep.sum() < min_per_term * design.shape[1]:
+            return None
+    pattern = LockingPattern(coef=np.stack([coef[:, 2:2 + k], coef[:, 2 + k:]], axis=1),
+                             harmonics=int(harmonics),
+                             travel_range=(float(travel[keep].min()),
+                                           float(travel[keep].max())),
+                             n_residuals=int(keep.sum()), rms_px=np.zeros(2))
+    bias = pattern.bias(phase[keep], travel[keep])
+    return dataclasses.replace(pattern, rms_px=np.sqrt(np.mean(bias ** 2, axis=0)))
