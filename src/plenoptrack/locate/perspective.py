@@ -21,11 +21,16 @@
 5. :func:`check_particles` -- drop particles that fail the consistency checks (too few
    or clustered views, residuals far above the typical one, built from merged images),
    refit those whose centroids are partly pulled by overlapping images, and solve again;
+   correct every centroid for the pull towards the lens centres that the frame's
+   particles far from focus show, and solve again (``solve.locking_correction``,
+   :func:`correct_pixel_locking`, :mod:`~plenoptrack.locate.pixel_locking`);
    then (``check.refine_images``, on by default) refit particles whose images overlap
    others' to the view pixels themselves (:func:`refine_particles`,
    :mod:`~plenoptrack.locate.refine`), and (``check.split_merged``) refit as two the
    particles whose pixels one image cannot explain, two particles on nearly one line
-   of sight taken for one (:func:`split_merged_particles`);
+   of sight taken for one (:func:`split_merged_particles`), and search the frame again
+   with the located particles' images divided out, in rounds
+   (:func:`search_hidden_rounds`);
 6. :func:`measure_particles` -- uncertainties (least-squares errors scaled for
    view-correlated centroid errors, plus the DLFC's model error;
    :mod:`~plenoptrack.locate.uncertainty`), in-plane size and shape from the member
@@ -561,10 +566,11 @@ def correct_pixel_locking(ctx: FrameContext, state: ParticleState,
 
 def learn_pixel_locking(ctx: FrameContext, state: ParticleState, settings: SolveSettings,
                         grid):
-    """The frame's pixel-locking pattern (:class:`~plenoptrack.locate.pixel_locking.
-    LockingPattern`, or None when too few centroids show it) from the kept centroids of
-    its particles whose image travels at least ``settings.locking_min_travel_px`` view
-    pixels, and every particle's travel (P,), view pixels."""
+    """The frame's pixel-locking pattern
+    (:class:`~plenoptrack.locate.pixel_locking.LockingPattern`, or None when too few
+    centroids show it) from the kept centroids of its particles whose image travels at
+    least ``settings.locking_min_travel_px`` view pixels, and every particle's travel
+    (P,), view pixels."""
     from .pixel_locking import fit_locking_pattern, lattice_phase
 
     n = state.n_particles

@@ -69,8 +69,9 @@ def _orders(harmonics: int) -> list[tuple[int, int]]:
 
 
 def fourier_terms(phase: np.ndarray, harmonics: int) -> np.ndarray:
-    """(M, K) cosines and sines of ``2 pi (m a + n b)`` over :func:`_orders`, for the
-    phases ``(a, b)`` ``phase`` (M, 2); ``K = 2 (2 h (h + 1))`` for ``h`` harmonics."""
+    """(M, K) cosines and sines of ``2 pi (m a + n b)`` for the phases ``(a, b)``
+    ``phase`` (M, 2), over the integer wave vectors ``(m, n)`` up to ``harmonics`` (one
+    of each +- pair); ``K = 4 h (h + 1)`` for ``h`` harmonics."""
     phase = np.asarray(phase, dtype=float).reshape(-1, 2)
     cols = []
     for m, n in _orders(harmonics):
