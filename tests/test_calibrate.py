@@ -402,6 +402,34 @@ def test_corrupt_edge_blur_refused(calibrated, tmp_path, rows):
     assert str(path) in str(info.value)
 
 
+def test_calibration_measures_the_pixel_locking_pattern(calibrated, tmp_path):
+    """The dot cards' centroids scatter about the DLFC's predictions by a pull that
+    repeats with the lens lattice: the calibration stores it (every card depth, so from
+    near focus on), and the file keeps it."""
+    calib, _ = calibrated
+    pattern = calib.locking_pattern
+    assert pattern is not None and pattern.harmonics == 1
+    assert pattern.travel_range[0] < 0.5 < 4.0 < pattern.travel_range[1]
+    assert np.all(pattern.rms_px > 0.005) and np.all(pattern.rms_px < 0.1), pattern.rms_px
+    loaded = load_calibration(save_calibration(calib, tmp_path / "calib.json"))
+    np.testing.assert_array_equal(loaded.locking_pattern.coef, pattern.coef)
+    assert loaded.locking_pattern.travel_range == pattern.travel_range
+    assert Calibration(camera=calib.camera, grid=calib.grid).locking_pattern is None
+
+
+@pytest.mark.parametrize("change", [{"harmonics": 0}, {"coef_px": [[1.0]]},
+                                    {"travel_range_px": [2.0, 1.0]}, {"rms_px": "x"}, None])
+def test_corrupt_locking_pattern_refused(calibrated, tmp_path, change):
+    calib, _ = calibrated
+    path = save_calibration(calib, tmp_path / "calib.json")
+    doc = json.loads(path.read_text())
+    doc["locking_pattern"] = None if change is None else {**doc["locking_pattern"], **change}
+    path.write_text(json.dumps(doc))
+    with pytest.raises(CalibrationError, match="corrupt pixel-locking pattern") as info:
+        load_calibration(path)
+    assert str(path) in str(info.value)
+
+
 def test_grid_only_calibration_has_no_dlfc(calibrated):
     calib, _ = calibrated
     grid_only = Calibration(camera=calib.camera, grid=calib.grid, vignetting=calib.vignetting)

@@ -66,6 +66,7 @@ from .locate.dlfc import DLFC, INPUT_VARIABLES, FitReport, _check_order, fit_dlf
 from .locate.dotcards import (CardLattice, OriginConsensus, card_lattice, consistent_origins,
                               dotcard_points)
 from .locate.opacity import edge_blur_by_depth
+from .locate.pixel_locking import pattern_from_dots
 
 __all__ = ["CARD_DEPTH_TOL", "CARD_DEPTH_TOL_MM", "DEFAULT_REJECT_K", "DEPTH_SCALE_RANGE",
            "DOTCARDS_FILE", "ORIGIN_TOL", "CalibrationReport", "CardDepthWarning", "DepthCheck",
@@ -993,6 +994,9 @@ def calibrate(white, dotcards, camera: CameraSpec, *, order: int = 4,
     blur = edge_blur_by_depth(points)
     if blur:
         calibration = calibration.with_edge_blur(blur)
+    locking = pattern_from_dots(fit_points, dlfc, calibration.grid)
+    if locking is not None:
+        calibration = calibration.with_locking_pattern(locking)
     return calibration, report
 
 

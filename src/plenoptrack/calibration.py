@@ -33,6 +33,7 @@ __all__ = ["Calibration", "load_calibration", "save_calibration", "record_white"
 FORMAT = "plenoptrack-calibration"
 VERSION = 1
 EDGE_BLUR_KEY = "edge_blur_by_depth_px"
+LOCKING_KEY = "locking_pattern"
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,9 @@ class Calibration:
         (:meth:`DLFC.to_dict` output), read through :attr:`dlfc` and set with
         :meth:`with_dlfc`; ``extra["edge_blur_by_depth_px"]`` the views' edge blur
         measured on the dot cards, read through :attr:`edge_blur_by_depth` and set with
-        :meth:`with_edge_blur`.
+        :meth:`with_edge_blur`; ``extra["locking_pattern"]`` the dot cards' pixel-locking
+        pattern, read through :attr:`locking_pattern` and set with
+        :meth:`with_locking_pattern`.
     """
 
     camera: CameraSpec
@@ -104,6 +107,21 @@ class Calibration:
         """A copy of this calibration holding the edge blur ``rows`` ``(z, sigma_px)``."""
         rows = _edge_blur_rows(rows, source="edge blur")
         return replace(self, extra={**self.extra, EDGE_BLUR_KEY: rows.tolist()})
+
+    @property
+    def locking_pattern(self):
+        """The pull of view centroids towards the lens centres measured on the dot cards
+        (:class:`~plenoptrack.locate.pixel_locking.LockingPattern`), or None when the
+        calibration has none (made without dot cards, or by an older version). The
+        locator uses it in frames too sparse to show their own."""
+        from .locate.pixel_locking import LockingPattern
+
+        data = self.extra.get(LOCKING_KEY)
+        return None if data is None else LockingPattern.from_dict(data, source="calibration")
+
+    def with_locking_pattern(self, pattern) -> "Calibration":
+        """A copy of this calibration holding the pixel-locking ``pattern``."""
+        return replace(self, extra={**self.extra, LOCKING_KEY: pattern.to_dict()})
 
     def check_camera(self, camera: CameraSpec, *, source: str = "calibration") -> None:
         """Raise :class:`CalibrationError` if ``camera`` is not the camera calibrated."""
@@ -171,6 +189,10 @@ class Calibration:
             DLFC.from_dict(extra["dlfc"], source=f"{source} [dlfc]")
         if EDGE_BLUR_KEY in extra:
             _edge_blur_rows(extra[EDGE_BLUR_KEY], source=source)
+        if LOCKING_KEY in extra:
+            from .locate.pixel_locking import LockingPattern
+
+            LockingPattern.from_dict(extra[LOCKING_KEY], source=source)
         return cls(camera=camera, grid=grid, vignetting=vignetting, extra=extra)
 
 

@@ -32,15 +32,15 @@ def test_lens_centres_are_phase_zero_and_midpoints_half(grid_and_field):
     i, j = np.meshgrid(np.arange(10, 16), np.arange(20, 27), indexing="ij")
     centres = grid.centers_of(i.ravel(), j.ravel())
     st = lf.from_sensor(centres)
-    np.testing.assert_array_less(_wrapped(lattice_phase(grid, lf, st)), 1e-6)
+    np.testing.assert_array_less(_wrapped(lattice_phase(grid, st)), 1e-6)
     # half-way along a row: half a cell along the rows, none across
     along = 0.5 * (centres + grid.centers_of(i.ravel(), j.ravel() + 1))
-    phase = lattice_phase(grid, lf, lf.from_sensor(along))
+    phase = lattice_phase(grid, lf.from_sensor(along))
     np.testing.assert_allclose(phase[:, 1], 0.5, atol=1e-6)
     np.testing.assert_array_less(_wrapped(phase[:, 0]), 1e-6)
     # half-way to the next row's nearest lens: half a cell across the rows
     below = grid.centers_of(i.ravel() + 1, j.ravel())
-    phase = lattice_phase(grid, lf, lf.from_sensor(0.5 * (centres + below)))
+    phase = lattice_phase(grid, lf.from_sensor(0.5 * (centres + below)))
     np.testing.assert_allclose(phase[:, 0], 0.5, atol=1e-6)
 
 
@@ -105,7 +105,7 @@ def test_locator_learns_the_pattern_the_truth_shows(small_calibrated):
     pred = perspective._predict_all(ctx.dlfc, true_xyz, ctx.views)[nearest[owner],
                                                                    ctx.view[rows]]
     reference = fit_locking_pattern(ctx.st[rows] - pred,
-                                    lattice_phase(calib.grid, lf, pred), travel[owner])
+                                    lattice_phase(calib.grid, pred), travel[owner])
     assert reference is not None and np.all(reference.rms_px > 0.01)   # a real effect
     a, b = np.meshgrid(np.linspace(0, 1, 20, endpoint=False),
                        np.linspace(0, 1, 20, endpoint=False))

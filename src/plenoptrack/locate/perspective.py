@@ -544,8 +544,10 @@ def correct_pixel_locking(ctx: FrameContext, state: ParticleState,
 
     The bias is learned from the kept centroids of the particles whose image travels
     across at least ``solve.locking_min_travel_px`` view pixels
-    (:func:`learn_pixel_locking`); the frame is returned unchanged when they are too few
-    for ``solve.locking_harmonics``. Each centroid is corrected at its particle's travel
+    (:func:`learn_pixel_locking`); when they are too few for ``solve.locking_harmonics``,
+    the calibration's pattern from its dot cards is used
+    (:attr:`~plenoptrack.calibration.Calibration.locking_pattern`), and without one the
+    frame is returned unchanged. Each centroid is corrected at its particle's travel
     (one of no particle at the middle of the fitted range). The detections' ``s, t``
     become the corrected centroids.
     """
@@ -553,12 +555,13 @@ def correct_pixel_locking(ctx: FrameContext, state: ParticleState,
 
     pattern, travel = learn_pixel_locking(ctx, state, locator.solve, calibration.grid)
     if pattern is None:
+        pattern = getattr(calibration, "locking_pattern", None)
+    if pattern is None:
         return ctx, state
     owner = state.owner
     own_travel = np.where(owner >= 0, travel[np.clip(owner, 0, max(len(travel) - 1, 0))],
                           np.nan)
-    corrected = ctx.st - pattern.bias(lattice_phase(calibration.grid, ctx.lf, ctx.st),
-                                      own_travel)
+    corrected = ctx.st - pattern.bias(lattice_phase(calibration.grid, ctx.st), own_travel)
     detections = ctx.detections.assign(s=corrected[:, 0], t=corrected[:, 1])
     ctx = FrameContext.build(ctx.lf, calibration, detections, locator)
     return ctx, solve_particles(ctx, state, locator.solve)
@@ -584,7 +587,7 @@ def learn_pixel_locking(ctx: FrameContext, state: ParticleState, settings: Solve
         return None, travel
     pred = _predict_all(ctx.dlfc, np.where(learn[:, None], state.positions, np.nan),
                         ctx.views)[state.owner[rows], ctx.view[rows]]        # (m, 2)
-    pattern = fit_locking_pattern(ctx.st[rows] - pred, lattice_phase(grid, ctx.lf, pred),
+    pattern = fit_locking_pattern(ctx.st[rows] - pred, lattice_phase(grid, pred),
                                   travel[state.owner[rows]],
                                   harmonics=settings.locking_harmonics)
     return pattern, travel

@@ -36,15 +36,14 @@ __all__ = ["LockingPattern", "lattice_phase", "fourier_terms", "fit_locking_patt
 _MAD_TO_SIGMA = 1.4826
 
 
-def lattice_phase(grid, lf, st: np.ndarray) -> np.ndarray:
+def lattice_phase(grid, st: np.ndarray) -> np.ndarray:
     """Place of each view position in the lens lattice's cell.
 
     Parameters
     ----------
     grid : LensletGrid
-        The calibration's lenslet grid (``calibration.grid``).
-    lf : LightField
-        The decoded frame (its spatial sampling maps ``(s, t)`` to the sensor).
+        The calibration's lenslet grid (``calibration.grid``); view positions map to
+        the sensor as ``decode(raw, grid)`` samples them.
     st : (M, 2) float ndarray
         View positions ``(s, t)``, view pixels.
 
@@ -55,8 +54,13 @@ def lattice_phase(grid, lf, st: np.ndarray) -> np.ndarray:
         between rows (``row_step_px``, which a hexagonal lattice's odd-row shift makes
         a primitive vector) and along the rows (``col_step_px``).
     """
+    from ..lightfield.decode import _sampling
+
     st = np.asarray(st, dtype=float).reshape(-1, 2)
-    ij = grid.lattice_coords(lf.to_sensor(st[:, 0], st[:, 1])).reshape(-1, 2)
+    samp = _sampling(grid, max(1, int(math.floor(grid.pitch_px / 2.0))))
+    sensor = (np.asarray(samp.origin_px) + st[:, :1] * np.asarray(samp.s_step_px)
+              + st[:, 1:] * np.asarray(samp.t_step_px))
+    ij = grid.lattice_coords(sensor).reshape(-1, 2)
     a = ij[:, 0]
     b = ij[:, 1] - grid.odd_row_shift * a
     return np.column_stack([a % 1.0, b % 1.0])
@@ -110,6 +114,35 @@ class LockingPattern:
     travel_range: tuple[float, float]
     n_residuals: int
     rms_px: np.ndarray
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (a calibration file's ``locking_pattern`` section)."""
+        return {"harmonics": self.harmonics, "travel_range_px": list(self.travel_range),
+                "coef_px": np.asarray(self.coef).tolist(), "n_residuals": self.n_residuals,
+                "rms_px": np.asarray(self.rms_px).tolist()}
+
+    @classmethod
+    def from_dict(cls, data, *, source: str = "locking pattern") -> "LockingPattern":
+        """Read :meth:`to_dict` output; :class:`~plenoptrack.errors.CalibrationError`
+        naming ``source`` when it is not a valid pattern."""
+        from ..errors import CalibrationError
+
+        try:
+            harmonics = int(data["harmonics"])
+            lo, hi = (float(v) for v in data["travel_range_px"])
+            coef = np.asarray(data["coef_px"], dtype=float)
+            n = int(data["n_residuals"])
+            rms = np.asarray(data["rms_px"], dtype=float)
+        except (KeyError, TypeError, ValueError):
+            raise CalibrationError(f"{source}: corrupt pixel-locking pattern; re-run "
+                                   "`plenoptrack calibrate`") from None
+        k = 4 * harmonics * (harmonics + 1)
+        if (not 1 <= harmonics <= 4 or coef.shape != (2, 2, k) or not np.all(np.isfinite(coef))
+                or not (0 <= lo <= hi < np.inf) or rms.shape != (2,)):
+            raise CalibrationError(f"{source}: corrupt pixel-locking pattern; re-run "
+                                   "`plenoptrack calibrate`")
+        return cls(coef=coef, harmonics=harmonics, travel_range=(lo, hi), n_residuals=n,
+                   rms_px=rms)
 
     def bias(self, phase: np.ndarray, travel) -> np.ndarray:
         """(M, 2) bias ``(s, t)`` at the phases ``phase`` (M, 2) of images that travel
@@ -177,3 +210,44 @@ def fit_locking_pattern(residual: np.ndarray, phase: np.ndarray, travel: np.ndar
                              n_residuals=int(keep.sum()), rms_px=np.zeros(2))
     bias = pattern.bias(phase[keep], travel[keep])
     return dataclasses.replace(pattern, rms_px=np.sqrt(np.mean(bias ** 2, axis=0)))
+
+
+def pattern_from_dots(points, dlfc, grid, *, harmonics: int = 1) -> LockingPattern | None:
+    """The pixel-locking pattern of a calibration's dot cards.
+
+    Each dot's centroids scatter about the fitted DLFC's predictions of its known place
+    by the pull at each view's phase (the polynomial, fitted on dots at every phase, does
+    not follow it); cards near focus show the pattern at small travel directly.
+
+    Parameters
+    ----------
+    points : DataFrame
+        The dots' centroids as the DLFC was fitted on them: columns ``u, v, s, t, x, y,
+        z`` and, to tell the dots apart, ``card, i, j`` (else ``z, i, j``).
+    dlfc : DLFC
+        The DLFC fitted on ``points``.
+    grid : LensletGrid
+        The lenslet grid the cards were decoded with.
+    harmonics : int
+        See :func:`fit_locking_pattern`.
+
+    Returns
+    -------
+    LockingPattern or None
+        None when the dots are too few for the fit.
+    """
+    from .uncertainty import image_travel_px
+
+    keys = [c for c in ("card", "i", "j") if c in points.columns]
+    if keys != ["card", "i", "j"]:
+        keys = ["z", "i", "j"]
+    dot = points.groupby(keys, sort=False).ngroup().to_numpy()
+    xyz = points[["x", "y", "z"]].to_numpy(float)
+    uv = points[["u", "v"]].to_numpy(float)
+    first = np.unique(dot, return_index=True)[1]
+    travel = image_travel_px(dlfc, xyz[first], dot, uv)[dot]
+    s, t = dlfc.predict(xyz[:, 0], xyz[:, 1], xyz[:, 2], uv[:, 0], uv[:, 1])
+    pred = np.column_stack([s, t])
+    residual = points[["s", "t"]].to_numpy(float) - pred
+    return fit_locking_pattern(residual, lattice_phase(grid, pred), travel,
+                               harmonics=harmonics)
