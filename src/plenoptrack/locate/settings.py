@@ -268,8 +268,10 @@ class SolveSettings:
         from the centroid residuals of the particles whose image travels across at least
         ``locking_min_travel_px`` view pixels, as a Fourier series in the lattice phase
         up to ``locking_harmonics``, after the consistency checks; every particle is then
-        solved again. A frame with too few such residuals (40 per fitted term) is left
-        as it is.
+        solved again. A frame with too few such residuals (40 per fitted term) is
+        corrected with the pattern the calibration measured on its dot cards
+        (:attr:`~plenoptrack.calibration.Calibration.locking_pattern`), or left as it is
+        when the calibration has none.
     locking_min_travel_px : float
         See ``locking_correction``: particles whose image moves less than this across
         the aperture (view pixels) see too few phases to show the bias.
