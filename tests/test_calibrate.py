@@ -411,6 +411,8 @@ def test_calibration_measures_the_pixel_locking_pattern(calibrated, tmp_path):
     assert pattern is not None and pattern.harmonics == 1
     assert pattern.travel_range[0] < 0.5 < 4.0 < pattern.travel_range[1]
     assert np.all(pattern.rms_px > 0.005) and np.all(pattern.rms_px < 0.1), pattern.rms_px
+    # the dots' images: 0.4 mm dots at magnification -0.5 are about 2.6 view pixels wide
+    assert 1.5 < pattern.image_diameter_px < 4.5, pattern.image_diameter_px
     loaded = load_calibration(save_calibration(calib, tmp_path / "calib.json"))
     np.testing.assert_array_equal(loaded.locking_pattern.coef, pattern.coef)
     assert loaded.locking_pattern.travel_range == pattern.travel_range

@@ -8,8 +8,8 @@ import pytest
 
 from plenoptrack.lightfield import decode
 from plenoptrack.locate import perspective
-from plenoptrack.locate.pixel_locking import (fit_locking_pattern, fourier_terms,
-                                              lattice_phase)
+from plenoptrack.locate.pixel_locking import (LockingPattern, fit_locking_pattern,
+                                              fourier_terms, lattice_phase)
 from plenoptrack.locate.settings import PerspectiveLocator
 from plenoptrack.simulate import make_scene, render_frame
 
@@ -116,6 +116,53 @@ def test_locator_learns_the_pattern_the_truth_shows(small_calibrated):
         assert np.corrcoef(got[:, k], want[:, k])[0, 1] > 0.8
         ratio = np.sqrt(np.mean(got[:, k] ** 2) / np.mean(want[:, k] ** 2))
         assert 1 / 1.5 < ratio < 1.5
+
+
+def test_a_frame_without_its_own_pattern_uses_the_calibrations(small_calibrated,
+                                                                 monkeypatch):
+    """Every centroid moves by the calibration's pattern at its phase and its particle's
+    travel when the frame shows none; without a calibration pattern nothing moves."""
+    optics, calib = small_calibrated
+    scene = make_scene(calib.camera, n_particles=4, seed=43, diameter_mm=0.4)
+    raw = render_frame(optics, scene.truth, seed=np.random.default_rng([43, 3, 0]))
+    locator = PerspectiveLocator()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lf = perspective._decoded(raw, calib, 0, None)
+        detections = perspective.segment_frame(lf, locator.segment, frame=0)
+        ctx = perspective.FrameContext.build(lf, calib, detections, locator)
+        state = perspective._cluster_and_solve(
+            ctx, perspective.ParticleState.start(ctx, locator.segment), locator)
+        state = perspective.check_particles(ctx, state, locator)
+    own, travel = perspective.learn_pixel_locking(ctx, state, locator.solve, calib.grid)
+    assert own is None                                       # four particles are too few
+    rng = np.random.default_rng(6)
+    coef = np.stack([rng.normal(0, 0.03, (2, 8)), rng.normal(0, 0.003, (2, 8))], axis=1)
+    pattern = LockingPattern(coef=coef, harmonics=1, travel_range=(0.0, 9.0),
+                             n_residuals=1000, rms_px=np.full(2, 0.03))
+    with_pattern = calib.with_locking_pattern(pattern)
+    new_ctx, new_state = perspective.correct_pixel_locking(ctx, state, locator, with_pattern)
+    owner = state.owner
+    own_travel = np.where(owner >= 0, travel[np.maximum(owner, 0)], np.nan)
+    expected = ctx.st - pattern.bias(lattice_phase(calib.grid, ctx.st), own_travel)
+    np.testing.assert_allclose(new_ctx.st, expected, atol=1e-12)
+    np.testing.assert_allclose(new_ctx.detections[["s", "t"]].to_numpy(), expected,
+                               atol=1e-12)
+    assert not np.array_equal(new_state.positions, state.positions)
+    same_ctx, same_state = perspective.correct_pixel_locking(ctx, state, locator, calib)
+    assert same_ctx is ctx and same_state is state
+
+
+def test_a_measured_pattern_applies_to_images_of_about_its_size():
+    pattern = LockingPattern(coef=np.zeros((2, 2, 8)), harmonics=1, travel_range=(0.0, 9.0),
+                             n_residuals=1000, rms_px=np.zeros(2), image_diameter_px=4.0)
+    diameters = np.array([1.5, 2.1, 4.0, 7.9, 9.0])
+    np.testing.assert_array_equal(pattern.applies_to(np.pi * diameters ** 2 / 4),
+                                  [False, True, True, True, False])
+    unknown = LockingPattern.from_dict({k: v for k, v in pattern.to_dict().items()
+                                        if k != "image_diameter_px"})
+    assert unknown.applies_to(np.array([0.1, 1e4])).all()
+    assert LockingPattern.from_dict(pattern.to_dict()).image_diameter_px == 4.0
 
 
 def test_locking_settings_are_checked():

@@ -546,22 +546,29 @@ def correct_pixel_locking(ctx: FrameContext, state: ParticleState,
     across at least ``solve.locking_min_travel_px`` view pixels
     (:func:`learn_pixel_locking`); when they are too few for ``solve.locking_harmonics``,
     the calibration's pattern from its dot cards is used
-    (:attr:`~plenoptrack.calibration.Calibration.locking_pattern`), and without one the
-    frame is returned unchanged. Each centroid is corrected at its particle's travel
-    (one of no particle at the middle of the fitted range). The detections' ``s, t``
-    become the corrected centroids.
+    (:attr:`~plenoptrack.calibration.Calibration.locking_pattern`) on the images within
+    a factor 2 of the dots' size
+    (:meth:`~plenoptrack.locate.pixel_locking.LockingPattern.applies_to`), and without
+    one the frame is returned unchanged. Each centroid is corrected at its particle's
+    travel (one of no particle at the middle of the fitted range). The detections'
+    ``s, t`` become the corrected centroids.
     """
     from .pixel_locking import lattice_phase
 
     pattern, travel = learn_pixel_locking(ctx, state, locator.solve, calibration.grid)
+    applies = np.ones(len(ctx.st), dtype=bool)
     if pattern is None:
+        # the dots' pattern, on images of about the dots' size only
         pattern = getattr(calibration, "locking_pattern", None)
-    if pattern is None:
+        if pattern is not None:
+            applies = pattern.applies_to(ctx.detections["dark_area"].to_numpy(float))
+    if pattern is None or not applies.any():
         return ctx, state
     owner = state.owner
     own_travel = np.where(owner >= 0, travel[np.clip(owner, 0, max(len(travel) - 1, 0))],
                           np.nan)
-    corrected = ctx.st - pattern.bias(lattice_phase(calibration.grid, ctx.st), own_travel)
+    bias = pattern.bias(lattice_phase(calibration.grid, ctx.st), own_travel)
+    corrected = ctx.st - np.where(applies[:, None], bias, 0.0)
     detections = ctx.detections.assign(s=corrected[:, 0], t=corrected[:, 1])
     ctx = FrameContext.build(ctx.lf, calibration, detections, locator)
     return ctx, solve_particles(ctx, state, locator.solve)

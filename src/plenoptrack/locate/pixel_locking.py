@@ -20,8 +20,11 @@ phases (:func:`lattice_phase`) up to ``harmonics``, with three rounds of rejecti
 out of the correction (a common offset is not a locking effect). Every centroid of the
 frame is then corrected by the pattern at its own phase.
 
-A raw image's centroids cannot be told apart from ground truth here: the pattern is
-learned only from the scatter of centroids about the particles located from them.
+Nothing of the ground truth enters: the pattern is learned only from the scatter of
+centroids about the particles located from them. A frame with too few particles far
+from focus (or none) uses the pattern the calibration measured the same way on its dot
+cards (:func:`pattern_from_dots`), each dot's centroids about the DLFC's prediction of
+its known place.
 """
 
 from __future__ import annotations
@@ -31,9 +34,16 @@ import math
 
 import numpy as np
 
-__all__ = ["LockingPattern", "lattice_phase", "fourier_terms", "fit_locking_pattern"]
+__all__ = ["LockingPattern", "lattice_phase", "fourier_terms", "fit_locking_pattern",
+           "pattern_from_dots", "SIZE_FACTOR"]
 
 _MAD_TO_SIGMA = 1.4826
+
+SIZE_FACTOR = 2.0
+"""A pattern measured on images of one size (a calibration's dots) is used on images up to
+this factor smaller or larger (:meth:`LockingPattern.applies_to`): larger images are
+pulled less, and a 1-2 mm particle given a 0.4 mm dot's pull would gain the error the
+correction takes from the dots."""
 
 
 def lattice_phase(grid, st: np.ndarray) -> np.ndarray:
@@ -107,6 +117,11 @@ class LockingPattern:
         Centroid residuals the fit kept.
     rms_px : (2,) float ndarray
         RMS of the fitted bias over the kept residuals, ``s`` and ``t``, view pixels.
+    image_diameter_px : float
+        Median equivalent diameter ``2 sqrt(dark_area / pi)`` of the images the pattern
+        was measured on, view pixels (a calibration's dots; NaN when not recorded): the
+        pull depends on the image's size, so a pattern is only used on images within a
+        factor :data:`SIZE_FACTOR` of it (:meth:`applies_to`).
     """
 
     coef: np.ndarray
@@ -114,12 +129,27 @@ class LockingPattern:
     travel_range: tuple[float, float]
     n_residuals: int
     rms_px: np.ndarray
+    image_diameter_px: float = math.nan
+
+    def applies_to(self, dark_area: np.ndarray) -> np.ndarray:
+        """(M,) bool: the images of summed darkness ``dark_area`` (px) whose equivalent
+        diameter is within :data:`SIZE_FACTOR` of :attr:`image_diameter_px` (all of them
+        when that is not recorded)."""
+        dark_area = np.asarray(dark_area, dtype=float)
+        if not np.isfinite(self.image_diameter_px):
+            return np.ones(dark_area.shape, dtype=bool)
+        d = 2.0 * np.sqrt(np.maximum(dark_area, 0.0) / math.pi)
+        ratio = d / self.image_diameter_px
+        return (ratio >= 1.0 / SIZE_FACTOR) & (ratio <= SIZE_FACTOR)
 
     def to_dict(self) -> dict:
         """JSON-ready form (a calibration file's ``locking_pattern`` section)."""
-        return {"harmonics": self.harmonics, "travel_range_px": list(self.travel_range),
-                "coef_px": np.asarray(self.coef).tolist(), "n_residuals": self.n_residuals,
-                "rms_px": np.asarray(self.rms_px).tolist()}
+        out = {"harmonics": self.harmonics, "travel_range_px": list(self.travel_range),
+               "coef_px": np.asarray(self.coef).tolist(), "n_residuals": self.n_residuals,
+               "rms_px": np.asarray(self.rms_px).tolist()}
+        if np.isfinite(self.image_diameter_px):
+            out["image_diameter_px"] = float(self.image_diameter_px)
+        return out
 
     @classmethod
     def from_dict(cls, data, *, source: str = "locking pattern") -> "LockingPattern":
@@ -133,16 +163,18 @@ class LockingPattern:
             coef = np.asarray(data["coef_px"], dtype=float)
             n = int(data["n_residuals"])
             rms = np.asarray(data["rms_px"], dtype=float)
-        except (KeyError, TypeError, ValueError):
+            diameter = float(data.get("image_diameter_px", math.nan))
+        except (KeyError, TypeError, ValueError, AttributeError):
             raise CalibrationError(f"{source}: corrupt pixel-locking pattern; re-run "
                                    "`plenoptrack calibrate`") from None
         k = 4 * harmonics * (harmonics + 1)
         if (not 1 <= harmonics <= 4 or coef.shape != (2, 2, k) or not np.all(np.isfinite(coef))
-                or not (0 <= lo <= hi < np.inf) or rms.shape != (2,)):
+                or not (0 <= lo <= hi < np.inf) or rms.shape != (2,)
+                or (math.isfinite(diameter) and diameter <= 0) or math.isinf(diameter)):
             raise CalibrationError(f"{source}: corrupt pixel-locking pattern; re-run "
                                    "`plenoptrack calibrate`")
         return cls(coef=coef, harmonics=harmonics, travel_range=(lo, hi), n_residuals=n,
-                   rms_px=rms)
+                   rms_px=rms, image_diameter_px=diameter)
 
     def bias(self, phase: np.ndarray, travel) -> np.ndarray:
         """(M, 2) bias ``(s, t)`` at the phases ``phase`` (M, 2) of images that travel
@@ -249,5 +281,13 @@ def pattern_from_dots(points, dlfc, grid, *, harmonics: int = 1) -> LockingPatte
     s, t = dlfc.predict(xyz[:, 0], xyz[:, 1], xyz[:, 2], uv[:, 0], uv[:, 1])
     pred = np.column_stack([s, t])
     residual = points[["s", "t"]].to_numpy(float) - pred
-    return fit_locking_pattern(residual, lattice_phase(grid, pred), travel,
-                               harmonics=harmonics)
+    pattern = fit_locking_pattern(residual, lattice_phase(grid, pred), travel,
+                                  harmonics=harmonics)
+    if pattern is None or "dark_area" not in points.columns:
+        return pattern
+    area = points["dark_area"].to_numpy(float)
+    area = area[np.isfinite(area) & (area > 0)]
+    if len(area) == 0:
+        return pattern
+    return dataclasses.replace(pattern,
+                               image_diameter_px=float(2.0 * np.sqrt(np.median(area) / math.pi)))
