@@ -81,7 +81,7 @@ def scene_truth(volume, size: float, depths, steps: int, step_mm: float, repeats
 
 
 def locate_all(sim, truth: pd.DataFrame, calib, white, magnification: float,
-               fit: bool) -> pd.DataFrame:
+               fit: bool, locking_from_calibration: bool = False) -> pd.DataFrame:
     """Depth error (mm) of each particle at each frame: the located position's and, with
     ``fit``, the lone image fit's."""
     from plenoptrack.evaluate import match_particles
@@ -91,7 +91,9 @@ def locate_all(sim, truth: pd.DataFrame, calib, white, magnification: float,
                                                 segment_frame)
     from plenoptrack.locate.refine import fit_images
 
-    locator = PerspectiveLocator()
+    locator = PerspectiveLocator().updated(
+        {"solve": {"locking_from_calibration": bool(locking_from_calibration)}},
+        source="near_focus_pattern")
     tl, tz = am.tolerances(magnification)
     rows = []
     for f, path in enumerate(sim.frame_paths):
@@ -202,6 +204,10 @@ def main(argv=None) -> None:
                              "of the lattice's repeat distance across them")
     parser.add_argument("--fit", action="store_true",
                         help="also refit each particle alone with the image model")
+    parser.add_argument("--locking-from-calibration", action="store_true",
+                        help="locate with solve.locking_from_calibration: frames too "
+                             "sparse for their own pixel-locking pattern use the "
+                             "calibration's")
     parser.add_argument("--out", type=Path, default=None,
                         help="markdown file (default benchmarks/results/"
                              "near_focus_pattern_PRESET_OPTICS.md)")
@@ -244,7 +250,8 @@ def main(argv=None) -> None:
         target = sim.truth.reset_index(drop=True).assign(
             slot=truth["slot"].to_numpy(), step=truth["step"].to_numpy(),
             repeat=truth["repeat"].to_numpy(), line=truth["line"].to_numpy())
-        errors = locate_all(sim, target, calib, white, cell.magnification, args.fit)
+        errors = locate_all(sim, target, calib, white, cell.magnification, args.fit,
+                            args.locking_from_calibration)
     wall = time.perf_counter() - t0
     table = summarise(errors, step_mm, repeat_mm)
     pd.set_option("display.width", 200)

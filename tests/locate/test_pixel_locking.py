@@ -120,8 +120,9 @@ def test_locator_learns_the_pattern_the_truth_shows(small_calibrated):
 
 def test_a_frame_without_its_own_pattern_uses_the_calibrations(small_calibrated,
                                                                  monkeypatch):
-    """Every centroid moves by the calibration's pattern at its phase and its particle's
-    travel when the frame shows none; without a calibration pattern nothing moves."""
+    """With ``solve.locking_from_calibration``, every centroid moves by the calibration's
+    pattern at its phase and its particle's travel when the frame shows none; without it,
+    or without a calibration pattern, nothing moves."""
     optics, calib = small_calibrated
     scene = make_scene(calib.camera, n_particles=4, seed=43, diameter_mm=0.4)
     raw = render_frame(optics, scene.truth, seed=np.random.default_rng([43, 3, 0]))
@@ -141,6 +142,10 @@ def test_a_frame_without_its_own_pattern_uses_the_calibrations(small_calibrated,
     pattern = LockingPattern(coef=coef, harmonics=1, travel_range=(0.0, 9.0),
                              n_residuals=1000, rms_px=np.full(2, 0.03))
     with_pattern = calib.with_locking_pattern(pattern)
+    # off by default: nothing moves
+    same_ctx, same_state = perspective.correct_pixel_locking(ctx, state, locator, with_pattern)
+    assert same_ctx is ctx and same_state is state
+    locator = locator.updated({"solve": {"locking_from_calibration": True}}, source="test")
     new_ctx, new_state = perspective.correct_pixel_locking(ctx, state, locator, with_pattern)
     owner = state.owner
     own_travel = np.where(owner >= 0, travel[np.maximum(owner, 0)], np.nan)

@@ -544,8 +544,9 @@ def correct_pixel_locking(ctx: FrameContext, state: ParticleState,
 
     The bias is learned from the kept centroids of the particles whose image travels
     across at least ``solve.locking_min_travel_px`` view pixels
-    (:func:`learn_pixel_locking`); when they are too few for ``solve.locking_harmonics``,
-    the calibration's pattern from its dot cards is used
+    (:func:`learn_pixel_locking`); when they are too few for ``solve.locking_harmonics``
+    and ``solve.locking_from_calibration`` is set, the calibration's pattern from its dot
+    cards is used
     (:attr:`~plenoptrack.calibration.Calibration.locking_pattern`) on the images within
     a factor 2 of the dots' size
     (:meth:`~plenoptrack.locate.pixel_locking.LockingPattern.applies_to`), and without
@@ -557,7 +558,7 @@ def correct_pixel_locking(ctx: FrameContext, state: ParticleState,
 
     pattern, travel = learn_pixel_locking(ctx, state, locator.solve, calibration.grid)
     applies = np.ones(len(ctx.st), dtype=bool)
-    if pattern is None:
+    if pattern is None and locator.solve.locking_from_calibration:
         # the dots' pattern, on images of about the dots' size only
         pattern = getattr(calibration, "locking_pattern", None)
         if pattern is not None:

@@ -21,10 +21,10 @@ out of the correction (a common offset is not a locking effect). Every centroid 
 frame is then corrected by the pattern at its own phase.
 
 Nothing of the ground truth enters: the pattern is learned only from the scatter of
-centroids about the particles located from them. A frame with too few particles far
-from focus (or none) uses the pattern the calibration measured the same way on its dot
-cards (:func:`pattern_from_dots`), each dot's centroids about the DLFC's prediction of
-its known place.
+centroids about the particles located from them. The calibration measures the same
+pattern on its dot cards (:func:`pattern_from_dots`), each dot's centroids about the
+DLFC's prediction of its known place; with ``solve.locking_from_calibration`` a frame
+with too few particles far from focus uses it.
 """
 
 from __future__ import annotations
