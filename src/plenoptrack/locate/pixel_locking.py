@@ -15,10 +15,12 @@ The bias is measured on the frame's own particles whose image travels across at 
 ``min_travel_px`` view pixels over the aperture: their centroids scatter about their
 solution by the bias at each view's phase, which the solve did not absorb. Each of the
 two residual components ``(s, t)`` is fitted as a Fourier series in the two lattice
-phases (:func:`lattice_phase`) up to ``harmonics``, with three rounds of rejection at
-3 robust standard deviations (overlapping images, wrong members); the constant is left
-out of the correction (a common offset is not a locking effect). Every centroid of the
-frame is then corrected by the pattern at its own phase.
+phases (:func:`lattice_phase`) up to ``harmonics``, its amplitudes linear in the image's
+travel (a sharp image near focus is pulled harder than a blurred one), with three rounds
+of rejection at 3 robust standard deviations (overlapping images, wrong members); the
+constant is left out of the correction (a common offset is not a locking effect). Every
+centroid of the frame is then corrected by the pattern at its own phase and its
+particle's travel.
 
 Nothing of the ground truth enters: the pattern is learned only from the scatter of
 centroids about the particles located from them. The calibration measures the same
