@@ -276,7 +276,7 @@ class SolveSettings:
         (:attr:`~plenoptrack.calibration.Calibration.locking_pattern`), on images within
         a factor 2 of the dots' size. Off by default: on frames of three 0.4 mm spheres
         near focus it cut the depth RMS from 0.055 to 0.036 mm, but on a pin-head field
-        near focus (the study's, with stems and highlights) the worst depth standard
+        near focus (the study test's, heads with stems) the worst depth standard
         deviation rose from 0.14 to 0.64 mm (docs: uncertainty).
     locking_min_travel_px : float
         See ``locking_correction``: particles whose image moves less than this across
