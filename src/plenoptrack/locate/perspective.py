@@ -257,6 +257,12 @@ class ParticleState:
     def n_particles(self) -> int:
         return len(self.initial)
 
+    def live(self, min_views: int) -> np.ndarray:
+        """(P,) bool: the particles with a finite position seen in at least
+        ``min_views`` views."""
+        return ((self.table["n_views"].to_numpy(float) >= min_views)
+                & np.all(np.isfinite(self.positions), axis=1))
+
 
 def _split(detections: pd.DataFrame) -> np.ndarray:
     """(M,) bool: the detections that are halves of a split pair of merged images."""
@@ -586,8 +592,7 @@ def learn_pixel_locking(ctx: FrameContext, state: ParticleState, settings: Solve
 
     n = state.n_particles
     travel = image_travel_px(ctx.dlfc, state.positions, state.owner, ctx.views[ctx.view])
-    live = ((state.table["n_views"].to_numpy(float) >= settings.min_views)
-            & np.all(np.isfinite(state.positions), axis=1))
+    live = state.live(settings.min_views)
     with np.errstate(invalid="ignore"):
         learn = live & (travel >= settings.locking_min_travel_px)
     rows = np.flatnonzero((state.owner >= 0) & learn[np.clip(state.owner, 0, max(n - 1, 0))])
@@ -628,8 +633,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     table = state.table.copy()
     pos = state.positions.copy()
     n = state.n_particles
-    keep = ((table["n_views"].to_numpy(float) >= locator.solve.min_views)
-            & np.all(np.isfinite(pos), axis=1))
+    keep = state.live(locator.solve.min_views)
     radius = 0.5 * _member_diameter(ctx.detections, state.owner, n)
     keep &= np.isfinite(radius)
     # the particles that may be refitted (all by default); the others are drawn as held
@@ -731,8 +735,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
 
     table = state.table
     n = state.n_particles
-    live = ((table["n_views"].to_numpy(float) >= locator.solve.min_views)
-            & np.all(np.isfinite(state.positions), axis=1))
+    live = state.live(locator.solve.min_views)
     if not live.any():
         return ctx, state, 0
     fit_radius = (table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in table.columns
@@ -763,8 +766,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     if state2.n_particles == 0:
         return ctx, state, 0
     state2 = check_particles(ctx2, state2, locator)
-    new = ((state2.table["n_views"].to_numpy(float) >= locator.solve.min_views)
-           & np.all(np.isfinite(state2.positions), axis=1))
+    new = state2.live(locator.solve.min_views)
     radius2 = 0.5 * _member_diameter(found, state2.owner, state2.n_particles)
     pred2 = _predict_all(ctx.dlfc, state2.positions, views_uv)
     live_spans = ImageSpans(pred[live])
@@ -886,8 +888,7 @@ def search_hidden_rounds(ctx: FrameContext, state: ParticleState, locator: Persp
 
 def _n_live(state: ParticleState, min_views: int) -> int:
     """Particles with a finite position seen in at least ``min_views`` views."""
-    return int(np.sum((state.table["n_views"].to_numpy(float) >= min_views)
-                      & np.all(np.isfinite(state.positions), axis=1)))
+    return int(state.live(min_views).sum())
 
 
 def _near_particles(ctx: FrameContext, state: ParticleState, rows: np.ndarray) -> np.ndarray:
