@@ -146,7 +146,7 @@ def _merge_duplicates(pred: np.ndarray, st: np.ndarray, view: np.ndarray, owner:
     return owner
 
 def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round_,
-                          halves=None, tolerance_px=1.0):
+                          halves=None, tolerance_px=1.0, area=None, max_area_ratio=np.inf):
     """Return held regions that no located particle accounts for to the pool.
 
     A region taken for a merged image (owner ``_MERGED``) that is round and has no
@@ -174,8 +174,29 @@ def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round
         any_inside[here] = inside.any(axis=1)
     release = np.zeros(len(owner), dtype=bool)
     release[rows] = np.where(halves[rows], ~claimed[rows], ~any_inside[rows])
+    owner_in = owner
     owner = owner.copy()
     owner[release] = -1
+    if area is None:
+        return owner
+    # a round held region with one particle predicted inside, on its centroid, of that
+    # particle's own regions' size: its own image (when it has more of them than own)
+    located = np.flatnonzero(ok)
+    candidate = {}
+    for r in np.flatnonzero((owner_in == _MERGED) & round_ & ~halves):
+        d = np.hypot(st[r, 0] - pred[:, view[r], 0], st[r, 1] - pred[:, view[r], 1])
+        inside = np.flatnonzero(d <= radius_px[r])
+        if len(inside) != 1 or d[inside[0]] > tolerance_px:
+            continue
+        p = located[inside[0]]
+        own = owner_in == p
+        if own.any() and area[r] <= max_area_ratio * np.median(area[own]):
+            candidate[r] = p
+    for r, p in candidate.items():
+        n_held = sum(1 for q in candidate.values() if q == p)
+        taken = np.any((owner == p) & (view == view[r]))
+        if n_held >= np.sum(owner_in == p) and not taken:
+            owner[r] = p
     return owner
 
 def _explained_by_others(pred: np.ndarray, st: np.ndarray, view: np.ndarray,

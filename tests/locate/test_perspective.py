@@ -265,3 +265,24 @@ def test_member_diameter_of_regions_and_of_their_shadows():
     shadow = _member_diameter(detections, owner, 3, shadow=True)
     assert shadow[0] == pytest.approx(math.sqrt(4.0 * 9.0 / math.pi))
     assert shadow[1] == pytest.approx(np.median(np.sqrt(4.0 * np.array([2.0, 3.0]) / math.pi)))
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_the_larger_of_two_particles_keeps_all_its_views(small, seed):
+    """A frame of a 0.6 mm and a 0.95 mm particle: the larger one's images are more than
+    ``segment.max_area_ratio`` times the frame's typical image and are held back as
+    merged. The clustering finds it on the few views whose images are smaller; the held
+    images on its prediction, of the size of its own, then join it, so that it is seen
+    in as many views as the smaller one and not dropped for a narrow aperture."""
+    optics, calib = small
+    truth = pd.DataFrame({"frame": 0, "particle": [0, 1], "x": [-2.602, -1.239],
+                          "y": [0.147, 0.523], "z": [-2.008, -0.126],
+                          "diameter": [0.596, 0.951], "orientation": 0.0})
+    truth["projected_area"] = np.pi * truth["diameter"] ** 2 / 4
+    found = locate_frame(_frame(optics, truth, seed), calib).particles
+    pairs = match_particles(found, truth, tolerance_mm=0.5)
+    assert len(found) == 2 and len(pairs) == 2
+    m = found.loc[pairs["measured_index"]].reset_index(drop=True)
+    large = pairs["truth_index"].to_numpy() == 1
+    assert m.loc[large, "n_views"].iloc[0] >= 0.9 * m.loc[~large, "n_views"].iloc[0]
+    assert abs(m.loc[large, "z"].iloc[0] - truth["z"].iloc[1]) < 0.1

@@ -182,8 +182,11 @@ def test_release_unclaimed_matches_all_pairs():
         owner = np.where(rng.random(len(a["owner"])) < 0.5, _assign._MERGED, a["owner"])
         round_ = rng.random(len(owner)) < 0.8
         halves = rng.random(len(owner)) < 0.3
+        area = rng.uniform(10, 30, len(owner))
         args = (_ShiftModel(), positions, views, a["st"], a["view"], owner, a["radius"], round_)
-        for kw in ({}, {"halves": halves, "tolerance_px": 1.0}):
+        for kw in ({}, {"halves": halves, "tolerance_px": 1.0},
+                   {"halves": halves, "tolerance_px": 1.0, "area": area,
+                    "max_area_ratio": 1.3}):
             want = previous._release_unclaimed(*args, **kw)
             assert np.array_equal(_assign._release_unclaimed(*args, **kw), want), seed
             released += int(np.any(want != owner))
@@ -283,3 +286,38 @@ def test_a_crowd_of_shares_does_not_raise_the_size_reference_of_pair_splitting()
     halves = out[out["split_pair"]]
     assert len(halves) == 2 and np.allclose(sorted(halves["s"]), [-1.732, 1.732], atol=0.01)
     assert (~out["whole"] & ~out["split_pair"]).sum() == 20  # every share left as it was
+
+
+def _own_image_case(n_own, held_area=52.0, second=None):
+    """A particle at (10, 10) (the same in every one of 10 views) owning regions of area
+    50 in its first ``n_own`` views; held round regions on its prediction in the rest
+    and in view 0 (where it has one already)."""
+    views = np.column_stack([np.arange(10.0), np.zeros(10)])
+    own, held = np.arange(n_own), np.r_[0, np.arange(n_own, 10)]
+    view = np.r_[own, held]
+    st = np.tile([[10.0, 10.0]], (len(view), 1)) + [[0.2, 0.0]]
+    owner = np.r_[np.zeros(n_own, dtype=np.int64), np.full(len(held), _assign._MERGED)]
+    area = np.r_[np.full(n_own, 50.0), np.full(len(held), held_area)]
+    positions = np.array([[10.0, 10.0, 0.0]] + ([] if second is None else [second]))
+    radius = np.full(len(view), 4.0)
+    got = _assign._release_unclaimed(_ShiftModel(), positions, views, st, view, owner,
+                                     radius, np.ones(len(view), dtype=bool),
+                                     tolerance_px=1.0, area=area, max_area_ratio=1.3)
+    return got[n_own:], held
+
+
+def test_a_large_particles_held_images_join_it():
+    """In a frame of mixed sizes a large particle's images are held back as merged
+    (larger than the frame's typical image). Those on its own prediction, of its own
+    regions' size, join it where it has none in their view; merged images (larger than
+    its own), images another particle is predicted in, and a particle most of whose
+    views it owns (its held images merge with another particle's) keep them held."""
+    got, held = _own_image_case(3)
+    assert got[0] == _assign._MERGED                # view 0: it has a region there
+    assert np.all(got[1:] == 0)
+    got, _ = _own_image_case(3, held_area=80.0)     # more than 1.3 times its own
+    assert np.all(got == _assign._MERGED)
+    got, _ = _own_image_case(3, second=[10.5, 10.0, 0.0])
+    assert np.all(got == _assign._MERGED)            # two particles predicted inside
+    got, _ = _own_image_case(8)                      # 8 own views, 3 held
+    assert np.all(got == _assign._MERGED)

@@ -396,3 +396,33 @@ def test_coinciding_images_are_found_as_by_comparing_every_pair(seed):
         assert _coincides(mine, radius[[q]], pred[20:], radius[20:], spans) == want
         answers.append(want)
     assert 0 < sum(answers) < 20
+
+
+@pytest.mark.parametrize("rows", [
+    [(2.517, -0.694, -2.803), (1.230, 0.869, 2.900)],
+    [(-1.404, 0.878, -5.325), (0.536, 0.737, 3.459)],
+    [(-0.881, -0.378, -5.953), (1.120, -0.104, 2.686)],
+])
+def test_a_large_particle_pulled_away_by_merged_regions_is_put_back_by_its_image(
+        small_calibrated, rows):
+    """Two 2 mm particles whose images merge in part of the views: the merged regions
+    join the farther one's centroids and pull its solution 5 mm off in depth (centroid
+    scatter about 3 view pixels), where no neighbour overlaps it and the refinement
+    never fits it. One image explains its pixels, lies on about half of its centroids
+    and replaces that solution (the camera and scenes of three sparse acceptance
+    frames that failed so)."""
+    optics, calib = small_calibrated
+    truth = _truth(rows, 2.0)
+    raw = render_frame(optics, truth, seed=np.random.default_rng([0, 3, 0]))
+    found = locate_frame(raw, calib).particles
+    pairs = match_particles(found, truth, tolerance_mm=0.5)
+    assert len(found) == 2 and len(pairs) == 2
+    m = found.loc[pairs["measured_index"]].reset_index(drop=True)
+    t = truth.loc[pairs["truth_index"]].reset_index(drop=True)
+    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.3)
+    # the one put back is refined, its sigma still counts the scatter of its centroids
+    moved = m["residual_px"] > 1.0
+    assert moved.sum() == 1
+    assert m.loc[moved, "flags"].iloc[0] & int(TriangulationFlag.REFINED)
+    assert np.all(err[moved.to_numpy(), 2] < 3 * m.loc[moved, "sigma_z"].to_numpy())

@@ -20,6 +20,7 @@ import warnings
 
 import numba
 import numpy as np
+import pandas as pd
 
 from ..errors import NoParticlesWarning
 from ._nearby import pairs_within
@@ -220,13 +221,20 @@ def _absorb(order, start, partner, strength):  # pragma: no cover - compiled
 
 
 def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round_,
-                       halves=None, tolerance_px: float = 1.0):
+                       halves=None, tolerance_px: float = 1.0, area=None,
+                       max_area_ratio: float = np.inf):
     """Return held regions that no located particle accounts for to the pool.
 
     A region taken for a merged image (owner ``_MERGED``) that is round and has no
     located particle predicted inside it (within ``radius_px``) is the image of one
     particle near the camera, larger than the typical image; it is released (owner -1)
-    so that the next clustering pass can find that particle. A held half of a split pair
+    so that the next clustering pass can find that particle. A round held region with
+    exactly one located particle predicted inside it, within ``tolerance_px`` of its
+    centroid and no larger than ``max_area_ratio`` times the median ``area`` of the
+    regions the particle owns, is that particle's own image when the particle has more
+    such regions than regions of its own (a particle larger than the frame's typical
+    one, in a frame of mixed sizes): it joins that particle where the particle has no
+    region in its view yet. A held half of a split pair
     (``halves``) is released when no located particle claims it: in each view a particle
     claims the region nearest its prediction, at distance ``d``, and every region within
     ``2 d + tolerance_px`` (among the regions it is predicted inside). One particle
@@ -250,8 +258,33 @@ def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round
     np.minimum.at(nearest, d, dist)
     claimed = np.zeros(len(owner), dtype=bool)
     claimed[q[dist <= 2.0 * nearest[d] + tolerance_px]] = True
+    owner_in = owner
     owner = owner.copy()
     owner[rows[np.where(halves[rows], ~claimed[rows], ~inside[rows])]] = -1
+    # a round region predicted inside by one particle only, on its centroid: its own image
+    alone = (np.bincount(q, minlength=len(owner)) == 1) & (owner_in == _MERGED) & round_ & ~halves
+    on_centre = alone[q] & (dist <= tolerance_px)
+    if on_centre.any() and area is not None:
+        region, particle = q[on_centre], np.flatnonzero(ok)[d[on_centre] // n_v]
+        has = owner_in >= 0
+        own_area = pd.Series(np.asarray(area, dtype=float)[has]).groupby(owner_in[has]).median()
+        limit = max_area_ratio * own_area.reindex(particle).to_numpy()
+        like_own = np.asarray(area, dtype=float)[region] <= limit      # NaN: no regions
+        region, particle = region[like_own], particle[like_own]
+        # only a particle whose image is held in more views than it has: one whose
+        # image is larger than the frame's typical one, not one some of whose views
+        # merge with another particle's image
+        n_own = np.bincount(owner_in[has], minlength=len(positions))
+        n_held = np.bincount(particle, minlength=len(positions))
+        large = n_held[particle] >= n_own[particle]
+        region, particle = region[large], particle[large]
+        taken = set(zip(owner_in[has].tolist(), view[has].tolist()))
+        mine = np.zeros(len(region), dtype=bool)
+        for i, key in enumerate(zip(particle.tolist(), view[region].tolist())):
+            if key not in taken:          # one region per particle and view
+                taken.add(key)
+                mine[i] = True
+        owner[region[mine]] = particle[mine]
     return owner
 
 

@@ -173,6 +173,9 @@ class FrameContext:
         The views' edge blur per depth ``(z mm, sigma px)`` the calibration measured on
         its dot cards (:attr:`~plenoptrack.calibration.Calibration.edge_blur_by_depth`);
         None when it has none.
+    max_area_ratio : float
+        A region larger than this times one particle's image is a merged image
+        (``segment.max_area_ratio``).
     """
 
     lf: LightField
@@ -191,6 +194,7 @@ class FrameContext:
     merge_px: float
     tolerance_px: float
     edge_blur: np.ndarray | None = None
+    max_area_ratio: float = math.inf
 
     @classmethod
     def build(cls, lf: LightField, calibration, detections: pd.DataFrame,
@@ -215,7 +219,8 @@ class FrameContext:
                    alphas=plane_alphas(camera, (z_lo, z_hi), locator.cluster.n_planes),
                    n_possible=int(lf.view_mask.sum()), volume_depth_mm=z_hi - z_lo,
                    merge_px=merge_px, tolerance_px=locator.grow.add_tolerance_px,
-                   edge_blur=getattr(calibration, "edge_blur_by_depth", None))
+                   edge_blur=getattr(calibration, "edge_blur_by_depth", None),
+                   max_area_ratio=locator.segment.max_area_ratio)
 
 
 @dataclass(frozen=True)
@@ -438,7 +443,9 @@ def cluster_unassigned(ctx: FrameContext, state: ParticleState, settings: Cluste
         owner = _release_unclaimed(ctx.dlfc, state.positions, ctx.views, ctx.st, ctx.view,
                                       owner, ctx.radius_px, ctx.round_,
                                       halves=_split(ctx.detections),
-                                      tolerance_px=ctx.tolerance_px)
+                                      tolerance_px=ctx.tolerance_px,
+                                      area=ctx.detections["area"].to_numpy(float),
+                                      max_area_ratio=ctx.max_area_ratio)
     free = np.flatnonzero(owner == -1)
     if len(free) < min_views:
         return dataclasses.replace(state, owner=owner), 0
@@ -927,6 +934,11 @@ def _drop_unexplained_hidden(state: ParticleState, first: int, n: int) -> Partic
     return dataclasses.replace(state, owner=owner, positions=positions, table=table)
 
 
+_MOVED_PX = 1.0
+"""An image fit that explains a particle's pixels with its image more than this far
+(view pixels) from where the particle's solution puts it, in some view, replaces that
+solution (:func:`split_merged_particles`): ten times the largest disagreement between
+the two on isolated particles (0.07-0.09 px, `small` camera, 0.4 and 2 mm)."""
 _FIT_ERROR = "_fit_model_error"
 _HIDDEN = "_hidden"
 _FIT_RADIUS = "_fit_radius_px"
@@ -984,6 +996,18 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     are then refitted beside the group and become ``REFINED`` where that explains their
     pixels; one that stays unexplained and is one with an image of the group
     (:func:`_coincides`) is dropped, the group's image taking its place.
+
+    Where no split passes but one image explains the pixels (model error at most
+    ``settings.refine_max_model_error``, refitted on every view), that image replaces
+    the particle's solution in two cases: a particle found in the residual
+    (:func:`find_hidden_particles`) whose refit beside neighbours that have since been
+    split or refitted left it unexplained; and a particle whose centroids scatter by more
+    than :data:`_MOVED_PX` about its solution when the image lies more than that from
+    the solution's in some view and on at least a quarter of its centroids (regions
+    merged with a neighbour's image in the other views pulled the solution away; on the
+    `small` camera's sparse 2 mm particles the true particle's fit lay on 49-58 % of
+    them, a spurious cluster's in a crowd on 1-2 %). The unexplained neighbours of a
+    particle so moved are refitted beside it in turn.
     """
     from .refine import fit_images
 
@@ -1015,11 +1039,17 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     radius = np.where(np.isfinite(fit_radius), fit_radius,
                       0.5 * _member_diameter(ctx.detections, state.owner, state.n_particles))
     contrast = np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
-    sigma = table[list(SIGMA_COLUMNS)].to_numpy(float)
+    sigma = table[list(SIGMA_COLUMNS)].to_numpy(float).copy()
     parent, n_views = [], []           # of each appended particle
     pred = _predict_all(ctx.dlfc, pos, views_uv)     # kept current as particles change
     spans = ImageSpans(pred)                         # and where their images lie
     group_error = []                   # (particle, model error of its split group)
+    refitted_rows = set()              # particles given a one-image fit here
+    # centroids that scatter by more than _MOVED_PX about their solution: regions of
+    # other particles' images among them
+    scattered = table["residual_px"].to_numpy(float) > _MOVED_PX
+    hidden = (table[_HIDDEN].fillna(False).to_numpy(bool) if _HIDDEN in table.columns
+              else np.zeros(len(table), dtype=bool))
 
     def neighbours(i, pred):
         """Particles whose images come within 4 view pixels of particle i's in a view."""
@@ -1032,6 +1062,54 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     trial = _view_subgrid(view_rc, settings.split_trial_stride)
     trial_uv, trial_rc = views_uv[trial], view_rc[trial]
     all_views = bool(trial.all())
+
+    def moved(m, params) -> bool:
+        """Whether the image of ``params`` (1, 5) lies more than :data:`_MOVED_PX` from
+        particle ``m``'s in some view."""
+        offset = pred[m] - _predict_all(ctx.dlfc, params[:, :3], views_uv)[0]
+        return bool(np.nanmax(np.hypot(*offset.T), initial=0.0) > _MOVED_PX)
+
+    def relocated(m, params) -> bool:
+        """Whether the one image ``params`` (1, 5) that explains particle ``m``'s pixels
+        puts it elsewhere: its centroids scatter by more than :data:`_MOVED_PX` about
+        their solution, the image lies more than that from the particle's in some view,
+        and at least a quarter of the centroids lie within ``ctx.tolerance_px`` of the
+        image (the particle's own; the rest were regions merged with another particle's
+        image that pulled the solution away)."""
+        if not (scattered[m] and moved(m, params)):
+            return False
+        mine = np.flatnonzero(state.owner == m)
+        image = _predict_all(ctx.dlfc, params[:, :3], ctx.views)[0]
+        off = np.hypot(*(ctx.st[mine] - image[ctx.view[mine]]).T)
+        return bool(np.mean(off <= ctx.tolerance_px) >= 0.25) if len(mine) else False
+
+    def explain_alone(m, params) -> None:
+        """Refit particle ``m`` as one image from ``params`` (1, 5) on every view beside
+        its neighbours; where it explains the pixels it replaces the particle's position
+        and image and clears its unexplained flag. A particle moved by more than
+        :data:`_MOVED_PX` had its image drawn in the wrong place beside its neighbours:
+        those left unexplained are refitted beside it in turn."""
+        held = neighbours(m, pred)
+        held_rc = np.c_[radius[held], contrast[held]]
+        fit = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, params[:, :3],
+                         params[:, 3:], pos[held], held_rc,
+                         max_depth_shift=0.1 * ctx.volume_depth_mm)
+        if (fit is None or not np.all(np.isfinite(fit.params))
+                or not fit.model_error <= settings.refine_max_model_error):
+            return
+        single_error[m] = fit.model_error
+        refitted_rows.add(m)
+        pos[m] = fit.params[0, :3]
+        sigma[m] = np.where(np.isfinite(fit.sigma[0]), fit.sigma[0], sigma[m])
+        radius[m], contrast[m] = fit.params[0, 3:]
+        flags[m] = (flags[m] & ~unexplained) | refined
+        was_moved = moved(m, fit.params)
+        pred[m] = _predict_all(ctx.dlfc, pos[[m]], views_uv)[0]
+        spans.set_rows([m], pred[[m]])
+        if was_moved:
+            for q in neighbours(m, pred):
+                if flags[q] & unexplained:
+                    explain_alone(q, np.array([[*pos[q], radius[q], contrast[q]]]))
 
     def distinct(fit, m) -> bool:
         """Whether the fit shows ``k`` opaque particles where m was, each two apart by
@@ -1138,6 +1216,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             if one is None or not np.isfinite(one.model_error):
                 continue
             if never_fitted[m] and one.model_error <= split_max:
+                if relocated(m, one.params):
+                    explain_alone(m, one.params)
                 continue                   # one image explains it: left as it is
             single_error[m] = one.model_error
             reference = one.params
@@ -1150,6 +1230,17 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             if more is None:
                 break
             found = more
+        if (found is None and reference is not None
+                and single_error[m] <= settings.refine_max_model_error
+                and ((flags[m] & unexplained and hidden[m])
+                     or relocated(m, reference))):
+            # No split, but one image explains the pixels: where the refinement's fit of
+            # a particle found in the residual could not (a neighbour it was fitted
+            # beside has since been split or refitted), or where the centroids put the
+            # particle elsewhere (its regions were merged with a neighbour's in some
+            # views), that image replaces them.
+            explain_alone(m, reference)
+            continue
         if found is None or not np.all(np.isfinite(found[0].sigma)):
             continue                       # no split, or one the pixels do not determine
         group = found[0]
@@ -1212,7 +1303,12 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         table = table.copy()
         table["flags"] = flags
         table[_FIT_ERROR] = single_error
-        return dataclasses.replace(state, table=table)
+        table[list(POS_COLUMNS)] = pos
+        table[list(SIGMA_COLUMNS)] = sigma
+        refitted = np.isin(np.arange(len(pos)), list(refitted_rows))
+        table[_FIT_RADIUS] = np.where(refitted, radius, fit_radius)
+        table[_FIT_CONTRAST] = np.where(refitted, contrast, table[_FIT_CONTRAST])
+        return dataclasses.replace(state, positions=pos, table=table)
     extra = table.loc[parent].copy()
     extra["cluster"] = -1
     extra["n_views"] = np.asarray(n_views, dtype=extra["n_views"].dtype)
