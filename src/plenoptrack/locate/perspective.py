@@ -1006,8 +1006,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     the solution's in some view and on at least a quarter of its centroids (regions
     merged with a neighbour's image in the other views pulled the solution away; on the
     `small` camera's sparse 2 mm particles the true particle's fit lay on 49-58 % of
-    them, a spurious cluster's in a crowd on 1-2 %). The unexplained neighbours of a
-    particle so moved are refitted beside it in turn.
+    them, a spurious cluster's in a crowd on 1-2 %); such a particle keeps only the
+    centroids within ``ctx.tolerance_px`` of its image (its ``n_views`` and
+    ``residual_px`` theirs). The unexplained neighbours of a particle moved are refitted
+    beside it in turn.
     """
     from .refine import fit_images
 
@@ -1045,6 +1047,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     spans = ImageSpans(pred)                         # and where their images lie
     group_error = []                   # (particle, model error of its split group)
     refitted_rows = set()              # particles given a one-image fit here
+    relocated_rows = set()             # and those of them its image put elsewhere
     # centroids that scatter by more than _MOVED_PX about their solution: regions of
     # other particles' images among them
     scattered = table["residual_px"].to_numpy(float) > _MOVED_PX
@@ -1083,10 +1086,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         off = np.hypot(*(ctx.st[mine] - image[ctx.view[mine]]).T)
         return bool(np.mean(off <= ctx.tolerance_px) >= 0.25) if len(mine) else False
 
-    def explain_alone(m, params) -> None:
+    def explain_alone(m, params) -> bool:
         """Refit particle ``m`` as one image from ``params`` (1, 5) on every view beside
         its neighbours; where it explains the pixels it replaces the particle's position
-        and image and clears its unexplained flag. A particle moved by more than
+        and image, clears its unexplained flag and returns True. A particle moved by more than
         :data:`_MOVED_PX` had its image drawn in the wrong place beside its neighbours:
         those left unexplained are refitted beside it in turn."""
         held = neighbours(m, pred)
@@ -1096,7 +1099,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                          max_depth_shift=0.1 * ctx.volume_depth_mm)
         if (fit is None or not np.all(np.isfinite(fit.params))
                 or not fit.model_error <= settings.refine_max_model_error):
-            return
+            return False
         single_error[m] = fit.model_error
         refitted_rows.add(m)
         pos[m] = fit.params[0, :3]
@@ -1110,6 +1113,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             for q in neighbours(m, pred):
                 if flags[q] & unexplained:
                     explain_alone(q, np.array([[*pos[q], radius[q], contrast[q]]]))
+        return True
 
     def distinct(fit, m) -> bool:
         """Whether the fit shows ``k`` opaque particles where m was, each two apart by
@@ -1216,8 +1220,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             if one is None or not np.isfinite(one.model_error):
                 continue
             if never_fitted[m] and one.model_error <= split_max:
-                if relocated(m, one.params):
-                    explain_alone(m, one.params)
+                if relocated(m, one.params) and explain_alone(m, one.params):
+                    relocated_rows.add(m)
                 continue                   # one image explains it: left as it is
             single_error[m] = one.model_error
             reference = one.params
@@ -1230,16 +1234,17 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             if more is None:
                 break
             found = more
-        if (found is None and reference is not None
-                and single_error[m] <= settings.refine_max_model_error
-                and ((flags[m] & unexplained and hidden[m])
-                     or relocated(m, reference))):
+        alone = (found is None and reference is not None
+                 and single_error[m] <= settings.refine_max_model_error)
+        put_back = alone and relocated(m, reference)
+        if alone and (flags[m] & unexplained and hidden[m] or put_back):
             # No split, but one image explains the pixels: where the refinement's fit of
             # a particle found in the residual could not (a neighbour it was fitted
             # beside has since been split or refitted), or where the centroids put the
             # particle elsewhere (its regions were merged with a neighbour's in some
             # views), that image replaces them.
-            explain_alone(m, reference)
+            if explain_alone(m, reference) and put_back:
+                relocated_rows.add(m)
             continue
         if found is None or not np.all(np.isfinite(found[0].sigma)):
             continue                       # no split, or one the pixels do not determine
@@ -1299,6 +1304,21 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             & np.all(np.isfinite(pos[:n]), axis=1)
             & ((flags[:n] & int(TriangulationFlag.SPLIT)) == 0))
     flags[np.flatnonzero(left)] |= unexplained
+    # A particle put back by its image keeps only the centroids on that image: the others
+    # were regions merged with a neighbour's, and its scatter (residual_px, n_views, hence
+    # chi2 and the frame's typical scatter) is that of the centroids it keeps.
+    owner = state.owner
+    if relocated_rows:
+        owner = owner.copy()
+        table = table.copy()
+        for m in sorted(relocated_rows):
+            mine = np.flatnonzero(owner == m)
+            image = _predict_all(ctx.dlfc, pos[[m]], ctx.views)[0]
+            off = np.hypot(*(ctx.st[mine] - image[ctx.view[mine]]).T)
+            on_image = off <= ctx.tolerance_px
+            owner[mine[~on_image]] = -1
+            table.loc[m, "n_views"] = int(on_image.sum())
+            table.loc[m, "residual_px"] = float(np.sqrt(np.mean(off[on_image] ** 2)))
     if not parent:
         table = table.copy()
         table["flags"] = flags
@@ -1308,7 +1328,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         refitted = np.isin(np.arange(len(pos)), list(refitted_rows))
         table[_FIT_RADIUS] = np.where(refitted, radius, fit_radius)
         table[_FIT_CONTRAST] = np.where(refitted, contrast, table[_FIT_CONTRAST])
-        return dataclasses.replace(state, positions=pos, table=table)
+        return dataclasses.replace(state, owner=owner, positions=pos, table=table)
     extra = table.loc[parent].copy()
     extra["cluster"] = -1
     extra["n_views"] = np.asarray(n_views, dtype=extra["n_views"].dtype)
@@ -1327,7 +1347,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         fit_error[state.n_particles + np.flatnonzero(parent == m)] = error
     table[_FIT_ERROR] = fit_error
     initial = np.vstack([state.initial, pos[len(state.initial):]])
-    return dataclasses.replace(state, initial=initial, positions=pos, table=table)
+    return dataclasses.replace(state, owner=owner, initial=initial, positions=pos,
+                               table=table)
 
 
 def split_bar(fit_error: np.ndarray, settings: CheckSettings) -> float:
