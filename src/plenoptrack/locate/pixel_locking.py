@@ -229,8 +229,8 @@ def fit_locking_pattern(residual: np.ndarray, phase: np.ndarray, travel: np.ndar
         return None
     keep = np.ones(len(residual), dtype=bool)
     for _round in range(3):
-        # normal equations: the design has a few dozen columns and tens of thousands of
-        # rows, and lstsq's SVD of it cost a quarter of a sparse frame's locate time
+        # normal equations: the design has 18 columns and tens of thousands of rows;
+        # twice as fast as lstsq's SVD of it (benchmarks/bench_locking_fit.py)
         kept = design[keep]
         coef = np.linalg.lstsq(kept.T @ kept, kept.T @ residual[keep], rcond=None)[0].T
         misfit = residual - design @ coef.T
