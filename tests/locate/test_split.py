@@ -21,6 +21,12 @@ def _truth(rows, diameter):
                          "projected_area": np.pi * diameter ** 2 / 4, "orientation": 0.0})
 
 
+def _paired(found, truth, pairs):
+    """The matched measured and true rows, side by side (both indexed 0..n-1)."""
+    return (found.loc[pairs["measured_index"]].reset_index(drop=True),
+            truth.loc[pairs["truth_index"]].reset_index(drop=True))
+
+
 @pytest.mark.parametrize("seed, stride", [(0, 2), (1, 2), (0, 1)])
 def test_a_pair_on_one_line_of_sight_is_split(small_calibrated, seed, stride):
     """Two 0.8 mm particles 0.1 mm apart laterally and 8 mm in depth overlap in every
@@ -43,8 +49,7 @@ def test_a_pair_on_one_line_of_sight_is_split(small_calibrated, seed, stride):
     assert len(found) == len(truth) and len(pairs) == len(truth)
     split = (found["flags"].to_numpy() & SPLIT) > 0
     assert split.sum() == 2
-    m = found.loc[pairs["measured_index"]].reset_index(drop=True)
-    t = truth.loc[pairs["truth_index"]].reset_index(drop=True)
+    m, t = _paired(found, truth, pairs)
     err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.3)
     halves = m[(m["flags"].to_numpy() & SPLIT) > 0]
@@ -204,8 +209,7 @@ def test_three_large_particles_in_line_are_all_found(small_calibrated):
     found = locate_frame(raw, calib).particles
     pairs = match_particles(found, truth, tolerance_mm=0.3)
     assert len(found) == 5 and len(pairs) == 5
-    m = found.loc[pairs["measured_index"]].reset_index(drop=True)
-    t = truth.loc[pairs["truth_index"]].reset_index(drop=True)
+    m, t = _paired(found, truth, pairs)
     line = t["particle"].isin([2, 3, 4]).to_numpy()
     assert np.all((m["flags"].to_numpy()[line] & SPLIT) > 0)
     assert np.all(np.abs(m["diameter"].to_numpy()[line] / 1.6 - 1) < 0.1)
@@ -230,8 +234,7 @@ def test_three_large_particles_whose_images_all_merge_are_found(small_calibrated
     pairs = match_particles(found, truth, tolerance_mm=0.3)
     assert len(found) == 3 and len(pairs) == 3
     assert np.all((found["flags"].to_numpy() & SPLIT) > 0)
-    m = found.loc[pairs["measured_index"]].reset_index(drop=True)
-    t = truth.loc[pairs["truth_index"]].reset_index(drop=True)
+    m, t = _paired(found, truth, pairs)
     err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.2)
     assert np.all(np.abs(m["diameter"] / 2.0 - 1) < 0.1)
@@ -301,8 +304,7 @@ def test_a_particle_behind_a_close_pair_is_split_from_their_merged_image(small_c
     found = locate_frame(raw, calib).particles
     pairs = match_particles(found, truth, tolerance_mm=0.3)
     assert len(found) == len(truth) and len(pairs) == len(truth)
-    m = found.loc[pairs["measured_index"]].reset_index(drop=True)
-    t = truth.loc[pairs["truth_index"]].reset_index(drop=True)
+    m, t = _paired(found, truth, pairs)
     err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.15)
     assert ((found["flags"].to_numpy() & SPLIT) > 0).sum() == 2
@@ -417,8 +419,7 @@ def test_a_large_particle_pulled_away_by_merged_regions_is_put_back_by_its_image
     found = locate_frame(raw, calib).particles
     pairs = match_particles(found, truth, tolerance_mm=0.5)
     assert len(found) == 2 and len(pairs) == 2
-    m = found.loc[pairs["measured_index"]].reset_index(drop=True)
-    t = truth.loc[pairs["truth_index"]].reset_index(drop=True)
+    m, t = _paired(found, truth, pairs)
     err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.3)
     # the one put back is refined and keeps the centroids on its image only (about

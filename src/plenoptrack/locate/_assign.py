@@ -258,33 +258,57 @@ def _release_unclaimed(dlfc, positions, views, st, view, owner, radius_px, round
     np.minimum.at(nearest, d, dist)
     claimed = np.zeros(len(owner), dtype=bool)
     claimed[q[dist <= 2.0 * nearest[d] + tolerance_px]] = True
-    owner_in = owner
-    owner = owner.copy()
-    owner[rows[np.where(halves[rows], ~claimed[rows], ~inside[rows])]] = -1
-    # a round region predicted inside by one particle only, on its centroid: its own image
-    alone = (np.bincount(q, minlength=len(owner)) == 1) & (owner_in == _MERGED) & round_ & ~halves
-    on_centre = alone[q] & (dist <= tolerance_px)
-    if on_centre.any() and area is not None:
-        region, particle = q[on_centre], np.flatnonzero(ok)[d[on_centre] // n_v]
-        has = owner_in >= 0
-        own_area = pd.Series(np.asarray(area, dtype=float)[has]).groupby(owner_in[has]).median()
-        limit = max_area_ratio * own_area.reindex(particle).to_numpy()
-        like_own = np.asarray(area, dtype=float)[region] <= limit      # NaN: no regions
-        region, particle = region[like_own], particle[like_own]
-        # only a particle whose image is held in more views than it has: one whose
-        # image is larger than the frame's typical one, not one some of whose views
-        # merge with another particle's image
-        n_own = np.bincount(owner_in[has], minlength=len(positions))
-        n_held = np.bincount(particle, minlength=len(positions))
-        large = n_held[particle] >= n_own[particle]
-        region, particle = region[large], particle[large]
-        taken = set(zip(owner_in[has].tolist(), view[has].tolist()))
-        mine = np.zeros(len(region), dtype=bool)
-        for i, key in enumerate(zip(particle.tolist(), view[region].tolist())):
-            if key not in taken:          # one region per particle and view
-                taken.add(key)
-                mine[i] = True
-        owner[region[mine]] = particle[mine]
+    released = owner.copy()
+    released[rows[np.where(halves[rows], ~claimed[rows], ~inside[rows])]] = -1
+    if area is not None:
+        region, particle = _own_images(q, np.flatnonzero(ok)[d // n_v], dist, owner, view,
+                                       round_ & ~halves, area, max_area_ratio, tolerance_px)
+        released[region] = particle
+    return released
+
+
+def _own_images(region, particle, dist, owner, view, round_, area, max_area_ratio: float,
+                tolerance_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The held regions that are a located particle's own image (:func:`_release_unclaimed`).
+
+    Parameters
+    ----------
+    region, particle, dist : (k,) ndarrays
+        Every (region, particle predicted inside it) pair, grouped by region, and the
+        prediction's distance from the region's centroid, view pixels.
+    owner, view, round_, area : (M,) ndarrays
+        Owner (``_MERGED`` for held regions), view index, roundness and area of every
+        region.
+
+    Returns
+    -------
+    region, particle : (j,) int ndarrays
+        The held round regions with one particle predicted inside them, within
+        ``tolerance_px`` of their centroid and no larger than ``max_area_ratio`` times the
+        median area of that particle's own regions, for the particles with at least as
+        many of them as regions of their own (an image larger than the frame's typical
+        one, not one some of whose views merge with another particle's image); at most
+        one per particle and view, none where the particle has a region already.
+    """
+    n_inside = np.bincount(region, minlength=len(owner))
+    pick = ((n_inside[region] == 1) & (owner[region] == _MERGED) & round_[region]
+            & (dist <= tolerance_px))
+    region, particle = region[pick], particle[pick]
+    has = owner >= 0
+    area = np.asarray(area, dtype=float)
+    own_area = pd.Series(area[has]).groupby(owner[has]).median()
+    like_own = area[region] <= max_area_ratio * own_area.reindex(particle).to_numpy()
+    region, particle = region[like_own], particle[like_own]     # NaN: no regions of its own
+    n = int(max(owner.max(initial=-1), particle.max(initial=-1))) + 1
+    large = (np.bincount(particle, minlength=n)[particle]
+             >= np.bincount(owner[has], minlength=n)[particle])
+    region, particle = region[large], particle[large]
+    n_v = int(view.max(initial=-1)) + 1
+    key = particle * n_v + view[region]
+    first = np.zeros(len(key), dtype=bool)
+    first[np.unique(key, return_index=True)[1]] = True
+    free = first & ~np.isin(key, owner[has] * n_v + view[has])
+    return region[free], particle[free]
     return owner
 
 

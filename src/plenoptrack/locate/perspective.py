@@ -1081,10 +1081,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         image that pulled the solution away)."""
         if not (scattered[m] and moved(m, params)):
             return False
-        mine = np.flatnonzero(state.owner == m)
-        image = _predict_all(ctx.dlfc, params[:, :3], ctx.views)[0]
-        off = np.hypot(*(ctx.st[mine] - image[ctx.view[mine]]).T)
-        return bool(np.mean(off <= ctx.tolerance_px) >= 0.25) if len(mine) else False
+        _, off = _centroid_offsets(ctx, state.owner, m, params[0, :3])
+        return bool(np.mean(off <= ctx.tolerance_px) >= 0.25) if len(off) else False
 
     def explain_alone(m, params) -> bool:
         """Refit particle ``m`` as one image from ``params`` (1, 5) on every view beside
@@ -1312,9 +1310,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         owner = owner.copy()
         table = table.copy()
         for m in sorted(relocated_rows):
-            mine = np.flatnonzero(owner == m)
-            image = _predict_all(ctx.dlfc, pos[[m]], ctx.views)[0]
-            off = np.hypot(*(ctx.st[mine] - image[ctx.view[mine]]).T)
+            mine, off = _centroid_offsets(ctx, owner, m, pos[m])
             on_image = off <= ctx.tolerance_px
             owner[mine[~on_image]] = -1
             table.loc[m, "n_views"] = int(on_image.sum())
@@ -1426,6 +1422,15 @@ def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray) -> np.ndarr
             q[:2] += np.linalg.solve(j[:, :2], [s0 - st[0], t0 - st[1]])
         out[i] = q
     return out
+
+
+def _centroid_offsets(ctx: FrameContext, owner: np.ndarray, particle: int,
+                      xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The detections ``particle`` owns and their centroids' distances (view pixels)
+    from the image of a particle at ``xyz`` (mm) in their views."""
+    mine = np.flatnonzero(owner == particle)
+    image = _predict_all(ctx.dlfc, np.reshape(xyz, (1, 3)), ctx.views)[0]
+    return mine, np.hypot(*(ctx.st[mine] - image[ctx.view[mine]]).T)
 
 
 def _coincides(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
