@@ -346,8 +346,13 @@ def test_model_error_by_depth_is_the_error_the_dots_noise_does_not_explain(model
     errors = dot_position_errors(fitted, noisy)
     rows = np.array(fitted.report.model_error_by_depth_mm)
     np.testing.assert_allclose(rows[:, 0], depths)
-    for z, *e in rows:
+    # without the dots' leverage: the whole excess of each card
+    whole = np.array(model_error_by_depth(errors))
+    for z, *e in whole:
         np.testing.assert_allclose(e, _excess(errors[errors["z"] == z]))
+    # the fit's report counts the dots' own errors only as far as the fit takes them up
+    assert np.all(rows[:, 1:] <= whole[:, 1:] + 1e-12)
+    assert rows[:, 1:3].mean() < 0.7 * whole[:, 1:3].mean()
     # centroid noise alone: the dots' depth errors are that noise, and little is left
     noise_only = rows[:, 3].mean()
     assert noise_only < 0.3 * fitted.report.position_rms_mm[2]
@@ -356,6 +361,44 @@ def test_model_error_by_depth_is_the_error_the_dots_noise_does_not_explain(model
     misplaced = noisy.assign(z=noisy["z"] + 0.2 * np.where(np.round(noisy["z"] / 5) % 2, 1, -1))
     wrong = np.array(fit_dlfc(misplaced, order=4).report.model_error_by_depth_mm)
     assert wrong[:, 3].mean() > max(0.1, 3 * noise_only)
+
+
+def _seen_at(model, xyz, known=None) -> pd.DataFrame:
+    """Calibration-style rows of points at ``xyz`` (n, 3) in every view, labelled with
+    the positions ``known`` (default ``xyz``): a misprinted dot is imaged where it is but
+    listed where it should be."""
+    u, v = views()
+    known = xyz if known is None else known
+    rows = pd.DataFrame(np.repeat(known, len(u), axis=0), columns=["x", "y", "z"])
+    rows["u"], rows["v"] = np.tile(u, len(xyz)), np.tile(v, len(xyz))
+    where = np.repeat(xyz, len(u), axis=0)
+    rows["s"], rows["t"] = model(where[:, 0], where[:, 1], where[:, 2], rows.u, rows.v)
+    return rows
+
+
+def test_model_error_counts_misprinted_dots_only_through_the_fit(model):
+    # every dot printed 20 um off its lattice point, independently: its own error, which
+    # reaches a particle between the dots only through the fitted coefficients
+    g = np.arange(-30.0, 30.1, 7.5)
+    known = np.stack([a.ravel() for a in np.meshgrid(g, g, np.linspace(-25, 25, 11),
+                                                     indexing="ij")], axis=1)
+    rng = np.random.default_rng(5)
+    printed = known + np.c_[rng.normal(0, 0.02, (len(known), 2)), np.zeros(len(known))]
+    fitted = fit_dlfc(_seen_at(model, printed, known), order=4, group_by="z")
+    rows = np.array(fitted.report.model_error_by_depth_mm)
+    lateral = np.sqrt(np.mean(rows[:, 1:3] ** 2))
+    # the DLFC's real error between the dots: points at random places, solved through it
+    inside = rng.uniform([-25, -25, -22], [25, 25, 22], (300, 3))
+    between = dot_position_errors(fitted, _seen_at(model, inside))
+    real = np.sqrt(np.mean(between[["dx", "dy"]].to_numpy() ** 2))
+    assert 0.002 < real < 0.008           # well below the 20 um print error
+    # the model error covers it without being several times too large (the mean
+    # leverage over the dots, edge dots included, is above that of points inside)
+    assert real < lateral < 2 * real
+    # the dots' whole excess error (the estimate without the split) is the print error
+    errors = dot_position_errors(fitted, _seen_at(model, printed, known))
+    whole = np.array(model_error_by_depth(errors))
+    assert np.sqrt(np.mean(whole[:, 1:3] ** 2)) > 0.015
 
 
 def test_model_error_by_depth_bins_dots_that_are_not_on_cards():

@@ -24,6 +24,43 @@ def test_shape_error_adds_a_fraction_of_the_diameter_in_quadrature():
     np.testing.assert_array_equal(with_shape_error(sigma, diameter, 0.0), sigma)
 
 
+def test_a_fraction_per_axis_adds_to_each_axis_its_own_share():
+    sigma = np.array([[0.003, 0.004, 0.02], [0.001, 0.001, 0.01]])
+    diameter = np.array([0.5, 2.0])
+    out = with_shape_error(sigma, diameter, (0.002, 0.002, 0.01))
+    np.testing.assert_allclose(out[:, :2], np.sqrt(sigma[:, :2] ** 2
+                                                   + (0.002 * diameter[:, None]) ** 2))
+    np.testing.assert_allclose(out[:, 2], np.sqrt(sigma[:, 2] ** 2 + (0.01 * diameter) ** 2))
+
+
+@pytest.mark.parametrize("bad", [(-0.01, 0.0), (0.0, 1.0), (float("nan"), 0.01), "0.002",
+                                 (0.002,), (0.001, 0.002, 0.003)])
+def test_size_error_setting_is_validated(bad):
+    with pytest.raises(SettingsError, match="size_error"):
+        SolveSettings(size_error=bad)
+
+
+def test_size_error_grows_sigma_with_the_measured_diameter(small_calibrated):
+    """Spheres of 0.3-1 mm on the ideal `small` camera: the default size term adds
+    (0.002 d)^2 laterally and (0.01 d)^2 in depth to each particle's variance, d its
+    measured diameter, and moves no particle."""
+    optics, calib = small_calibrated
+    scene = make_scene(calib.camera, n_particles=12, diameter_mm=(0.3, 1.0), seed=21)
+    image = render_frame(optics, scene.truth, seed=np.random.default_rng([21, 3, 0]))
+    sized = locate_frame(image, calib)
+    plain = locate_frame(image, calib,
+                         locator=PerspectiveLocator().updated({"solve": {"size_error": [0, 0]}}))
+    assert len(sized.particles) >= 10
+    pd.testing.assert_frame_equal(sized.particles.drop(columns=["sigma_x", "sigma_y", "sigma_z"]),
+                                  plain.particles.drop(columns=["sigma_x", "sigma_y", "sigma_z"]))
+    lateral, depth = SolveSettings().size_error
+    d = sized.particles["diameter"].to_numpy()
+    for axis, fraction in (("sigma_x", lateral), ("sigma_y", lateral), ("sigma_z", depth)):
+        np.testing.assert_allclose(sized.particles[axis] ** 2 - plain.particles[axis] ** 2,
+                                   (fraction * d) ** 2, rtol=1e-9, atol=1e-15)
+    assert d.max() > 2 * d.min()           # the term differs between the particles
+
+
 @pytest.mark.parametrize("bad", [-0.01, 1.0, float("nan"), "0.02", True])
 def test_shape_error_setting_is_validated(bad):
     with pytest.raises(SettingsError, match="shape_error"):

@@ -1590,9 +1590,13 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
         if len(pairs):
             particles, new_row = merge_bodies(particles, pairs)
             particle_of = np.where(particle_of >= 0, new_row[np.maximum(particle_of, 0)], -1)
-    # an irregular body's centre, of the whole body where pieces were merged
-    particles[sigma] = with_shape_error(particles[sigma].to_numpy(float),
-                                        particles["diameter"].to_numpy(float), solve.shape_error)
+    # a large image's centroid bias, and an irregular body's centre (of the whole body
+    # where pieces were merged)
+    lateral, depth = solve.size_error
+    diameter = particles["diameter"].to_numpy(float)
+    particles[sigma] = with_shape_error(
+        with_shape_error(particles[sigma].to_numpy(float), diameter, (lateral, lateral, depth)),
+        diameter, solve.shape_error)
     detections = ctx.detections.assign(particle=particle_of, inlier=particle_of >= 0)
     return particles, detections
 

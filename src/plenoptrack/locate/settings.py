@@ -58,11 +58,11 @@ def _require_switches(section) -> None:
             _require(isinstance(value, (bool, np.bool_)), f.name, "true or false", value)
 
 
-def _pair(name: str, value) -> tuple[float, float]:
+def _pair(name: str, value, what: str = "(low, high)") -> tuple[float, float]:
     try:
         lo, hi = (float(v) for v in value)
     except (TypeError, ValueError):
-        raise SettingsError(f"{name} must be a pair (low, high); got {value!r}") from None
+        raise SettingsError(f"{name} must be a pair {what}; got {value!r}") from None
     return lo, hi
 
 
@@ -253,6 +253,14 @@ class SolveSettings:
         symmetric about their centre (spheres, droplets, ellipsoids); about 0.02 for
         fragments (measured on simulated fragments;
         :mod:`~plenoptrack.locate.uncertainty`).
+    size_error : (float, float)
+        Standard uncertainty of a particle's position that grows with its image, as
+        fractions of its measured equivalent diameter: ``(lateral, depth)``, added to
+        sigma in quadrature (x and y take the first). A large image's centroid is biased
+        by its sampling on the lenslet grid, glints and the light it lets through, and
+        that bias moves with the image; measured on the development seeds of the
+        validation matrix (:mod:`~plenoptrack.locate.uncertainty`). ``(0, 0)`` turns
+        it off.
     opacity : bool
         Report the diameter of each particle's body rather than of its shadow: the
         shadow's equivalent diameter divided by the square root of the particle's opacity,
@@ -294,6 +302,7 @@ class SolveSettings:
     sampling_error: bool = True
     unexplained_error: bool = True
     shape_error: float = 0.0
+    size_error: tuple[float, float] = (0.002, 0.01)
     opacity: bool = True
     locking_correction: bool = True
     locking_min_travel_px: float = 2.0
@@ -312,6 +321,10 @@ class SolveSettings:
         _require(isinstance(self.shape_error, numbers.Real)
                  and not isinstance(self.shape_error, bool) and 0 <= self.shape_error < 1,
                  "shape_error", "a fraction from 0 to below 1", self.shape_error)
+        lateral, depth = _pair("size_error", self.size_error, "(lateral, depth)")
+        _require(0 <= lateral < 1 and 0 <= depth < 1, "size_error",
+                 "two fractions (lateral, depth) from 0 to below 1", self.size_error)
+        object.__setattr__(self, "size_error", (lateral, depth))
         _require(_is_int(self.min_views) and self.min_views >= 2, "min_views",
                  "an integer of at least 2", self.min_views)
         _require(self.solver in ("lm", "scipy"), "solver", "'lm' or 'scipy'", self.solver)

@@ -253,8 +253,9 @@ def with_unexplained_pixels(sigma_stat: np.ndarray, fit_model_error: np.ndarray,
     return sigma_stat * scale[:, None]
 
 
-def with_shape_error(sigma: np.ndarray, diameter_mm: np.ndarray, fraction: float) -> np.ndarray:
-    """Add the uncertainty of an irregular body's centre to its sigma, in quadrature.
+def with_shape_error(sigma: np.ndarray, diameter_mm: np.ndarray, fraction) -> np.ndarray:
+    """Add an uncertainty proportional to each particle's diameter to its sigma, in
+    quadrature.
 
     Parameters
     ----------
@@ -262,21 +263,23 @@ def with_shape_error(sigma: np.ndarray, diameter_mm: np.ndarray, fraction: float
         Standard uncertainties in x, y, z, mm (:func:`total_sigma`).
     diameter_mm : (N,) float ndarray
         Measured equivalent diameter, mm; NaN adds nothing.
-    fraction : float
-        Standard uncertainty of the centre per axis as a fraction of the diameter
-        (``SolveSettings.shape_error``; module notes).
+    fraction : float or (3,) array_like
+        Standard uncertainty as a fraction of the diameter, on every axis or per axis
+        x, y, z: ``SolveSettings.shape_error`` (the centre of an irregular body) or
+        ``SolveSettings.size_error`` (a large image's centroid bias; module notes).
 
     Returns
     -------
     (N, 3) float ndarray
-        ``sqrt(sigma^2 + (fraction * diameter)^2)`` on every axis, mm.
+        ``sqrt(sigma^2 + (fraction * diameter)^2)`` per axis, mm.
     """
     sigma = np.asarray(sigma, dtype=float)
-    if fraction == 0:
+    fraction = np.broadcast_to(np.asarray(fraction, dtype=float), (3,))
+    if not fraction.any():
         return sigma
-    extra = float(fraction) * np.asarray(diameter_mm, dtype=float)
-    extra = np.where(np.isfinite(extra), extra, 0.0)
-    return np.sqrt(sigma ** 2 + extra[:, None] ** 2)
+    diameter = np.asarray(diameter_mm, dtype=float)
+    extra = np.where(np.isfinite(diameter), diameter, 0.0)[:, None] * fraction[None, :]
+    return np.sqrt(sigma ** 2 + extra ** 2)
 
 
 def image_travel_px(dlfc, positions: np.ndarray, owner: np.ndarray,
