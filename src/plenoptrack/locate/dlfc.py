@@ -377,13 +377,14 @@ class FitReport:
     model_error_by_depth_mm : tuple of tuple of float
         The DLFC's model error per calibration depth: rows ``(z, e_x, e_y, e_z)``, mm, one
         per dot-card depth (or per depth bin when the dots do not lie on a few cards),
-        sorted by ``z``. ``e`` is the part of the dots' RMS position error that their own
-        centroid noise does not explain, ``sqrt(max(0, mean(d^2) - mean(sigma^2)))`` with
-        ``d`` the solved-minus-known error and ``sigma`` the least-squares standard error
-        of each dot from the scatter of its views (:func:`dot_position_errors`). The
-        dots' depth errors are mostly that noise, which a particle's own least-squares
-        error already carries; only the excess is an error of the calibration. A
-        particle's uncertainty uses the value at its depth
+        sorted by ``z``. ``e`` is the error of the fitted mapping that reaches a
+        particle (:func:`model_error_by_depth` with the dots' shift leverage): of the dots'
+        error beyond their own centroid noise (``d`` the solved-minus-known error,
+        :func:`dot_position_errors`), the part neighbouring dots share counts whole and
+        each dot's own part only as far as the fit takes it up. The dots' depth errors
+        are mostly their noise, which a particle's own least-squares error already
+        carries, and their lateral excess on a printed card mostly print error, which a
+        particle does not share. A particle's uncertainty uses the value at its depth
         (:func:`~plenoptrack.locate.uncertainty.model_error_mm`). Empty when not
         measured.
     """
@@ -1027,10 +1028,11 @@ def dot_shift_leverage(dlfc: DLFC, points, gram_inverse: np.ndarray) -> pd.DataF
         q, _ = dlfc._normalised(*pts[r0:r1, :5].T)
         a = _design_kernel(q, dlfc._parent, dlfc._var)               # (rows, T)
         _, jac = dlfc.predict_with_jacobian(*pts[r0:r1, :5].T)       # (rows, 2, 3)
+        # per dot: A^T J for s and t (T, 3); the part of its shift the fit takes up
         for k in range(b0, b1):
             rows = slice(edges[k] - r0, edges[k + 1] - r0)
             j = jac[rows]
-            p_s, p_t = a[rows].T @ j[:, 0], a[rows].T @ j[:, 1]      # (T, 3) each
+            p_s, p_t = a[rows].T @ j[:, 0], a[rows].T @ j[:, 1]
             taken = p_s.T @ gram_inverse @ p_s + p_t.T @ gram_inverse @ p_t
             try:
                 lev[k] = np.diag(np.linalg.solve(np.einsum("vij,vik->jk", j, j), taken))

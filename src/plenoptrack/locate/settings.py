@@ -230,7 +230,9 @@ class SolveSettings:
         image biases). Measured on the development seeds of the validation matrix; see
         :mod:`~plenoptrack.locate.uncertainty`.
     model_error : bool
-        Add the DLFC's model error (RMS position error of its calibration dots) to the
+        Add the DLFC's model error (the error of the fitted mapping that its calibration
+        dots show and that reaches a particle,
+        :attr:`~plenoptrack.locate.dlfc.FitReport.model_error_by_depth_mm`) to the
         uncertainty in quadrature.
     excess_scatter : bool
         Count a particle's centroid scatter beyond the frame's typical scatter (reduced

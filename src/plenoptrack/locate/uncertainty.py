@@ -10,7 +10,7 @@ bias changes slowly from view to view. Errors shared by many views move the solu
 without showing in the residuals, so ``sigma_stat`` is too small by about the square root
 of the number of views that move together. The reported uncertainty is
 
-    sigma = sqrt((k * sigma_stat)^2 + sigma_model^2)
+    sigma = sqrt((k * sigma_stat)^2 + sigma_model^2 + (f * d)^2)
 
 per axis, with
 
@@ -20,15 +20,21 @@ per axis, with
   seeds (docs: fraction of particles within 1, 2 and 3 sigma);
 - ``sigma_model``: the DLFC's own error in object space at the particle's depth
   (:attr:`~plenoptrack.locate.dlfc.FitReport.model_error_by_depth_mm`, interpolated
-  linearly between the calibration depths, constant beyond them): the part of the
-  calibration dots' position error, each dot solved back through the fitted DLFC, that
-  the dots' own centroid noise does not explain. A calibration written without it gives
-  the dots' whole RMS position error
-  (:attr:`~plenoptrack.locate.dlfc.FitReport.position_rms_mm`), which counts that noise
-  too; 0 for a DLFC without either. On the simulated cameras the dots' depth errors are
-  almost all their own noise (RMS 0.049 mm against a least-squares error of 0.046 mm on
-  the realistic `small` camera), so that whole RMS more than doubled the depth
-  uncertainty of a typical particle.
+  linearly between the calibration depths, constant beyond them): of the calibration
+  dots' position error beyond their own centroid noise, the part neighbouring dots share
+  (a misplaced or tilted card) whole, and each dot's own part (a misprinted dot) only as
+  far as the fit takes it up (:func:`~plenoptrack.locate.dlfc.model_error_by_depth`). A
+  calibration written without it gives the dots' whole RMS position error
+  (:attr:`~plenoptrack.locate.dlfc.FitReport.position_rms_mm`), which counts their noise
+  and print errors too; 0 for a DLFC without either. On the realistic `small` camera
+  the dots' 5 um print error made up almost all of their lateral excess, and counted
+  whole it was 3 times what reaches a particle;
+- ``f * d`` (``SolveSettings.size_error``, added by :func:`with_shape_error` after
+  :func:`total_sigma`): a fraction of the particle's measured diameter, lateral and in
+  depth. A large image's centroid carries biases that grow with the image and that every
+  view shares (its sampling by the lenslet grid, a glint, the light it lets through); on
+  the development seeds of the matrix the errors of 2 mm particles were 2-3 times those
+  of 0.4 mm ones while the rest of sigma was not.
 
 Scatter beyond the frame's typical scatter. A particle whose centroids scatter more than
 the frame's median particle (reduced chi-square ``chi2 = s^2 / s0^2 > 1``,
