@@ -1018,8 +1018,7 @@ def dot_shift_leverage(dlfc: DLFC, points, gram_inverse: np.ndarray) -> pd.DataF
     order = np.argsort(dot.ravel(), kind="stable")
     pts = pts[order]
     # row ranges of the dots, and blocks of whole dots of about _FIT_CHUNK rows
-    edges = np.r_[np.flatnonzero(np.diff(dot.ravel()[order])) + 1, len(pts)]
-    edges = np.r_[0, edges]
+    edges = np.r_[0, np.flatnonzero(np.diff(dot.ravel()[order])) + 1, len(pts)]
     blocks = np.unique(np.r_[np.searchsorted(edges, np.arange(0, len(pts), _FIT_CHUNK)),
                              len(edges) - 1])
     lev = np.full((len(known), 3), np.nan)

@@ -1593,10 +1593,9 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     # a large image's centroid bias, and an irregular body's centre (of the whole body
     # where pieces were merged)
     lateral, depth = solve.size_error
-    diameter = particles["diameter"].to_numpy(float)
-    particles[sigma] = with_shape_error(
-        with_shape_error(particles[sigma].to_numpy(float), diameter, (lateral, lateral, depth)),
-        diameter, solve.shape_error)
+    particles[sigma] = with_shape_error(particles[sigma].to_numpy(float),
+                                        particles["diameter"].to_numpy(float),
+                                        np.hypot((lateral, lateral, depth), solve.shape_error))
     detections = ctx.detections.assign(particle=particle_of, inlier=particle_of >= 0)
     return particles, detections
 
