@@ -536,3 +536,32 @@ def test_ctrl_c_during_simulate_keeps_the_old_data_set_whole(data, tmp_path, del
         return
     assert code == 130, err
     assert snapshot(sim) == before
+
+
+def test_a_ctrl_c_dropped_by_compiled_code_inside_a_command_prints_no_traceback(tmp_path):
+    """Cython code that cannot raise prints a Ctrl-C through sys.excepthook and drops it
+    (scipy.stats._sobol does so when the interrupt lands while it initialises): through the
+    real entry point, the command line's hook is the one in place while a command runs,
+    so the interrupt is recorded, nothing is written and no traceback is printed."""
+    script = tmp_path / "probe.py"
+    script.write_text(
+        "import sys\n"
+        "from plenoptrack import cli\n"
+        "from plenoptrack.io import atomic_write_text\n"
+        "@cli.app.command('probe')\n"
+        "@cli._reports_errors\n"
+        "def probe(out: str):\n"
+        "    try:\n"
+        "        raise KeyboardInterrupt\n"
+        "    except KeyboardInterrupt:\n"
+        "        sys.excepthook(*sys.exc_info())  # what compiled code does with it\n"
+        "    atomic_write_text(out, 'complete')\n"
+        "sys.argv = ['plenoptrack', 'probe', sys.argv[1]]\n"
+        "cli.main()\n")
+    out = tmp_path / "out.txt"
+    proc = subprocess.run([sys.executable, str(script), str(out)], capture_output=True,
+                          text=True, timeout=120, preexec_fn=_default_sigint)
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.returncode == 130, proc.stderr
+    assert proc.stderr.strip().splitlines()[-1] == "error: interrupted; nothing half-written was kept"
+    assert not out.exists()

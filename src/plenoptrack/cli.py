@@ -1133,7 +1133,9 @@ def main() -> None:
     if not _choose_kernels(sys.argv[1:]):
         sys.exit(2)
     try:
-        app()
+        # The click command itself rather than ``app()``: Typer's ``__call__`` would put its
+        # own exception hook in place of the one above.
+        typer.main.get_command(app)()
     except SystemExit as exc:
         # The command is over and its outputs are committed (or it failed cleanly): ignore
         # a late Ctrl-C so that it cannot end the process by signal during shutdown.
