@@ -321,3 +321,58 @@ def test_a_large_particles_held_images_join_it():
     assert np.all(got == _assign._MERGED)            # two particles predicted inside
     got, _ = _own_image_case(8)                      # 8 own views, 3 held
     assert np.all(got == _assign._MERGED)
+
+
+def test_a_solve_reuses_exactly_the_particles_whose_centroids_did_not_change(small_calibrated):
+    """:class:`~plenoptrack.locate.perspective.SolveMemo`: after a frame's solve rounds,
+    solving again with the memo gives what solving every particle afresh gives (positions
+    within 1e-6 mm, the same centroids kept); a particle that lost a centroid is the one
+    solved again, and a new frame context solves them all."""
+    import dataclasses
+    import warnings
+
+    from plenoptrack.locate.settings import PerspectiveLocator
+
+    optics, calib = small_calibrated
+    scene = make_scene(calib.camera, n_particles=30, seed=4, diameter_mm=0.4)
+    raw = _frame(optics, scene.truth, 4)
+    locator = PerspectiveLocator()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lf = perspective._decoded(raw, calib, 0, None)
+        detections = perspective.segment_frame(lf, locator.segment, frame=0)
+        ctx = perspective.FrameContext.build(lf, calib, detections, locator)
+        state = perspective._cluster_and_solve(
+            ctx, perspective.ParticleState.start(ctx, locator.segment), locator)
+    settings = locator.solve
+    assert state.solved is not None and state.n_particles >= 25
+
+    def solve(s):
+        return perspective.solve_particles(ctx, s, settings)
+
+    def assert_same(a, b):
+        assert np.array_equal(a.owner, b.owner)
+        assert np.allclose(a.positions, b.positions, atol=1e-6, rtol=0, equal_nan=True)
+        for column in ("n_views", "flags"):
+            assert np.array_equal(a.table[column].to_numpy(float), b.table[column].to_numpy(float))
+
+    memo = state.solved
+    assert not memo.to_solve(ctx, settings, state.owner, state.n_particles).any()
+    assert_same(solve(state), solve(dataclasses.replace(state, solved=None)))
+
+    # one particle loses a centroid: it alone is solved again
+    particle = int(np.argmax(state.table["n_views"].to_numpy()))
+    lost = np.flatnonzero(state.owner == particle)[0]
+    owner = state.owner.copy()
+    owner[lost] = -1
+    changed = dataclasses.replace(state, owner=owner)
+    assert np.flatnonzero(memo.to_solve(ctx, settings, owner, state.n_particles)).tolist() == [particle]
+    assert_same(solve(changed), solve(dataclasses.replace(changed, solved=None)))
+
+    # another context, other settings or a new particle: not the memo's
+    other_ctx = dataclasses.replace(ctx)
+    assert memo.to_solve(other_ctx, settings, state.owner, state.n_particles).all()
+    other = dataclasses.replace(settings, reject_k=settings.reject_k + 1)
+    assert memo.to_solve(ctx, other, state.owner, state.n_particles).all()
+    grown = memo.to_solve(ctx, settings, state.owner, state.n_particles + 1)
+    assert np.flatnonzero(grown).tolist() == [state.n_particles]

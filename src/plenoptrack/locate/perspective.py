@@ -223,6 +223,49 @@ class FrameContext:
                    max_area_ratio=locator.segment.max_area_ratio)
 
 
+@dataclass(frozen=True, eq=False)
+class SolveMemo:
+    """What the last :func:`solve_particles` call solved, so that the next one solves only
+    the particles whose centroids changed.
+
+    A particle whose centroids are those of its last solve, on the same frame context and
+    settings, would be solved again from its own solution and return it (within about
+    1e-7 mm): its row of ``table`` and the outcome for its centroids in ``owner_out`` are
+    taken instead. Most particles are in that case in the later solve rounds of a frame
+    (95-98 % of 1000 particles on a hall2019 frame).
+
+    Attributes
+    ----------
+    context : FrameContext
+        The context solved on (its detections, views and calibration).
+    settings : SolveSettings
+    owner_in, owner_out : (M,) int ndarray
+        Each detection's owner before and after that solve (after: outliers released).
+    table : DataFrame
+        The solve's table, one row per particle (index 0..P-1).
+    """
+
+    context: "FrameContext"
+    settings: SolveSettings
+    owner_in: np.ndarray
+    owner_out: np.ndarray
+    table: pd.DataFrame
+
+    def to_solve(self, ctx: "FrameContext", settings: SolveSettings,
+                 owner: np.ndarray, n_particles: int) -> np.ndarray:
+        """(P,) bool: the particles whose centroids (``owner``) differ from their last
+        solve's, or that are new since; all of them when anything else changed."""
+        if (self.context is not ctx or self.settings != settings
+                or len(self.owner_in) != len(owner) or len(self.table) > n_particles):
+            return np.ones(n_particles, dtype=bool)
+        redo = np.zeros(n_particles, dtype=bool)
+        redo[len(self.table):] = True
+        differ = owner != self.owner_in
+        for labels in (owner[differ], self.owner_in[differ]):
+            redo[labels[labels >= 0]] = True
+        return redo
+
+
 @dataclass(frozen=True)
 class ParticleState:
     """Which detection belongs to which particle, and each particle's solution.
@@ -239,12 +282,15 @@ class ParticleState:
     table : DataFrame
         P rows: the solution of each particle (columns of
         :meth:`~plenoptrack.locate.triangulate.Triangulation.to_frame`).
+    solved : SolveMemo or None
+        What the last :func:`solve_particles` solved (None before the first).
     """
 
     owner: np.ndarray
     initial: np.ndarray
     positions: np.ndarray
     table: pd.DataFrame
+    solved: SolveMemo | None = None
 
     @classmethod
     def start(cls, ctx: FrameContext, segment: SegmentSettings) -> "ParticleState":
@@ -467,7 +513,8 @@ def cluster_unassigned(ctx: FrameContext, state: ParticleState, settings: Cluste
     n = len(initial)
     positions = np.vstack([state.positions, np.full((n - start, 3), np.nan)])
     return ParticleState(owner=owner, initial=initial, positions=positions,
-                         table=state.table.reindex(np.arange(n))), n - start
+                         table=state.table.reindex(np.arange(n)),
+                         solved=state.solved), n - start
 
 
 def solve_particles(ctx: FrameContext, state: ParticleState,
@@ -475,24 +522,40 @@ def solve_particles(ctx: FrameContext, state: ParticleState,
     """Stage 3: solve every particle that owns centroids, with outlier rejection.
 
     Centroids rejected as outliers are released (owner -1); particles without centroids
-    get NaN positions and ``n_views`` 0.
+    get NaN positions and ``n_views`` 0. A particle whose centroids are those of the
+    previous solve keeps that solve's result (:class:`SolveMemo`).
     """
     owner = state.owner
-    used = np.unique(owner[owner >= 0])
+    n = state.n_particles
+    memo = state.solved
+    redo = (np.ones(n, dtype=bool) if memo is None
+            else memo.to_solve(ctx, settings, owner, n))
+    mine = owner >= 0
+    solving = np.where(mine & redo[np.maximum(owner, 0)], owner, -1)
+    used = np.unique(solving[solving >= 0])
     initial = pd.DataFrame(state.initial[used], index=used, columns=list(POS_COLUMNS))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", NoParticlesWarning)
-        tri = triangulate_clusters(ctx.dlfc, ctx.detections.assign(_owner=owner), initial,
+        tri = triangulate_clusters(ctx.dlfc, ctx.detections.assign(_owner=solving), initial,
                                    cluster_column="_owner", n_possible_views=ctx.n_possible,
                                    volume_depth_mm=ctx.volume_depth_mm,
                                    reject_k=settings.reject_k,
                                    min_views=min(4, settings.min_views), solver=settings.solver)
-    table = tri.to_frame().set_index("cluster").reindex(np.arange(state.n_particles))
+    rows = tri.to_frame().set_index("cluster")
+    new_owner = np.where(tri.inliers | (owner == _MERGED), owner, -1)
+    if not redo.all():
+        kept = np.flatnonzero(~redo)
+        rows = pd.concat([memo.table.loc[kept], rows]) if len(rows) else memo.table.loc[kept]
+        same = mine & ~redo[np.maximum(owner, 0)]
+        new_owner[same] = memo.owner_out[same]
+    table = rows.reindex(np.arange(n))
     table["n_views"] = table["n_views"].fillna(0)
     table["flags"] = table["flags"].fillna(0)
     positions = table[list(POS_COLUMNS)].to_numpy(float)
-    owner = np.where(tri.inliers | (owner == _MERGED), owner, -1)
-    return dataclasses.replace(state, owner=owner, positions=positions, table=table)
+    solved = SolveMemo(context=ctx, settings=settings, owner_in=owner, owner_out=new_owner,
+                       table=table)
+    return dataclasses.replace(state, owner=new_owner, positions=positions, table=table,
+                               solved=solved)
 
 
 def grow_particles(ctx: FrameContext, state: ParticleState,
