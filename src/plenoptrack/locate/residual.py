@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 from ..lightfield import LightField
-from .refine import EDGE_PX
+from .refine import EDGE_PX, _half_erfc
 
 __all__ = ["transmission_model", "residual_light_field"]
 
@@ -56,7 +56,8 @@ def _transmission(n_t, n_s, pred, radius, contrast, edge, out):  # pragma: no co
                     if rho2 <= inner:
                         out[v, i, j] *= 1.0 - c
                     else:
-                        out[v, i, j] *= 1.0 - c * 0.5 * math.erfc((math.sqrt(rho2) - r) * inv)
+                        x = (math.sqrt(rho2) - r) * inv
+                        out[v, i, j] *= 1.0 - c * _half_erfc(x, math.exp(-x * x))
 
 
 def transmission_model(n_t: int, n_s: int, pred: np.ndarray, radius: np.ndarray,
