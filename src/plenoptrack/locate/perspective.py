@@ -552,8 +552,9 @@ def solve_particles(ctx: FrameContext, state: ParticleState,
     table["n_views"] = table["n_views"].fillna(0)
     table["flags"] = table["flags"].fillna(0)
     positions = table[list(POS_COLUMNS)].to_numpy(float)
-    solved = SolveMemo(context=ctx, settings=settings, owner_in=owner, owner_out=new_owner,
-                       table=table)
+    # copies: the memo must not change with a later stage's owner arrays
+    solved = SolveMemo(context=ctx, settings=settings, owner_in=owner.copy(),
+                       owner_out=new_owner.copy(), table=table)
     return dataclasses.replace(state, owner=new_owner, positions=positions, table=table,
                                solved=solved)
 
