@@ -376,3 +376,31 @@ def test_a_solve_reuses_exactly_the_particles_whose_centroids_did_not_change(sma
     assert memo.to_solve(ctx, other, state.owner, state.n_particles).all()
     grown = memo.to_solve(ctx, settings, state.owner, state.n_particles + 1)
     assert np.flatnonzero(grown).tolist() == [state.n_particles]
+
+
+def test_each_refine_sweep_refits_the_overlapped_particles_again(small_calibrated, monkeypatch):
+    """``check.refine_sweeps``: the refit of overlapped particles runs that many passes,
+    each fitting the same particles (their neighbours held at their latest fits)."""
+    import sys as _sys
+
+    from plenoptrack.locate import refine
+    from plenoptrack.locate.settings import PerspectiveLocator
+
+    optics, calib = small_calibrated
+    scene = make_scene(calib.camera, n_particles=60, seed=6, diameter_mm=0.4)
+    raw = _frame(optics, scene.truth, 6)
+    calls = {}
+    fit = refine.fit_images
+
+    def counted(*args, **kwargs):
+        if _sys._getframe(1).f_code.co_name == "refine_particles":
+            calls[sweeps] = calls.get(sweeps, 0) + 1
+        return fit(*args, **kwargs)
+
+    monkeypatch.setattr(refine, "fit_images", counted)
+    for sweeps in (1, 2):
+        locator = PerspectiveLocator.from_dict({"check": {"refine_sweeps": sweeps,
+                                                          "find_hidden": False}})
+        perspective.locate_frame(raw, calib, locator=locator)
+    assert calls[1] >= 5
+    assert calls[2] >= 1.8 * calls[1]

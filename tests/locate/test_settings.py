@@ -25,6 +25,7 @@ def test_cluster_section_defaults_are_those_of_cluster_detections():
     {"segment": {"max_view_ratio": None}, "cluster": {"depth_range_mm": (-4.0, 6.0)}},
     {"grow": {"merge_distance_px": 2.5, "passes": 3}, "solve": {"solver": "scipy"}},
     {"check": {"max_explained": 0.6}, "cluster": {"density_sweep": False, "seed": 7}},
+    {"check": {"refine_sweeps": 2}},
 ])
 def test_toml_round_trip(tmp_path, changes):
     locator = PerspectiveLocator.from_dict(changes)
@@ -52,6 +53,8 @@ def test_from_dict_changes_only_what_it_names():
     ({"solve": {"solver": "newton"}}, "solver must be 'lm' or 'scipy'"),
     ({"grow": {"merge_distance_px": -1.0}}, "merge_distance_px must be None or positive"),
     ({"check": {"max_residual_ratio": 0.5}}, "max_residual_ratio must be above 1"),
+    ({"check": {"refine_sweeps": 0}}, "refine_sweeps must be a whole number of at least 1"),
+    ({"check": {"refine_sweeps": 1.5}}, "refine_sweeps must be a whole number of at least 1"),
     ({"check": {"merge_pieces": "yes"}}, "merge_pieces must be true or false; got 'yes'"),
     ({"segment": {"split_pairs": 1}}, "split_pairs must be true or false; got 1"),
     ({"solve": {"opacity": "false"}}, "opacity must be true or false"),

@@ -678,7 +678,7 @@ def learn_pixel_locking(ctx: FrameContext, state: ParticleState, settings: Solve
 
 
 def refine_particles(ctx: FrameContext, state: ParticleState,
-                     locator: PerspectiveLocator, *, sweeps: int = 2,
+                     locator: PerspectiveLocator, *,
                      only: np.ndarray | None = None) -> ParticleState:
     """Stage 5b: refit particles whose images overlap others' to the view pixels.
 
@@ -690,7 +690,8 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     whole regions. A fit that moves a particle by more than a tenth of the volume depth
     is discarded; a particle whose last fit leaves more than
     ``check.refine_max_model_error`` of the background unexplained (RMS, beyond the
-    pixel noise) gets its centroid solution back. ``sweeps`` passes over the particles.
+    pixel noise) gets its centroid solution back. ``check.refine_sweeps`` passes over
+    the particles.
     A refitted particle's position and its statistical uncertainty are the image fit's
     (standard errors robust to correlated pixel errors within a view,
     :class:`~plenoptrack.locate.refine.ImageFit`), to which :func:`measure_particles`
@@ -722,7 +723,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     sigma = centroid_sigma.copy()
     model_error = np.full(n, np.nan)   # of each particle's last fit
     max_shift = 0.1 * ctx.volume_depth_mm
-    for _sweep in range(sweeps):
+    for _sweep in range(settings.refine_sweeps):
         pred = _predict_all(ctx.dlfc, np.where(keep[:, None], pos, np.nan), views_uv)
         r = np.where(keep, radius, np.nan)
         overlap = overlap_fraction(pred, r)

@@ -409,6 +409,14 @@ class CheckSettings:
         centroid solution stands. Where the model is wrong (a neighbour missed or
         misplaced in a crowd, an elongated image) the refit is worse than the centroid
         solve. Chosen on the development seeds of the accuracy matrix.
+    refine_sweeps : int
+        Passes of that refit over the particles; each refits a particle beside its
+        neighbours' latest fits. A second pass changed little: on hall2019 frames of
+        1000 particles of 0.5 mm (ideal optics) the depth error sd was the same to
+        0.5 um and the frame took 1.1-1.4 s longer; on the acceptance envelope's
+        validation seeds (realistic optics) one pass gave recall 0.992 / 0.748 / 0.350 at
+        0.025 / 0.05 / 0.1 per microlens against 0.996 / 0.744 / 0.320 with two, the
+        sparse cells unchanged.
     split_merged : bool
         Try to separate each particle whose refit could not explain the pixels into two
         particles on nearly one line of sight, which the centroids had taken for one
@@ -503,6 +511,7 @@ class CheckSettings:
     refine_min_overlap: float = 0.1
     refine_pair_overlap: float = 0.5
     refine_max_model_error: float = 0.08
+    refine_sweeps: int = 1
     split_merged: bool = True
     split_max_model_error: float = 0.05
     split_floor_ratio: float = 1.2
@@ -530,6 +539,8 @@ class CheckSettings:
                  self.refine_pair_overlap)
         _require(self.refine_max_model_error > 0, "refine_max_model_error", "above 0",
                  self.refine_max_model_error)
+        _require(_is_int(self.refine_sweeps) and self.refine_sweeps >= 1, "refine_sweeps",
+                 "a whole number of at least 1", self.refine_sweeps)
         _require(self.split_max_model_error > 0, "split_max_model_error", "above 0",
                  self.split_max_model_error)
         _require(self.split_floor_ratio >= 0, "split_floor_ratio", "at least 0",
