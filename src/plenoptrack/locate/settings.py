@@ -416,7 +416,8 @@ class CheckSettings:
         0.5 um and the frame took 1.1-1.4 s longer; on the acceptance envelope's
         validation seeds (realistic optics) one pass gave recall 0.992 / 0.748 / 0.350 at
         0.025 / 0.05 / 0.1 per microlens against 0.996 / 0.744 / 0.320 with two, the
-        sparse cells unchanged.
+        sparse cells unchanged but one (magnification -1, ideal optics: recall 0.996 ->
+        0.983, 3 of 240 particles).
     split_merged : bool
         Try to separate each particle whose refit could not explain the pixels into two
         particles on nearly one line of sight, which the centroids had taken for one
