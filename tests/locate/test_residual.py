@@ -12,7 +12,8 @@ from plenoptrack.lightfield import LightField
 from plenoptrack.locate import perspective
 from plenoptrack.locate.perspective import ParticleState, PerspectiveLocator, locate_frame
 from plenoptrack.locate.refine import disc_image
-from plenoptrack.locate.residual import residual_light_field, transmission_model
+from plenoptrack.locate.residual import (divide_out_particles, residual_light_field,
+                                         transmission_model)
 from plenoptrack.simulate import make_scene, render_frame
 
 
@@ -67,6 +68,34 @@ def test_dividing_out_a_modelled_image_leaves_the_background_and_the_input_untou
     # the hidden particle's shadow is left where the located image does not cover it
     free = (hidden[0] < 0.05) & (t[0] > 0.99)
     assert free.any() and np.all(res[free] < 0.1 * background)
+
+
+def test_dividing_out_in_one_pass_equals_the_transmission_then_the_division():
+    """Many overlapping discs (opaque and faint, some blocked below the floor, some views
+    without an image of a particle), NaN and zero pixels, a view with no valid pixel and
+    a view left unmodelled: value for value what the two-step form gives."""
+    rng = np.random.default_rng(4)
+    n_v, n_u, n_t, n_s, n_p = 3, 3, 40, 50, 30
+    data = (0.8 + 0.05 * rng.standard_normal((n_v, n_u, n_t, n_s))).astype(np.float32)
+    data[0, 1, 5:9, 7:30] = np.nan
+    data[1, 1, 20:25, :] = 0.0
+    data[2, 2] = 0.0                                    # no valid pixel: left as it is
+    view_rc = np.array([[0, 0], [0, 1], [1, 1], [2, 2], [1, 2]])   # (0, 2) etc. unmodelled
+    pred = np.c_[rng.uniform(-5, n_s + 5, (n_p * len(view_rc), 1)),
+                 rng.uniform(-5, n_t + 5, (n_p * len(view_rc), 1))].reshape(n_p, len(view_rc), 2)
+    pred[rng.random((n_p, len(view_rc))) < 0.2] = np.nan
+    radius = rng.uniform(0.5, 6.0, n_p)
+    radius[3] = 0.0
+    contrast = rng.uniform(0.2, 1.0, n_p)
+    contrast[5] = 0.0
+    lf = _lightfield(data.copy())
+    for floor in (0.5, 0.2):
+        expected = residual_light_field(
+            lf, view_rc, transmission_model(n_t, n_s, pred, radius, contrast), floor=floor)
+        got = divide_out_particles(lf, view_rc, pred, radius, contrast, floor=floor)
+        np.testing.assert_array_equal(got.data, expected.data)
+        assert not np.array_equal(got.data, data)        # something was divided out
+    np.testing.assert_array_equal(lf.data, data)             # the input is not changed
 
 
 @pytest.fixture(scope="module")

@@ -782,7 +782,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
 
     The model of every located particle's image (its fitted radius and contrast, or its
     regions' shadow and contrast 0.9) is divided out of the light field
-    (:func:`~plenoptrack.locate.residual.residual_light_field`, pixels a located image
+    (:func:`~plenoptrack.locate.residual.divide_out_particles`, pixels a located image
     blocks set to the background), and the residual is segmented, clustered, solved and
     checked as the frame was. A particle found there whose images coincide with a located
     particle's (:func:`_coincides`: what the model did not quite explain of that image) is
@@ -803,7 +803,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     particles added.
     """
     from .refine import fit_images
-    from .residual import residual_light_field, transmission_model
+    from .residual import divide_out_particles
 
     table = state.table
     n = state.n_particles
@@ -826,9 +826,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     views_uv, view_rc = _fit_views(ctx)
     pred = _predict_all(ctx.dlfc, np.where(live[:, None], state.positions, np.nan), views_uv)
     lf = ctx.lf
-    transmission = transmission_model(lf.data.shape[2], lf.data.shape[3], pred[live],
-                                      radius[live], contrast[live])
-    residual = residual_light_field(lf, view_rc, transmission,
+    residual = divide_out_particles(lf, view_rc, pred[live], radius[live], contrast[live],
                                     floor=locator.check.hidden_floor)
     found = segment_frame(residual, locator.segment, frame=frame)
     if len(found) == 0:
