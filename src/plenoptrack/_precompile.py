@@ -114,7 +114,7 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate.segment._label_pixel", "plenoptrack.locate.segment._label_cores",
     "plenoptrack.locate.segment._split_by_cores", "plenoptrack.locate.segment._add_rim_shadow",
     "plenoptrack.locate.segment._reset", "plenoptrack.locate.segment._work_arrays",
-    "plenoptrack.locate.segment._background_offset",
+    "plenoptrack.locate.segment._background_offset", "plenoptrack.locate.segment._mark_runs",
     "plenoptrack.locate._order._before",
     "plenoptrack.locate._order.median", "plenoptrack.locate._order.stable_argsort",
     "plenoptrack.locate.dlfc._coefficients_one",

@@ -525,19 +525,14 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, offset, out, pi, pj, nea
     touched = np.empty(9, dtype=np.int64)
     # Mark the pixels within two pixels of a region first: regions are sparse, and only
     # those pixels need their 8 neighbours read. Raster order (and so every sum) is kept.
-    row_near = np.zeros(h, dtype=np.bool_)
-    for p in range(pi.shape[0]):
-        i, j = pi[p], pj[p]
-        for ii in range(max(i - 2, 0), min(i + 3, h)):
-            row_near[ii] = True
-            for jj in range(max(j - 2, 0), min(j + 3, w)):
-                near[ii, jj] = True
+    # Each row's marked pixels lie within columns [near_lo, near_hi] (empty: lo > hi).
+    near_lo = np.full(h, w, dtype=np.int64)
+    near_hi = np.full(h, -1, dtype=np.int64)
+    _mark_runs(pi, pj, near, True, near_lo, near_hi)
     # first ring: ring_region holds the region touched (-2: several), ring_unit the unit
     # + 1 when the pixel touched one unit alone (0 otherwise)
     for i in range(h):
-        if not row_near[i]:
-            continue
-        for j in range(w):
+        for j in range(near_lo[i], near_hi[i] + 1):
             if not near[i, j] or reg[i, j] >= 0:
                 continue
             region = -1
@@ -565,9 +560,7 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, offset, out, pi, pj, nea
                           (rel_dark[i, j] - offset) / (1.0 - offset))
     # second ring
     for i in range(h):
-        if not row_near[i]:
-            continue
-        for j in range(w):
+        for j in range(near_lo[i], near_hi[i] + 1):
             if not near[i, j] or reg[i, j] >= 0 or ring_region[i, j] != -1 or not valid[i, j]:
                 continue
             region = -1
@@ -589,13 +582,36 @@ def _add_rim_shadow(reg, unit, row_of, valid, rel_dark, offset, out, pi, pj, nea
                 continue
             _share_shadow(out, row_of, touched, n_touched,
                           (rel_dark[i, j] - offset) / (1.0 - offset))
-    for p in range(pi.shape[0]):
-        i, j = pi[p], pj[p]
+    for i in range(h):
+        for j in range(near_lo[i], near_hi[i] + 1):
+            if near[i, j]:
+                near[i, j] = False
+                ring_region[i, j] = -1
+                ring_unit[i, j] = 0
+
+
+@numba.njit(cache=True)
+def _mark_runs(pi, pj, near, value, lo, hi):  # pragma: no cover - compiled
+    """Set ``near`` to ``value`` within two pixels (8-neighbourhood, twice) of the
+    pixels ``(pi, pj)`` (raster order), one horizontal run of them at a time; widen each
+    row's column span ``[lo, hi]`` to what was set."""
+    h, w = near.shape
+    n = pi.shape[0]
+    p = 0
+    while p < n:
+        i, j0 = pi[p], pj[p]
+        q = p + 1
+        while q < n and pi[q] == i and pj[q] == pj[q - 1] + 1:
+            q += 1
+        c0, c1 = max(j0 - 2, 0), min(pj[q - 1] + 2, w - 1)
         for ii in range(max(i - 2, 0), min(i + 3, h)):
-            for jj in range(max(j - 2, 0), min(j + 3, w)):
-                near[ii, jj] = False
-                ring_region[ii, jj] = -1
-                ring_unit[ii, jj] = 0
+            for jj in range(c0, c1 + 1):
+                near[ii, jj] = value
+            if c0 < lo[ii]:
+                lo[ii] = c0
+            if c1 > hi[ii]:
+                hi[ii] = c1
+        p = q
 
 
 @numba.njit(cache=True)
