@@ -786,7 +786,14 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     blocks set to the background), and the residual is segmented, clustered, solved and
     checked as the frame was. A particle found there whose images coincide with a located
     particle's (:func:`_coincides`: what the model did not quite explain of that image) is
-    dropped. Each other one, best seen first, is fitted to the frame's own pixels
+    dropped, unless it coincides with one located particle alone and
+    ``check.hidden_joint`` is on: that particle's image fit may have grown its disc over
+    both images, and the two are fitted together (the located one started from its own
+    shadow's radius) and kept under the tests of a split (opaque enough, explaining the
+    pixels better than the located particle alone by ``check.split_min_gain`` or the
+    split's gain bar, images that move apart by a view pixel across the views and stand
+    apart in some view or in space, neither one with another particle's image); the
+    located particle then takes the pair's fit. Each other one, best seen first, is fitted to the frame's own pixels
     (:func:`~plenoptrack.locate.refine.fit_images`) beside the particles located (and
     those of this search already kept), and kept when its image is opaque
     (``check.split_min_contrast``), explains the pixels better than the model without it
@@ -840,10 +847,17 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     radius2 = 0.5 * _member_diameter(found, state2.owner, state2.n_particles)
     pred2 = _predict_all(ctx.dlfc, state2.positions, views_uv)
     live_spans = ImageSpans(pred[live])
+    live_rows = np.flatnonzero(live)
+    shared = {}       # candidate -> the one located particle (live index) it coincides with
     for q in np.flatnonzero(new):
         if not np.isfinite(radius2[q]) or _coincides(pred2[[q]], radius2[[q]], pred[live],
                                                      radius[live], live_spans):
             new[q] = False
+            if np.isfinite(radius2[q]) and locator.check.hidden_joint:
+                one = _coinciding(pred2[[q]], radius2[[q]], pred[live], radius[live],
+                                  live_spans)
+                if len(one) == 1:
+                    shared[q] = int(one[0])
     # A particle found in the residual must explain the frame's own pixels: fitted to
     # them beside the located particles, it must be opaque enough and explain them
     # better than those particles alone by the split's gain
@@ -891,22 +905,88 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
             new[q] = False
             continue
         positions2[q] = fit.params[0, :3]
-        fits[q] = fit
+        fits[q] = _OneImage(fit, 0)
         held_pos = np.vstack([held_pos, fit.params[:, :3]])
         held_rc = np.vstack([held_rc, fit.params[:, 3:]])
         held_pred = np.concatenate([held_pred, fitted_pred])
         held_spans = held_spans.extended(fitted_pred)
+    # A candidate that coincides with one located particle can be a particle that one's
+    # image fit swallowed (its disc grown over both images): the two are fitted together,
+    # the located one started from its own shadow's radius, and the pair is kept when it
+    # passes the tests of a split (opaque, explains the pixels better than the located
+    # particle alone, two images apart by their parallax).
+    joint = {}                                    # located row -> the pair's fit
+    gain_bar = split_gain_bar(fit_error, settings)
+    order = [q for q in np.argsort(-state2.table["n_views"].to_numpy(float), kind="stable")
+             if q in shared]
+    for q in order:
+        jl = shared[q]
+        j = int(live_rows[jl])
+        if j in joint:
+            continue
+        own = shadow[j] if np.isfinite(shadow[j]) and shadow[j] < held_rc[jl, 0] else held_rc[jl, 0]
+        others = np.flatnonzero(held_spans.meet(held_pred, pred2[q],
+                                                held_rc[:, 0] + radius2[q] + 4.0)
+                                | held_spans.meet(held_pred, held_pred[jl],
+                                                  held_rc[:, 0] + held_rc[jl, 0] + 4.0))
+        others = others[others != jl]
+        fit = fit_images(ctx.dlfc, views_uv, view_rc, lf.data,
+                         np.vstack([held_pos[jl], positions2[q]]),
+                         np.array([[own, held_rc[jl, 1]], [radius2[q], 0.9]]),
+                         held_pos[others], held_rc[others],
+                         max_depth_shift=ctx.volume_depth_mm,
+                         reference=np.array([[*held_pos[jl], *held_rc[jl]]]))
+        if (fit is None or not np.all(np.isfinite(fit.params))
+                or not np.all(np.isfinite(fit.sigma))
+                or fit.params[:, 4].min() < settings.split_min_contrast
+                or not (fit.model_error * settings.split_min_gain <= fit.reference_error
+                        or fit.reference_error ** 2 - fit.model_error ** 2 >= gain_bar)):
+            continue
+        fitted_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)
+        offset = fitted_pred[0] - fitted_pred[1]
+        if not (parallax_px(offset) >= 1.0
+                and (np.nanmax(np.hypot(*offset.T)) >= fit.params[:, 3].min()
+                     or _apart_in_space(ctx.dlfc, fit.params))):
+            continue
+        rest = np.setdiff1d(np.arange(len(held_pos)), [jl])
+        if _coincides(fitted_pred, fit.params[:, 3], held_pred[rest], held_rc[rest, 0],
+                      held_spans.subset(rest)):
+            continue
+        joint[j] = fit
+        held_pos[jl], held_rc[jl], held_pred[jl] = fit.params[0, :3], fit.params[0, 3:], fitted_pred[0]
+        held_spans.set_rows([jl], fitted_pred[[0]])
+        positions2[q] = fit.params[1, :3]
+        fits[q] = _OneImage(fit, 1)
+        new[q] = True
+        held_pos = np.vstack([held_pos, fit.params[1:, :3]])
+        held_rc = np.vstack([held_rc, fit.params[1:, 3:]])
+        held_pred = np.concatenate([held_pred, fitted_pred[1:]])
+        held_spans = held_spans.extended(fitted_pred[1:])
     if not new.any():
         return ctx, state, 0
+    if joint:
+        # the located particles refitted with a particle they had swallowed
+        table = table.copy()
+        positions = state.positions.copy()
+        rows = np.array(sorted(joint))
+        positions[rows] = [joint[j].params[0, :3] for j in rows]
+        table.loc[rows, list(POS_COLUMNS)] = positions[rows]
+        table.loc[rows, list(SIGMA_COLUMNS)] = np.array([joint[j].sigma[0] for j in rows])
+        table.loc[rows, _FIT_ERROR] = [joint[j].model_error for j in rows]
+        table.loc[rows, _FIT_RADIUS] = [joint[j].params[0, 3] for j in rows]
+        table.loc[rows, _FIT_CONTRAST] = [joint[j].params[0, 4] for j in rows]
+        flags = table.loc[rows, "flags"].fillna(0).to_numpy(np.int64)
+        table.loc[rows, "flags"] = ((flags & ~int(TriangulationFlag.UNEXPLAINED))
+                                    | int(TriangulationFlag.REFINED))
+        state = dataclasses.replace(state, positions=positions, table=table)
     # their position, sigma and image are the fit's (REFINED), as a refined particle's
     added = state2.table.copy()
     rows = np.flatnonzero(new)
     added.loc[rows, list(POS_COLUMNS)] = positions2[rows]
-    added.loc[rows, list(SIGMA_COLUMNS)] = np.array(
-        [np.where(np.isfinite(fits[q].sigma[0]), fits[q].sigma[0], np.nan) for q in rows])
+    added.loc[rows, list(SIGMA_COLUMNS)] = np.array([fits[q].sigma for q in rows])
     added.loc[rows, _FIT_ERROR] = [fits[q].model_error for q in rows]
-    added.loc[rows, _FIT_RADIUS] = [fits[q].params[0, 3] for q in rows]
-    added.loc[rows, _FIT_CONTRAST] = [fits[q].params[0, 4] for q in rows]
+    added.loc[rows, _FIT_RADIUS] = [fits[q].radius for q in rows]
+    added.loc[rows, _FIT_CONTRAST] = [fits[q].contrast for q in rows]
     added.loc[rows, "flags"] = (added.loc[rows, "flags"].fillna(0).to_numpy(np.int64)
                                 | int(TriangulationFlag.REFINED))
     added[_HIDDEN] = True
@@ -1522,6 +1602,49 @@ def _coincides(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
         same = dist < np.maximum(radius[:, None], other_radius[None])
         merged = (dist < radius[:, None] + other_radius[None]) & (parallax < 1.0)
     return bool(np.any(same | merged))
+
+
+@dataclass(frozen=True)
+class _OneImage:
+    """Image ``k`` of an image fit: its sigma (x, y, z), the fit's model error, its
+    radius and contrast."""
+
+    fit: object
+    k: int
+
+    @property
+    def sigma(self) -> np.ndarray:
+        s = self.fit.sigma[self.k]
+        return np.where(np.isfinite(s), s, np.nan)
+
+    @property
+    def model_error(self) -> float:
+        return self.fit.model_error
+
+    @property
+    def radius(self) -> float:
+        return float(self.fit.params[self.k, 3])
+
+    @property
+    def contrast(self) -> float:
+        return float(self.fit.params[self.k, 4])
+
+
+def _coinciding(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
+                other_radius: np.ndarray, other_spans: ImageSpans) -> np.ndarray:
+    """Rows of ``other_pred`` with an image that one image of ``pred`` coincides with
+    (the tests of :func:`_coincides`)."""
+    close = np.flatnonzero(other_spans.near(pred, radius[:, None] + other_radius[None]))
+    if len(close) == 0:
+        return close
+    offset = pred[:, None] - other_pred[close][None]                      # (k, p, V, 2)
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        dist = np.nanmedian(np.hypot(offset[..., 0], offset[..., 1]), axis=2)
+        parallax = parallax_px(offset)
+        same = dist < np.maximum(radius[:, None], other_radius[close][None])
+        merged = (dist < radius[:, None] + other_radius[close][None]) & (parallax < 1.0)
+    return close[np.any(same | merged, axis=0)]
 
 
 def _apart_in_space(dlfc, params: np.ndarray) -> bool:
