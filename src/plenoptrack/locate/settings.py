@@ -503,10 +503,10 @@ class CheckSettings:
         located particle's own shadow radius and is kept under the tests of a split
         (``split_min_contrast``, ``split_min_gain`` or the split's gain bar, parallax of
         at least a view pixel, neither image one with another particle's). On the
-        accuracy matrix's development seeds (`small`, realistic optics) recall 0.950 /
-        0.778 / 0.319 -> 0.967 / 0.811 / 0.379 at 0.025 / 0.05 / 0.1 particles per
-        microlens, precision equal or higher, sparse cells unchanged; about 1.9 times
-        the time per frame at 0.1 (docs: locating).
+        accuracy matrix's validation seeds (`small`, realistic optics) recall 0.992 /
+        0.748 / 0.350 -> 0.996 / 0.782 / 0.390 at 0.025 / 0.05 / 0.1 particles per
+        microlens, precision equal or higher, 1 mm particles 0.952 -> 0.968; crowded
+        frames take 1.4-1.8 times as long (docs: locating).
     merge_pieces : bool
         Merge two particles that are pieces of one body
         (:mod:`~plenoptrack.locate.bodies`): bodies that overlap (centres closer than
