@@ -211,25 +211,34 @@ def test_hidden_search_settings_are_checked():
     assert check["hidden_joint"] is True
 
 
-def test_coinciding_names_the_particles_coincides_finds():
-    """``_coinciding`` lists exactly the particles whose images ``_coincides`` tests true
-    against, one at a time."""
+def test_coinciding_names_the_particles_whose_images_are_one_with_the_image():
+    """``_coinciding`` against the definition computed view by view: the same particle
+    (median distance below the larger radius) or merged images that keep their offset
+    (median distance below the sum of the radii, offset changing by under a view pixel);
+    ``_coincides`` is whether there is any."""
     from plenoptrack.locate._nearby import ImageSpans
 
     rng = np.random.default_rng(7)
     views = 12
     u = np.linspace(-1, 1, views)[:, None]
-    for _ in range(40):
-        others = rng.uniform(0, 20, (15, 1, 2)) + rng.normal(0, 2, (15, 1, 2)) * u
+    hits = 0
+    for _ in range(60):
+        others = rng.uniform(0, 12, (15, 1, 2)) + rng.normal(0, 1.5, (15, 1, 2)) * u
         other_r = rng.uniform(0.5, 3.0, 15)
-        image = rng.uniform(0, 20, (1, 1, 2)) + rng.normal(0, 2, (1, 1, 2)) * u
+        image = rng.uniform(0, 12, (1, 1, 2)) + rng.normal(0, 1.5, (1, 1, 2)) * u
         r = rng.uniform(0.5, 3.0, 1)
-        spans = ImageSpans(others)
-        rows = perspective._coinciding(image, r, others, other_r, spans)
-        expected = [k for k in range(15)
-                    if perspective._coincides(image, r, others[[k]], other_r[[k]])]
+        rows = perspective._coinciding(image, r, others, other_r, ImageSpans(others))
+        expected = []
+        for k in range(15):
+            offset = image[0] - others[k]                                  # (V, 2)
+            dist = np.median(np.hypot(offset[:, 0], offset[:, 1]))
+            parallax = np.sqrt(8.0 * offset.var(axis=0).sum())
+            if dist < max(r[0], other_r[k]) or (dist < r[0] + other_r[k] and parallax < 1.0):
+                expected.append(k)
         assert sorted(rows.tolist()) == expected
-        assert perspective._coincides(image, r, others, other_r) == bool(len(rows))
+        assert perspective._coincides(image, r, others, other_r) == bool(expected)
+        hits += bool(expected)
+    assert 10 < hits < 50                   # both answers occur
 
 
 def test_a_particle_a_located_fit_swallowed_is_fitted_with_it(small_calibrated):

@@ -793,8 +793,8 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     pixels better than the located particle alone by ``check.split_min_gain`` or the
     split's gain bar, images that move apart by a view pixel across the views and stand
     apart in some view or in space, neither one with another particle's image); the
-    located particle then takes the pair's fit. Each other one, best seen first, is fitted to the frame's own pixels
-    (:func:`~plenoptrack.locate.refine.fit_images`) beside the particles located (and
+    located particle then takes the pair's fit. Each other one, best seen first, is
+    fitted to the frame's own pixels (:func:`~plenoptrack.locate.refine.fit_images`) beside the particles located (and
     those of this search already kept), and kept when its image is opaque
     (``check.split_min_contrast``), explains the pixels better than the model without it
     by ``check.refine_max_model_error**2`` in mean square (the split's test,
@@ -924,7 +924,8 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         j = int(live_rows[jl])
         if j in joint:
             continue
-        own = shadow[j] if np.isfinite(shadow[j]) and shadow[j] < held_rc[jl, 0] else held_rc[jl, 0]
+        own = (shadow[j] if np.isfinite(shadow[j]) and shadow[j] < held_rc[jl, 0]
+               else held_rc[jl, 0])
         others = np.flatnonzero(held_spans.meet(held_pred, pred2[q],
                                                 held_rc[:, 0] + radius2[q] + 4.0)
                                 | held_spans.meet(held_pred, held_pred[jl],
@@ -953,7 +954,8 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                       held_spans.subset(rest)):
             continue
         joint[j] = fit
-        held_pos[jl], held_rc[jl], held_pred[jl] = fit.params[0, :3], fit.params[0, 3:], fitted_pred[0]
+        held_pos[jl], held_rc[jl] = fit.params[0, :3], fit.params[0, 3:]
+        held_pred[jl] = fitted_pred[0]
         held_spans.set_rows([jl], fitted_pred[[0]])
         positions2[q] = fit.params[1, :3]
         fits[q] = _OneImage(fit, 1)
@@ -1589,19 +1591,7 @@ def _coincides(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
     if len(other_pred) == 0:
         return False
     spans = ImageSpans(other_pred) if other_spans is None else other_spans
-    with np.errstate(invalid="ignore"):
-        close = np.flatnonzero(spans.near(pred, radius[:, None] + other_radius[None]))
-    if len(close) == 0:
-        return False
-    other_pred, other_radius = other_pred[close], other_radius[close]
-    offset = pred[:, None] - other_pred[None]                             # (k, P, V, 2)
-    with np.errstate(invalid="ignore"), warnings.catch_warnings():
-        warnings.simplefilter("ignore", RuntimeWarning)                   # all-NaN rows
-        dist = np.nanmedian(np.hypot(offset[..., 0], offset[..., 1]), axis=2)
-        parallax = parallax_px(offset)
-        same = dist < np.maximum(radius[:, None], other_radius[None])
-        merged = (dist < radius[:, None] + other_radius[None]) & (parallax < 1.0)
-    return bool(np.any(same | merged))
+    return bool(len(_coinciding(pred, radius, other_pred, other_radius, spans)))
 
 
 @dataclass(frozen=True)
