@@ -428,3 +428,31 @@ def test_a_translucent_image_beside_an_opaque_one_keeps_its_core():
         dist, idx = _match(det, centres)
         assert sorted(idx) == [0, 1, 2]
         assert dist.max() < 0.3, dist
+
+
+def test_the_rim_marks_every_pixel_within_two_of_a_region_one_run_at_a_time():
+    """``_mark_runs`` against a brute-force dilation: pixels within two (8-neighbour
+    steps) of random region pixels, given in raster order, and each row's span of them;
+    setting back to False leaves the work array clean."""
+    from plenoptrack.locate.segment import _mark_runs
+
+    rng = np.random.default_rng(3)
+    h, w = 17, 23
+    for _ in range(30):
+        region = rng.random((h, w)) < rng.uniform(0.02, 0.3)
+        pi, pj = (a.astype(np.int32) for a in np.nonzero(region))       # raster order
+        near = np.zeros((h, w), dtype=bool)
+        lo, hi = np.full(h, w, dtype=np.int64), np.full(h, -1, dtype=np.int64)
+        _mark_runs(pi, pj, near, True, lo, hi)
+        expected = np.zeros((h, w), dtype=bool)
+        for i, j in zip(pi, pj):
+            expected[max(i - 2, 0):i + 3, max(j - 2, 0):j + 3] = True
+        np.testing.assert_array_equal(near, expected)
+        for i in range(h):
+            cols = np.flatnonzero(expected[i])
+            if len(cols):
+                assert (lo[i], hi[i]) == (cols.min(), cols.max())
+            else:
+                assert lo[i] > hi[i]
+        _mark_runs(pi, pj, near, False, lo, hi)
+        assert not near.any()
