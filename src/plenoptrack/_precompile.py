@@ -49,7 +49,7 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
     "grid": ("plenoptrack.lightfield.grid", "_symmetry_centres",
              (_a(_u2, 2), _F2, _a(_i8, 3), _F2, _I1, _f8, _i8, _i8)),
     "decode": ("plenoptrack.lightfield.decode", "_gather",
-               (_a(_u2, 2), _F3, _I2, _F2, _i8, _i8, _i8, _a(_f4, 4))),
+               (_a(_u2, 2), _F3, _I2, _F2, _i8, _a(_b1, 2), _i8, _i8, _a(_f4, 4))),
     "segment": ("plenoptrack.locate.segment", "_segment_stack",
                 (_a(_f4, 3), _I1, _a(_b1, 2), _b1, _i8, _i8, _f8, _f8, _f8, _b1, _F3, _I1,
                  _i8)),

@@ -9,7 +9,7 @@ import pytest
 from scipy.spatial import cKDTree
 
 from plenoptrack import preset
-from plenoptrack.errors import CalibrationError, ImageSizeError, InputFileError
+from plenoptrack.errors import CalibrationError, ImageSizeError, InputFileError, SettingsError
 from plenoptrack.lightfield import VIEW_MASK_THRESHOLD, LensletGrid, LightField, decode
 
 
@@ -294,3 +294,29 @@ def test_full_sensor_decode_shape():
     assert lf.data.shape[:2] == (15, 15)
     assert lf.n_t >= cam.grid_shape[0] - 2 and lf.n_s >= 530
     assert lf.spatial_mask.mean() > 0.95
+
+
+@pytest.mark.parametrize("white_kind", ["none", "raw", "decoded"])
+def test_views_below_min_view_fraction_are_left_out(white_kind):
+    """``min_view_fraction``: the views it keeps are the full decode's, value for value
+    (flat-fielded ones too); the others hold zeros and a valid fraction of 0."""
+    grid = _lattice("hex")
+    radius = grid.pitch_px / 2
+
+    def white_f(dv, du, row, col):  # dimmer on one side: the white level matters too
+        return np.where(np.hypot(dv, du) < radius - 1.5, 3000.0 * (1.0 - 0.04 * du), 0.0)
+
+    raw = (_paint(grid, _linear) + 50).astype(np.float32)
+    white = {"none": None, "raw": _paint(grid, white_f).astype(np.uint16)}.get(white_kind)
+    if white_kind == "decoded":
+        white = decode(_paint(grid, white_f).astype(np.uint16), grid)
+    full = decode(raw, grid, white=white)
+    part = decode(raw, grid, white=white, min_view_fraction=0.5)
+    kept = full.valid_fraction >= 0.5
+    assert 0 < kept.sum() < kept.size
+    np.testing.assert_array_equal(part.data[kept], full.data[kept])
+    np.testing.assert_array_equal(part.valid_fraction[kept], full.valid_fraction[kept])
+    assert not part.data[~kept].any() and not part.valid_fraction[~kept].any()
+    np.testing.assert_array_equal(part.view_mask, full.view_mask)
+    with pytest.raises(SettingsError):
+        decode(raw, grid, min_view_fraction=1.5)

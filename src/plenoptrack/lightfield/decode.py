@@ -216,24 +216,28 @@ def _corner(pos, hi):  # pragma: no cover - compiled
 
 
 @numba.njit(inline="always")
-def _lens_block(raw, pr, pc, n_ang, rows, block):  # pragma: no cover - compiled
+def _lens_block(raw, pr, pc, n_ang, use, rows, block):  # pragma: no cover - compiled
     """``block[v, u]`` = the raw image bilinearly interpolated at ``(pr + v, pc + u)``
-    (every tap on the sensor): rows first into ``rows``, then columns."""
+    (every tap on the sensor) for the views ``use[v, u]``: rows first into ``rows``,
+    then columns."""
     r0 = int(math.floor(pr))
     c0 = int(math.floor(pc))
     fr = pr - r0
     fc = pc - c0
     for iv in range(n_ang):
+        if not use[iv].any():
+            continue
         for k in range(n_ang + 1):
             rows[iv, k] = (1.0 - fr) * raw[r0 + iv, c0 + k] + fr * raw[r0 + iv + 1, c0 + k]
-    for iv in range(n_ang):
         for iu in range(n_ang):
-            block[iv, iu] = (1.0 - fc) * rows[iv, iu] + fc * rows[iv, iu + 1]
+            if use[iv, iu]:
+                block[iv, iu] = (1.0 - fc) * rows[iv, iu] + fc * rows[iv, iu + 1]
 
 
 @numba.njit(parallel=True, cache=True, nogil=True)
-def _gather(raw, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - compiled
-    """out[v, u, t, s] = (1-w) * bilin(raw, c0 + (v, u)) + w * bilin(raw, c1 + (v, u)).
+def _gather(raw, cen, j0s, ws, rad, use, t_lo, t_hi, out):  # pragma: no cover - compiled
+    """out[v, u, t, s] = (1-w) * bilin(raw, c0 + (v, u)) + w * bilin(raw, c1 + (v, u))
+    for the views ``use[v, u]`` (the others are left as they are).
 
     ``c0, c1`` are the centres of lenses ``j0`` and ``j0 + 1`` of lens row ``t``; taps
     beyond the sensor edge replicate the edge pixels. A lens's interpolated image is the
@@ -268,25 +272,30 @@ def _gather(raw, cen, j0s, ws, rad, t_lo, t_hi, out):  # pragma: no cover - comp
                     k0 = 1
                 else:  # not into the slot that holds j1
                     k0 = 1 if held[0] == j1 else 0
-                    _lens_block(raw, pr0, pc0, n_ang, rows, blocks[k0])
+                    _lens_block(raw, pr0, pc0, n_ang, use, rows, blocks[k0])
                     held[k0] = j0
                 if w1 == 0.0:  # on a lens centre (every sample of a rectangular grid)
                     for iv in range(n_ang):
                         for iu in range(n_ang):
-                            out[iv, iu, t, s] = w0 * blocks[k0, iv, iu]
+                            if use[iv, iu]:
+                                out[iv, iu, t, s] = w0 * blocks[k0, iv, iu]
                     continue
                 k1 = 1 - k0
                 if held[k1] != j1:
-                    _lens_block(raw, pr1, pc1, n_ang, rows, blocks[k1])
+                    _lens_block(raw, pr1, pc1, n_ang, use, rows, blocks[k1])
                     held[k1] = j1
                 for iv in range(n_ang):
                     for iu in range(n_ang):
-                        out[iv, iu, t, s] = w0 * blocks[k0, iv, iu] + w1 * blocks[k1, iv, iu]
+                        if use[iv, iu]:
+                            out[iv, iu, t, s] = (w0 * blocks[k0, iv, iu]
+                                                 + w1 * blocks[k1, iv, iu])
             else:  # lens image reaches past the sensor edge: clamp every tap
                 for iv in range(n_ang):
                     ra, fra = _corner(pr0 + iv, hi_r)
                     rb, frb = _corner(pr1 + iv, hi_r)
                     for iu in range(n_ang):
+                        if not use[iv, iu]:
+                            continue
                         ca, fca = _corner(pc0 + iu, hi_c)
                         cb, fcb = _corner(pc1 + iu, hi_c)
                         va = ((1.0 - fra) * ((1.0 - fca) * raw[ra, ca] + fca * raw[ra, ca + 1])
@@ -377,13 +386,20 @@ def _check_raw(image, grid: LensletGrid, name: str) -> np.ndarray:
 
 
 def _decode_array(raw: np.ndarray, grid: LensletGrid, samp: _Sampling, rad: int,
-                  progress: bool, label: str) -> np.ndarray:
+                  progress: bool, label: str, use: np.ndarray | None = None) -> np.ndarray:
+    """The light field ``(n_v, n_u, n_t, n_s)`` of the views ``use`` (all when None;
+    the others zero)."""
     cen = grid.centers()
     n_ang = 2 * rad + 1
     n_t, n_s = samp.j0.shape
-    out = np.empty((n_ang, n_ang, n_t, n_s), dtype=np.float32)
-    if not progress:
-        _gather(raw, cen, samp.j0, samp.w, rad, 0, n_t, out)
+    if use is None:
+        use = np.ones((n_ang, n_ang), dtype=np.bool_)
+        out = np.empty((n_ang, n_ang, n_t, n_s), dtype=np.float32)
+    else:
+        use = np.ascontiguousarray(use, dtype=np.bool_)
+        out = np.zeros((n_ang, n_ang, n_t, n_s), dtype=np.float32)  # pages of unused views
+    if not progress:                                                 # are never touched
+        _gather(raw, cen, samp.j0, samp.w, rad, use, 0, n_t, out)
         return out
     from rich.progress import Progress
 
@@ -392,13 +408,14 @@ def _decode_array(raw: np.ndarray, grid: LensletGrid, samp: _Sampling, rad: int,
         task = bar.add_task(label, total=n_t)
         for lo in range(0, n_t, chunk):
             hi = min(n_t, lo + chunk)
-            _gather(raw, cen, samp.j0, samp.w, rad, lo, hi, out)
+            _gather(raw, cen, samp.j0, samp.w, rad, use, lo, hi, out)
             bar.update(task, advance=hi - lo)
     return out
 
 
 def decode(raw: np.ndarray, grid: LensletGrid, *, white: "np.ndarray | LightField | None" = None,
-           white_floor: float = WHITE_FLOOR, progress: bool = False) -> LightField:
+           white_floor: float = WHITE_FLOOR, progress: bool = False,
+           min_view_fraction: float = 0.0) -> LightField:
     """Decode a raw plenoptic image into a light field ``L[v, u, t, s]``.
 
     Parameters
@@ -427,6 +444,11 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: "np.ndarray | LightFiel
         See ``white``; between 0 and 1.
     progress : bool
         Show a progress bar (rich) while decoding.
+    min_view_fraction : float
+        Views whose valid fraction (the disc footprint, and with a white image its
+        level) is below this are not decoded: their samples are 0 and their valid
+        fraction 0. The default 0 decodes every view; a caller that reads only the
+        better-lit views (the locator: 0.5) saves their time.
 
     Returns
     -------
@@ -477,20 +499,32 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: "np.ndarray | LightFiel
     if rad < 1:
         raise CalibrationError(f"lenslet pitch {grid.pitch_px:.2f} px is too small to decode; "
                                "each microlens image must span at least 2 pixels")
+    if not 0.0 <= min_view_fraction <= 1.0:
+        raise SettingsError(f"min_view_fraction must be between 0 and 1; got "
+                            f"{min_view_fraction!r}")
     samp = _sampling(grid, rad)
     ang = np.arange(-rad, rad + 1, dtype=float)
-    data = _decode_array(raw, grid, samp, rad, progress, "decoding")
     valid = _disc_fraction(ang, ang, grid.pitch_px / 2.0)
+    shape = (len(ang), len(ang), *samp.j0.shape)
+    wdata = None
     if isinstance(white, LightField):
-        if white.data.shape != data.shape:
+        if white.data.shape != shape:
             raise CalibrationError(f"decoded white light field has shape {white.data.shape} "
-                                   f"but the frame decodes to {data.shape}; decode the white "
+                                   f"but the frame decodes to {shape}; decode the white "
                                    "image with the same grid")
-        valid = np.minimum(valid, _flat_field(data, white.data, samp.mask, white_floor))
+        wdata = white.data
     elif white is not None:
         wdata = _decode_array(white, grid, samp, rad, progress, "decoding white")
-        valid = np.minimum(valid, _flat_field(data, wdata, samp.mask, white_floor))
-        del wdata
+    if wdata is not None:
+        level, brightest = _white_level(wdata, samp.mask)
+        valid = np.minimum(valid, level)
+    use = valid >= min_view_fraction if min_view_fraction > 0 else None
+    data = _decode_array(raw, grid, samp, rad, progress, "decoding", use)
+    if wdata is not None:
+        _divide_by_white(data, wdata, white_floor * brightest, use)
+    del wdata
+    if use is not None:
+        valid = np.where(use, valid, 0.0)
     return LightField(data=data, u=ang, v=ang.copy(), valid_fraction=valid,
                       spatial_mask=samp.mask, origin_px=samp.origin_px,
                       s_step_px=samp.s_step_px, t_step_px=samp.t_step_px,
@@ -503,8 +537,17 @@ _VALID_FLOOR = np.float32(1e-6)
 
 
 def _flat_field(data: np.ndarray, wdata: np.ndarray, mask: np.ndarray, floor: float) -> np.ndarray:
-    """Divide ``data`` by ``wdata`` in place where bright enough; return valid fractions."""
-    n_v, n_u = data.shape[:2]
+    """Divide ``data`` by ``wdata`` in place where bright enough (above ``floor`` times the
+    brightest view's level); return the views' relative white levels (valid fractions)."""
+    level, brightest = _white_level(wdata, mask)
+    _divide_by_white(data, wdata, floor * brightest)
+    return level
+
+
+def _white_level(wdata: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, float]:
+    """Mean level of each view of a decoded white image over the spatial mask: relative
+    to the brightest view's ``(n_v, n_u)`` in [0, 1], and that brightest level."""
+    n_v, n_u = wdata.shape[:2]
     weights = (mask if mask.any() else np.ones_like(mask)).ravel().astype(np.float32)
     level = (wdata.reshape(n_v * n_u, -1) @ weights).astype(np.float64).reshape(n_v, n_u)
     level /= float(weights.sum())
@@ -512,14 +555,25 @@ def _flat_field(data: np.ndarray, wdata: np.ndarray, mask: np.ndarray, floor: fl
     if not ref > 0:
         raise InputFileError("white image is dark everywhere under the lenslets; "
                              "check the white image and the lenslet grid")
-    thresh = np.float32(floor * ref)
+    return np.clip(level / ref, 0.0, 1.0), ref
+
+
+def _divide_by_white(data: np.ndarray, wdata: np.ndarray, threshold: float,
+                     use: np.ndarray | None = None) -> None:
+    """Divide ``data`` by ``wdata`` in place where the white image exceeds ``threshold``
+    and set it to 0 elsewhere, in the views ``use`` (all when None)."""
+    thresh = np.float32(threshold)
+    n_v, n_u = data.shape[:2]
     for iv in range(n_v):  # per view keeps the temporaries small
-        w = wdata[iv]
-        bright = w > thresh
-        np.divide(data[iv], w, out=data[iv], where=bright)
-        # 0 marks the samples without light in the white image; a black sample that is
-        # valid (a perfectly opaque particle on a sensor without a dark level) is kept
-        # just above it, or segmentation would take it for a hole in the data.
-        np.maximum(data[iv], _VALID_FLOOR, out=data[iv], where=bright)
-        data[iv][~bright] = 0.0
-    return np.clip(level / ref, 0.0, 1.0)
+        for iu in range(n_u):
+            if use is not None and not use[iv, iu]:
+                continue
+            w = wdata[iv, iu]
+            bright = w > thresh
+            d = data[iv, iu]
+            np.divide(d, w, out=d, where=bright)
+            # 0 marks the samples without light in the white image; a black sample that
+            # is valid (a perfectly opaque particle on a sensor without a dark level) is
+            # kept just above it, or segmentation would take it for a hole in the data.
+            np.maximum(d, _VALID_FLOOR, out=d, where=bright)
+            d[~bright] = 0.0

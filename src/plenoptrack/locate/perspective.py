@@ -414,6 +414,12 @@ def _cluster_and_solve(ctx: FrameContext, state: ParticleState, locator: Perspec
     return state
 
 
+MIN_VIEW_FRACTION = 0.5
+"""Smallest valid fraction of a view that any stage of the locator reads (the image fits'
+views, :func:`_fit_views`, and the image coverage,
+:func:`~plenoptrack.locate.crowding.image_coverage`); the views below it are not decoded."""
+
+
 def _decoded(raw_or_lf, calibration, frame: int, white) -> LightField:
     """The frame's light field, with the views the white image showed vignetted masked."""
     if isinstance(raw_or_lf, LightField):
@@ -422,7 +428,7 @@ def _decoded(raw_or_lf, calibration, frame: int, white) -> LightField:
         image = np.asarray(raw_or_lf)
         calibration.check_image(image)
         warn_exposure(image, calibration.camera.full_scale, source=f"frame {frame}")
-        lf = decode(image, calibration.grid, white=white)
+        lf = decode(image, calibration.grid, white=white, min_view_fraction=MIN_VIEW_FRACTION)
     vignetting = calibration.vignetting
     if vignetting is not None and vignetting.shape == lf.valid_fraction.shape:
         lf = dataclasses.replace(lf, valid_fraction=np.minimum(lf.valid_fraction, vignetting))
@@ -1096,7 +1102,7 @@ def _fit_views(ctx: FrameContext) -> tuple[np.ndarray, np.ndarray]:
     lf = ctx.lf
     vi = np.searchsorted(lf.v, ctx.views[:, 1])
     ui = np.searchsorted(lf.u, ctx.views[:, 0])
-    usable = lf.valid_fraction[vi, ui] > 0.5
+    usable = lf.valid_fraction[vi, ui] > MIN_VIEW_FRACTION
     return ctx.views[usable], np.c_[vi, ui][usable]
 
 
