@@ -946,14 +946,10 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         if (fit is None or not np.all(np.isfinite(fit.params))
                 or not np.all(np.isfinite(fit.sigma))
                 or fit.params[:, 4].min() < settings.split_min_contrast
-                or not (fit.model_error * settings.split_min_gain <= fit.reference_error
-                        or fit.reference_error ** 2 - fit.model_error ** 2 >= gain_bar)):
+                or not _explains_more(fit, fit.reference_error, settings, gain_bar)):
             continue
         fitted_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)
-        offset = fitted_pred[0] - fitted_pred[1]
-        if not (parallax_px(offset) >= 1.0
-                and (np.nanmax(np.hypot(*offset.T)) >= fit.params[:, 3].min()
-                     or _apart_in_space(ctx.dlfc, fit.params))):
+        if not _two_images(ctx.dlfc, fit.params, fitted_pred):
             continue
         rest = np.setdiff1d(np.arange(len(held_pos)), [jl])
         if _coincides(fitted_pred, fit.params[:, 3], held_pred[rest], held_rc[rest, 0],
@@ -1272,15 +1268,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             return False
         group_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)     # (k, V, 2)
         for a, b in itertools.combinations(range(len(fit.params)), 2):
-            offset = group_pred[a] - group_pred[b]                           # (V, 2)
-            # Only parallax tells two particles from one elongated image: the two
-            # images must move apart across the views (by a view pixel) and either
-            # stand apart in some view or be two bodies apart in space (one body fitted
-            # with two discs puts them inside itself, overlapping; two large particles
-            # far apart in depth can overlap in every view).
-            if not (parallax_px(offset) >= 1.0
-                    and (np.nanmax(np.hypot(*offset.T)) >= fit.params[[a, b], 3].min()
-                         or _apart_in_space(ctx.dlfc, fit.params[[a, b]]))):
+            if not _two_images(ctx.dlfc, fit.params[[a, b]], group_pred[[a, b]]):
                 return False
         # An unexplained particle can be a merged image the split is taking apart, one
         # at most twice the size of the split's images; a larger one is a particle
@@ -1292,22 +1280,11 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         return not _coincides(group_pred, fit.params[:, 3], pred[others], radius[others],
                               spans.subset(others))
 
-    def explains_more(fit, error) -> bool:
-        """Whether one more image explains the pixels better than the model it splits:
-        ``split_min_gain`` times better than ``error``, or, on the fit's own pixels
-        against that model (``fit.reference_error``), by a mean square of at least
-        :func:`split_gain_bar`. Images of particles never located add to both costs
-        alike: they cancel in the difference, not in the ratio."""
-        if fit.model_error * settings.split_min_gain <= error:
-            return True
-        gained = fit.reference_error ** 2 - fit.model_error ** 2
-        return bool(gained >= gain_bar)
-
     def best_replacement(m, held, held_rc, start, error, reference, n):
         """The best fit on the trial views of ``start`` (k, 5) with one image replaced
         by ``n`` (2: the line-of-sight pair of :func:`_line_of_sight_pair`; 3: the pair
         and the image itself) that explains the pixels better than the ``reference``
-        model with model error ``error`` (:func:`explains_more`) and passes
+        model with model error ``error`` (:func:`_explains_more`) and passes
         :func:`distinct`; None if no replacement does."""
         best = None
         for j in range(len(start)):
@@ -1319,7 +1296,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             fit = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, xyz, rc, pos[held],
                              held_rc, max_depth_shift=ctx.volume_depth_mm,
                              reference=reference)
-            if (fit is not None and explains_more(fit, error)
+            if (fit is not None and _explains_more(fit, error, settings, gain_bar)
                     and (best is None or fit.model_error < best.model_error)
                     and distinct(fit, m)):
                 best = fit
@@ -1329,7 +1306,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         """The best fit of one more image than ``start`` (k, 5) on the trial views, each
         image in turn replaced by a pair on its line of sight, when it explains the
         pixels better than the ``reference`` model (k, 5) with model error ``error`` on
-        the trial views (:func:`explains_more`) and passes :func:`distinct`; or of two
+        the trial views (:func:`_explains_more`) and passes :func:`distinct`; or of two
         more images, when they explain the pixels better than that pair (or the
         reference, without one): ``(fit refitted on every view, its model error on the
         trial views)``; else None."""
@@ -1641,6 +1618,30 @@ def _coinciding(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,
         same = dist < np.maximum(radius[:, None], other_radius[close][None])
         merged = (dist < radius[:, None] + other_radius[close][None]) & (parallax < 1.0)
     return close[np.any(same | merged, axis=0)]
+
+
+def _explains_more(fit, error: float, settings: CheckSettings, gain_bar: float) -> bool:
+    """Whether an image fit with one more image explains the pixels better than the model
+    it splits: ``settings.split_min_gain`` times better than ``error``, or, on the fit's
+    own pixels against that model (``fit.reference_error``), by a mean square of at
+    least ``gain_bar`` (:func:`split_gain_bar`). Images of particles never located add
+    to both costs alike: they cancel in the difference, not in the ratio."""
+    if fit.model_error * settings.split_min_gain <= error:
+        return True
+    return bool(fit.reference_error ** 2 - fit.model_error ** 2 >= gain_bar)
+
+
+def _two_images(dlfc, params: np.ndarray, pred: np.ndarray) -> bool:
+    """Whether two fitted images ``params`` (2, 5), seen at ``pred`` (2, V, 2), are two
+    particles. Only parallax tells two particles from one elongated image: the images
+    must move apart across the views (by a view pixel) and either stand apart (by the
+    smaller radius) in some view or be two bodies apart in space (one body fitted with
+    two discs puts them inside itself, overlapping; two large particles far apart in
+    depth can overlap in every view)."""
+    offset = pred[0] - pred[1]                                                # (V, 2)
+    return bool(parallax_px(offset) >= 1.0
+                and (np.nanmax(np.hypot(*offset.T)) >= params[:, 3].min()
+                     or _apart_in_space(dlfc, params)))
 
 
 def _apart_in_space(dlfc, params: np.ndarray) -> bool:
