@@ -138,7 +138,9 @@ def _variance_factor(pairs: pd.DataFrame, k: float) -> np.ndarray:
     """``(sigma^2 - model^2) / sigma_stat^2`` of each pair for error scale ``k``, as
     :func:`~plenoptrack.locate.uncertainty.total_sigma` forms it (with the excess scatter
     when the settings count it and the pairs record ``chi2``; refined particles' sigma is
-    their image fit's)."""
+    their image fit's). The pairs do not record the typical-scatter size of a refined
+    particle's shared sampling error, so for those the factor is the one sized by their
+    fit's sigma: an approximation of the refit, not of the reported sigma."""
     from plenoptrack.locate.settings import SolveSettings
     from plenoptrack.locate.triangulate import TriangulationFlag
     from plenoptrack.locate.uncertainty import total_sigma

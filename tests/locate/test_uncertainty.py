@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from plenoptrack.locate.uncertainty import (image_travel_px, model_error_mm, reduced_chi2,
-                                           sampling_groups, total_sigma,
+from plenoptrack.locate.uncertainty import (centroid_geometry, image_travel_px,
+                                           model_error_mm, reduced_chi2, sampling_groups,
+                                           total_sigma, typical_scatter_px2,
                                            with_unexplained_pixels)
 
 
@@ -134,6 +135,13 @@ class _LinearDLFC:
     def predict(self, x, y, z, u, v):
         return x + z * u, y + z * v
 
+    def jacobian_xyz(self, x, y, z, u, v):
+        x, y, z, u, v = np.broadcast_arrays(x, y, z, u, v)
+        jac = np.zeros(x.shape + (2, 3))
+        jac[..., 0, 0] = jac[..., 1, 1] = 1.0
+        jac[..., 0, 2], jac[..., 1, 2] = u, v
+        return jac
+
 
 def _disc_views(radius=6):
     g = np.arange(-radius, radius + 1)
@@ -261,3 +269,49 @@ def test_reduced_chi2_typical_scatter_from_chosen_particles():
     np.testing.assert_allclose(chosen, residual ** 2)
     np.testing.assert_allclose(reduced_chi2(residual, n, typical_of=np.zeros(7, bool)),
                                everyone)
+
+
+def test_centroid_geometry_is_the_inverse_normal_matrix_of_the_particle_views():
+    """Against the explicit design matrix of ``s = x + z u, t = y + z v``: the diagonal
+    of ``(J^T J)^-1`` over each particle's own centroids; NaN for one centroid."""
+    uv = _disc_views(4)
+    n = len(uv)
+    positions = np.array([[0.0, 0.0, 0.1], [1.0, 2.0, -0.3], [0.0, 0.0, 0.0]])
+    owner = np.concatenate([np.repeat(0, n), np.repeat(1, n - 5), [2], [-1]])
+    views = np.vstack([uv, uv[5:], uv[:1], [[9.0, 9.0]]])
+    got = centroid_geometry(_LinearDLFC(), positions, owner, views)
+    for row, use in ((0, uv), (1, uv[5:])):
+        design = np.zeros((2 * len(use), 3))
+        design[:len(use), 0] = design[len(use):, 1] = 1.0
+        design[:len(use), 2], design[len(use):, 2] = use[:, 0], use[:, 1]
+        np.testing.assert_allclose(got[row], np.diag(np.linalg.inv(design.T @ design)))
+    assert np.isnan(got[2]).all()
+
+
+def test_typical_scatter_is_what_reduced_chi2_divides_by():
+    residual = np.array([0.1, 0.2, 0.3, 0.05, np.nan])
+    n = np.array([10.0, 20.0, 30.0, 1.0, 10.0])        # one view: no degrees of freedom
+    s0 = typical_scatter_px2(residual, n)
+    s2 = residual ** 2 * n / (2 * n - 3)
+    np.testing.assert_allclose(s0, np.median(s2[:3]))
+    np.testing.assert_allclose(reduced_chi2(residual, n)[:3], s2[:3] / s0)
+    assert np.isnan(typical_scatter_px2(np.array([0.1]), np.array([1.0])))
+
+
+def test_image_fit_sampling_error_is_sized_by_the_typical_centroid_scatter():
+    """With ``typical_sigma`` a refined particle's shared sampling error is ``n / g``
+    times the variance its centroid solve would have at the frame's typical scatter,
+    whatever its image fit's (pixel-noise) sigma; a centroid-solved particle is
+    unchanged by it, and a NaN falls back to the fit's own sigma."""
+    stat = np.array([[0.001, 0.001, 0.004]] * 3)
+    typical = np.array([[0.003, 0.002, 0.02]] * 3)
+    typical[2] = np.nan
+    n = np.full(3, 100.0)
+    kw = dict(error_scale=2.0, include_model_error=False, n_views=n, chi2=np.full(3, 0.5),
+              travel_px=np.zeros(3))                   # g = 1: n / g = 100
+    from_centroids = np.array([False, True, False])
+    got = total_sigma(stat, None, from_centroids=from_centroids, typical_sigma=typical, **kw)
+    np.testing.assert_allclose(got[0], np.sqrt(4.0 * stat[0] ** 2 + 100.0 * typical[0] ** 2))
+    before = total_sigma(stat, None, from_centroids=from_centroids, **kw)
+    np.testing.assert_allclose(got[1:], before[1:])
+    np.testing.assert_allclose(before[2], stat[2] * np.sqrt(4.0 + 100.0))

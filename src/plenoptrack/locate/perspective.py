@@ -78,8 +78,8 @@ from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings)
 from .triangulate import TriangulationFlag, triangulate_clusters
-from .uncertainty import (image_travel_px, reduced_chi2, total_sigma, with_shape_error,
-                          with_unexplained_pixels)
+from .uncertainty import (centroid_geometry, image_travel_px, reduced_chi2, total_sigma,
+                          typical_scatter_px2, with_shape_error, with_unexplained_pixels)
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
@@ -1726,6 +1726,16 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     # split particle's is that of the merged pair's centroids (both halves), shown as NaN.
     refined = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.REFINED)) > 0
     sigma_stat = particles[sigma].to_numpy(float)
+    # The sampling error a refined particle's images share near focus, sized as a centroid
+    # solve's: the frame's typical centroid scatter through the particle's own views.
+    typical_sigma = None
+    if solve.sampling_error and refined.any():
+        s0_squared = typical_scatter_px2(particles["residual_px"].to_numpy(float), n_views,
+                                         typical_of=~hidden)
+        of_refined = np.where(np.isin(owner, np.flatnonzero(keep)[refined]), owner, -1)
+        geometry = centroid_geometry(ctx.dlfc, positions, of_refined,
+                                     ctx.views[ctx.view])[keep]
+        typical_sigma = np.sqrt(s0_squared * geometry)
     if solve.unexplained_error and _FIT_ERROR in table.columns:
         sigma_stat = with_unexplained_pixels(
             sigma_stat, table.loc[keep, _FIT_ERROR].to_numpy(float), max_model_error)
@@ -1735,7 +1745,7 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                    chi2=chi2 if solve.excess_scatter else None,
                                    n_views=n_views, z=particles["z"].to_numpy(float),
                                    travel_px=travel if solve.sampling_error else None,
-                                   from_centroids=~refined)
+                                   from_centroids=~refined, typical_sigma=typical_sigma)
     particles["chi2"] = np.where(split, np.nan, chi2)
     particles["travel_px"] = travel
     particles.insert(0, T_COLUMN, frame)
