@@ -171,7 +171,7 @@ class _Rounds:
             table=pd.concat([state.table, self.state(found).table], ignore_index=True))
         return ctx, grown, found
 
-    def drop(self, state, first, n):
+    def drop(self, ctx, state, first, n, locator):
         table = state.table.copy()
         table.loc[first + np.arange(self.dropped), "n_views"] = 0
         return dataclasses.replace(state, table=table)
@@ -258,3 +258,58 @@ def test_a_particle_a_located_fit_swallowed_is_fitted_with_it(small_calibrated):
         counts[joint] = (matched, len(found) - matched)
     assert counts[True][0] >= counts[False][0] + 6
     assert counts[True][1] <= counts[False][1]
+
+
+def _three_particle_frame(render_hidden: bool, b_offset_mm: float = 0.0,
+                          hidden_start=(0.25, 0.0, -2.0), a_contrast: float = 0.95):
+    """A frame context and particle state for a hidden particle (row 2, started at
+    ``hidden_start``) between two located ones whose images overlap its own (the linear
+    stand-in DLFC of the image-fit tests); located particle 1 held ``b_offset_mm`` off
+    its true depth, particle 0 drawn with contrast ``a_contrast`` (0.95 in the image)."""
+    from types import SimpleNamespace
+
+    from test_refine import LinearCalibration, _render, _views
+
+    class Calibration(LinearCalibration):
+        def local_magnification(self, x, y, z):
+            return np.full(np.shape(x), 10.0)           # view pixels per mm
+
+    dlfc = Calibration()
+    views_uv, view_rc = _views()
+    truth = np.array([[0.0, 0.0, 1.0], [0.5, 0.05, 3.0], [0.25, 0.0, -2.0]])
+    rc = np.array([[2.0, 0.95], [2.0, 0.95], [2.0, 0.95]])
+    drawn = slice(None) if render_hidden else slice(0, 2)
+    data = _render(dlfc, truth[drawn], rc[drawn], views_uv, view_rc, noise=0.01, seed=2)
+    lf = SimpleNamespace(data=data, u=np.arange(9) - 4.0, v=np.arange(9) - 4.0,
+                         valid_fraction=np.ones((9, 9)))
+    detections = pd.DataFrame({"dark_area": [10.0], "diameter_px": [4.0], "whole": [True]})
+    ctx = SimpleNamespace(lf=lf, views=views_uv, dlfc=dlfc, detections=detections,
+                          volume_depth_mm=20.0)
+    positions = np.vstack([truth[:2] + [[0, 0, 0], [0, 0, b_offset_mm]], hidden_start])
+    table = pd.DataFrame({"n_views": [81, 81, 81], "_fit_radius_px": rc[:, 0],
+                          "_fit_contrast": [a_contrast, 0.95, 0.95],
+                          "flags": [33, 33, 33 | 64]})
+    state = ParticleState(owner=np.array([0]), initial=positions.copy(),
+                          positions=positions, table=table)
+    return ctx, state
+
+
+@pytest.mark.parametrize("case, kept", [
+    # a real particle beside well-fitted neighbours
+    ({"render_hidden": True}, True),
+    # ... and beside a neighbour whose fit is off: the place stays unexplained for all
+    ({"render_hidden": True, "b_offset_mm": 1.5}, True),
+    # nothing there: the model without it explains the pixels
+    ({"render_hidden": False}, False),
+    # nothing there but a neighbour drawn too faint: the fit moves into its body
+    ({"render_hidden": False, "hidden_start": (0.05, 0.0, 0.6), "a_contrast": 0.5}, False),
+])
+def test_an_unexplained_hidden_particle_is_kept_only_if_it_still_explains_its_pixels(
+        case, kept):
+    ctx, state = _three_particle_frame(**case)
+    locator = PerspectiveLocator()
+    assert perspective._still_explains_more(ctx, state, np.array([2]), locator).tolist() == [kept]
+    after = perspective._drop_unexplained_hidden(ctx, state, 2, 1, locator)
+    assert np.isfinite(after.positions[2]).all() == kept
+    assert (after.table.loc[2, "n_views"] > 0) == kept
+    np.testing.assert_array_equal(after.positions[:2], state.positions[:2])

@@ -1034,7 +1034,7 @@ def search_hidden_rounds(ctx: FrameContext, state: ParticleState, locator: Persp
         state = refine_particles(ctx, state, locator, only=near)
         if locator.check.split_merged:
             state = split_merged_particles(ctx, state, locator.check, only=near)
-        state = _drop_unexplained_hidden(state, n_before, n_hidden)
+        state = _drop_unexplained_hidden(ctx, state, n_before, n_hidden, locator)
         if _n_live(state, locator.solve.min_views) <= n_live:
             break
     return ctx, state
@@ -1064,13 +1064,24 @@ def _near_particles(ctx: FrameContext, state: ParticleState, rows: np.ndarray) -
     return out
 
 
-def _drop_unexplained_hidden(state: ParticleState, first: int, n: int) -> ParticleState:
+def _drop_unexplained_hidden(ctx: FrameContext, state: ParticleState, first: int, n: int,
+                             locator: PerspectiveLocator) -> ParticleState:
     """The particles ``first .. first + n - 1`` (found by :func:`find_hidden_particles`)
-    whose refit beside all the others leaves their pixels unexplained are dropped: what
-    admitted them was a fit that explained the pixels."""
+    whose refit beside all the others leaves their pixels unexplained are tested again as
+    they were admitted, and dropped unless they pass: fitted to the pixels beside every
+    other particle where it now is, the particle must still be opaque enough
+    (``check.split_min_contrast``) and explain the pixels better than the model without
+    it by ``check.refine_max_model_error**2`` in mean square. What admitted it was a fit
+    that explained the pixels; a neighbour's refit since can take that away (the
+    particle was the neighbour's image not quite explained), or leave the place
+    unexplained for all of them (three particles whose images merge, where the two
+    fitted as a pair are off): only in the second case does the particle still earn
+    its place. A particle kept this way stays ``UNEXPLAINED``, its position the fit's
+    that admitted it."""
     flags = state.table["flags"].fillna(0).to_numpy(np.int64)
     rows = np.arange(first, first + n)
     bad = rows[(flags[rows] & int(TriangulationFlag.UNEXPLAINED)) > 0]
+    bad = bad[~_still_explains_more(ctx, state, bad, locator)]
     if len(bad) == 0:
         return state
     table = state.table.copy()
@@ -1079,6 +1090,55 @@ def _drop_unexplained_hidden(state: ParticleState, first: int, n: int) -> Partic
     positions[bad] = np.nan
     owner = np.where(np.isin(state.owner, bad), -1, state.owner)
     return dataclasses.replace(state, owner=owner, positions=positions, table=table)
+
+
+def _still_explains_more(ctx: FrameContext, state: ParticleState, rows: np.ndarray,
+                         locator: PerspectiveLocator) -> np.ndarray:
+    """(len(rows),) bool: particle ``rows[i]``, fitted to the view pixels beside every
+    other live particle at its current position and image, is opaque enough, lowers
+    the mean-square model error of its pixels by ``check.refine_max_model_error**2``
+    against the same model without it and stays out of every other particle's body (the
+    admission tests of :func:`find_hidden_particles`)."""
+    from .refine import fit_images
+
+    out = np.zeros(len(rows), dtype=bool)
+    if len(rows) == 0:
+        return out
+    settings = locator.check
+    table = state.table
+    live = state.live(locator.solve.min_views)
+    radius = table[_FIT_RADIUS].to_numpy(float)
+    shadow = 0.5 * _member_diameter(ctx.detections, state.owner, state.n_particles,
+                                    shadow=True)
+    radius = np.where(np.isfinite(radius), radius, shadow)
+    contrast = np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
+    views_uv, view_rc = _fit_views(ctx)
+    drawn = live & np.isfinite(radius) & (radius > 0)
+    pred = _predict_all(ctx.dlfc, np.where(drawn[:, None], state.positions, np.nan), views_uv)
+    spans = ImageSpans(pred)
+    for i, q in enumerate(rows):
+        xyz, r = state.positions[q], radius[q]
+        if not (np.all(np.isfinite(xyz)) and np.isfinite(r) and r > 0):
+            continue
+        held = drawn & spans.meet(pred, pred[q], np.nan_to_num(radius) + r + 4.0)
+        held[q] = False
+        fit = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, xyz[None],
+                         np.array([[r, contrast[q]]]), state.positions[held],
+                         np.c_[radius[held], contrast[held]],
+                         max_depth_shift=0.1 * ctx.volume_depth_mm,
+                         reference=np.array([[*xyz, r, 0.0]]))
+        if (fit is None or not np.all(np.isfinite(fit.params))
+                or fit.params[0, 4] < settings.split_min_contrast
+                or (fit.reference_error ** 2 - fit.model_error ** 2
+                    < settings.refine_max_model_error ** 2)):
+            continue
+        # a fit that moved into a neighbour's body explains that neighbour's pixels
+        both = np.vstack([fit.params[:, :4], np.c_[state.positions[held], radius[held]]])
+        radius_mm = both[:, 3] / ctx.dlfc.local_magnification(*both[:, :3].T)
+        inside = (np.linalg.norm(state.positions[held] - fit.params[0, :3], axis=1)
+                  < radius_mm[0] + radius_mm[1:])
+        out[i] = not np.any(inside)
+    return out
 
 
 _MOVED_PX = 1.0
