@@ -60,6 +60,11 @@ def test_a_pair_on_one_line_of_sight_is_split(small_calibrated, seed, stride):
     assert np.all(np.abs(halves["diameter"] / 0.8 - 1) < 0.15)
     assert np.all(np.isfinite(halves[["sigma_x", "sigma_y", "sigma_z"]].to_numpy()))
     assert halves["chi2"].isna().all() and (halves["n_views"] >= 6).all()
+    # both halves' image travel (the near-focus sampling term of sigma) is measured, the
+    # added half's over its pair's views (it owns none): both 4 mm from the focal plane
+    travel = halves["travel_px"].to_numpy()
+    assert np.all(np.isfinite(travel)) and np.all(travel > 1.0)
+    assert travel.max() / travel.min() < 1.2
     # nothing is left unexplained
     assert not (found["flags"].to_numpy() & UNEXPLAINED).any()
 
@@ -433,3 +438,21 @@ def test_a_large_particle_pulled_away_by_merged_regions_is_put_back_by_its_image
     assert 0.25 * 130 <= m.loc[moved, "n_views"].iloc[0] <= 0.75 * 150
     assert np.all(err[:, 2] < 3 * m["sigma_z"].to_numpy())
     assert np.all(m["sigma_z"] < 0.3)
+
+
+def test_a_split_half_without_centroids_takes_its_pairs_views():
+    from plenoptrack.locate.perspective import _SPLIT_OF, _with_pair_centroids
+
+    table = pd.DataFrame({_SPLIT_OF: [np.nan, np.nan, 0.0, 1.0, 0.0]})
+    owner = np.array([0, 0, 0, 1, 1, -1, 4])
+    uv = np.arange(14, dtype=float).reshape(7, 2)
+    keep = np.array([True, True, True, False, True])
+    got_owner, got_uv = _with_pair_centroids(table, owner, uv, keep)
+    # row 2 (half of 0, no centroids) gets 0's three; row 3 is not kept; row 4 has its own
+    np.testing.assert_array_equal(got_owner, [0, 0, 0, 1, 1, -1, 4, 2, 2, 2])
+    np.testing.assert_array_equal(got_uv[7:], uv[:3])
+    np.testing.assert_array_equal(got_uv[:7], uv)
+    # nothing to add: the inputs come back
+    for t in (table.drop(columns=_SPLIT_OF), table.assign(**{_SPLIT_OF: np.nan})):
+        o, u = _with_pair_centroids(t, owner, uv, keep)
+        assert o is owner and u is uv

@@ -1149,6 +1149,7 @@ the two on isolated particles (0.07-0.09 px, `small` camera, 0.4 and 2 mm)."""
 _FIT_ERROR = "_fit_model_error"
 _HIDDEN = "_hidden"
 _FIT_RADIUS = "_fit_radius_px"
+_SPLIT_OF = "_split_of"
 _FIT_CONTRAST = "_fit_contrast"
 
 
@@ -1515,6 +1516,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         return dataclasses.replace(state, owner=owner, positions=pos, table=table)
     extra = table.loc[parent].copy()
     extra["cluster"] = -1
+    extra[_SPLIT_OF] = parent          # the halves own no centroids: their pair's are these
     extra["n_views"] = np.asarray(n_views, dtype=extra["n_views"].dtype)
     # residual_px stays the merged pair's: its excess scatter sizes both halves' sigma
     table = pd.concat([table, extra], ignore_index=True)
@@ -1779,7 +1781,9 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
               if _HIDDEN in table.columns else np.zeros(len(particles), dtype=bool))
     chi2 = reduced_chi2(particles["residual_px"].to_numpy(float), n_views, typical_of=~hidden)
     split = (particles["flags"].to_numpy(np.int64) & int(TriangulationFlag.SPLIT)) > 0
-    travel = image_travel_px(ctx.dlfc, positions, owner, ctx.views[ctx.view])[keep]
+    # A split's added half owns no centroids; its images lie in the views of its pair's.
+    centroid_owner, centroid_uv = _with_pair_centroids(table, owner, ctx.views[ctx.view], keep)
+    travel = image_travel_px(ctx.dlfc, positions, centroid_owner, centroid_uv)[keep]
     # A refined particle's sigma is its image fit's, not its centroids'. Its centroids'
     # excess scatter still counts: it marks a disturbance (an unseen neighbour, an image
     # that is not a disc) that the fit's residuals within each view do not reveal. A
@@ -1792,9 +1796,9 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     if solve.sampling_error and refined.any():
         s0_squared = typical_scatter_px2(particles["residual_px"].to_numpy(float), n_views,
                                          typical_of=~hidden)
-        of_refined = np.where(np.isin(owner, np.flatnonzero(keep)[refined]), owner, -1)
-        geometry = centroid_geometry(ctx.dlfc, positions, of_refined,
-                                     ctx.views[ctx.view])[keep]
+        of_refined = np.where(np.isin(centroid_owner, np.flatnonzero(keep)[refined]),
+                              centroid_owner, -1)
+        geometry = centroid_geometry(ctx.dlfc, positions, of_refined, centroid_uv)[keep]
         typical_sigma = np.sqrt(s0_squared * geometry)
     if solve.unexplained_error and _FIT_ERROR in table.columns:
         sigma_stat = with_unexplained_pixels(
@@ -1851,6 +1855,26 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                         np.hypot((lateral, lateral, depth), solve.shape_error))
     detections = ctx.detections.assign(particle=particle_of, inlier=particle_of >= 0)
     return particles, detections
+
+
+def _with_pair_centroids(table: pd.DataFrame, owner: np.ndarray, uv: np.ndarray,
+                         keep: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Centroid owners and views with each kept half of a split that owns no centroid
+    given a copy of its pair's (``_split_of``): the views its images lie in, for the
+    image travel and the centroid geometry of its uncertainty. ``owner`` (M,) and ``uv``
+    (M, 2) come back unchanged when there is none."""
+    if _SPLIT_OF not in table.columns:
+        return owner, uv
+    split_of = table[_SPLIT_OF].to_numpy(float)
+    counts = np.bincount(owner[owner >= 0], minlength=len(table))
+    halves = np.flatnonzero(keep & np.isfinite(split_of) & (counts == 0))
+    if len(halves) == 0:
+        return owner, uv
+    pair = split_of[halves].astype(np.int64)
+    mine = [np.flatnonzero(owner == q) for q in pair]
+    extra_owner = np.concatenate([np.full(len(m), h) for h, m in zip(halves, mine)])
+    extra_uv = np.concatenate([uv[m] for m in mine])
+    return np.r_[owner, extra_owner].astype(owner.dtype), np.vstack([uv, extra_uv])
 
 
 def _opacity(ctx: FrameContext, shape: pd.DataFrame, z: np.ndarray) -> np.ndarray:
