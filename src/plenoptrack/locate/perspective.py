@@ -884,10 +884,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                          held_pos[near], held_rc[near],
                          max_depth_shift=0.1 * ctx.volume_depth_mm,
                          reference=np.array([[*positions2[q], radius2[q], 0.0]]))
-        if (fit is None or not np.all(np.isfinite(fit.params))
-                or fit.params[0, 4] < settings.split_min_contrast
-                or fit.reference_error ** 2 - fit.model_error ** 2
-                < settings.refine_max_model_error ** 2):
+        if not _one_image_explains(fit, settings):
             new[q] = False
             continue
         # Where the fit took it into a particle already located (their bodies overlap in
@@ -895,10 +892,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         # (nothing tells those two from one elongated image), it was that particle's
         # image the model had not quite explained.
         fitted_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)
-        both = np.vstack([fit.params[:, :4], np.c_[held_pos, held_rc[:, 0]]])
-        radius_mm = both[:, 3] / ctx.dlfc.local_magnification(*both[:, :3].T)
-        inside = (np.linalg.norm(held_pos - fit.params[0, :3], axis=1)
-                  < radius_mm[0] + radius_mm[1:])
+        inside = _inside_bodies(ctx.dlfc, fit.params[0, :4], held_pos, held_rc[:, 0])
         # merged images need their centres within the sum of the radii in some view
         close = held_spans.near(fitted_pred, fit.params[0, 3] + held_rc[:, 0])
         offset = fitted_pred - held_pred[close]                                # (l, V, 2)
@@ -1127,18 +1121,32 @@ def _still_explains_more(ctx: FrameContext, state: ParticleState, rows: np.ndarr
                          np.c_[radius[held], contrast[held]],
                          max_depth_shift=0.1 * ctx.volume_depth_mm,
                          reference=np.array([[*xyz, r, 0.0]]))
-        if (fit is None or not np.all(np.isfinite(fit.params))
-                or fit.params[0, 4] < settings.split_min_contrast
-                or (fit.reference_error ** 2 - fit.model_error ** 2
-                    < settings.refine_max_model_error ** 2)):
-            continue
         # a fit that moved into a neighbour's body explains that neighbour's pixels
-        both = np.vstack([fit.params[:, :4], np.c_[state.positions[held], radius[held]]])
-        radius_mm = both[:, 3] / ctx.dlfc.local_magnification(*both[:, :3].T)
-        inside = (np.linalg.norm(state.positions[held] - fit.params[0, :3], axis=1)
-                  < radius_mm[0] + radius_mm[1:])
-        out[i] = not np.any(inside)
+        out[i] = (_one_image_explains(fit, settings)
+                  and not _inside_bodies(ctx.dlfc, fit.params[0, :4], state.positions[held],
+                                         radius[held]).any())
     return out
+
+
+def _one_image_explains(fit, settings: CheckSettings) -> bool:
+    """A one-image fit of a particle found in the residual (``fit_images`` with the
+    model without it as reference) is usable, opaque enough
+    (``check.split_min_contrast``) and explains its pixels better than the model without
+    it by ``check.refine_max_model_error**2`` in mean square."""
+    return bool(fit is not None and np.all(np.isfinite(fit.params))
+                and fit.params[0, 4] >= settings.split_min_contrast
+                and (fit.reference_error ** 2 - fit.model_error ** 2
+                     >= settings.refine_max_model_error ** 2))
+
+
+def _inside_bodies(dlfc, xyzr: np.ndarray, held_xyz: np.ndarray,
+                   held_radius_px: np.ndarray) -> np.ndarray:
+    """(m,) bool: the particle ``xyzr`` (x, y, z mm and image radius, view pixels) and each
+    held particle lie closer in space than the sum of their radii (mm, through the local
+    magnification)."""
+    both = np.vstack([xyzr[None, :4], np.c_[held_xyz, held_radius_px]])
+    radius_mm = both[:, 3] / dlfc.local_magnification(*both[:, :3].T)
+    return (np.linalg.norm(held_xyz - xyzr[:3], axis=1) < radius_mm[0] + radius_mm[1:])
 
 
 _MOVED_PX = 1.0
