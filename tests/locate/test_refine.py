@@ -3,15 +3,30 @@
 import math
 
 import numpy as np
+import pandas as pd
 import pytest
 
 from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
 from plenoptrack.locate.triangulate import TriangulationFlag
-from plenoptrack.locate.refine import (_masked_row_percentile, _normal_equations,
+from plenoptrack.locate.refine import (EDGE_PX, HEX_RESAMPLING_PX2, ImageEdge,
+                                       _masked_row_percentile, _normal_equations,
                                        _patch_masks, _patches, _robust_sd, disc_image,
                                        fit_images, overlap_fraction)
 from plenoptrack.simulate import make_scene, render_frame
+from scipy.special import erfc
+
+EDGE_WIDTHS = np.array([[0.75, 0.45], [0.5, 0.62], [0.6, 0.6]])
+"""Edge widths ``(w_s, w_t)`` of the images in the kernel tests: wider along s, wider
+along t, and round."""
+
+
+def anisotropic_disc(ds, dt, radius, contrast, w_s, w_t):
+    """``1 - c erfc(x) / 2`` with ``x = (rho - r) / (sqrt 2 w)`` and the edge width of the
+    pixel's direction, ``w^2 = (w_s^2 ds^2 + w_t^2 dt^2) / rho^2``, in plain numpy."""
+    rho = np.hypot(ds, dt)
+    width = np.sqrt((w_s ** 2 * ds ** 2 + w_t ** 2 * dt ** 2) / np.maximum(rho, 1e-12) ** 2)
+    return 1.0 - contrast * 0.5 * erfc((rho - radius) / (math.sqrt(2.0) * width))
 
 
 class LinearCalibration:
@@ -80,8 +95,9 @@ def test_disc_image_derivatives_match_finite_differences():
 
 @pytest.mark.parametrize("k", [1, 2])
 def test_normal_equations_match_a_finite_difference_jacobian(k):
-    """The compiled cost, J^T J and J^T r against the model built from disc_image and
-    differentiated numerically with respect to (x, y, z, r, c) through a linear DLFC."""
+    """The compiled cost, J^T J and J^T r against the model built from anisotropic_disc (a
+    different edge width along s and t for each image) and differentiated numerically
+    with respect to (x, y, z, r, c) through a linear DLFC."""
     dlfc = LinearCalibration()
     views_uv, _ = _views()
     rng = np.random.default_rng(k)
@@ -98,9 +114,10 @@ def test_normal_equations_match_a_finite_difference_jacobian(k):
 
     def model(th):
         out = held.copy()
-        for x, yy, z, r, c in th:
+        for (x, yy, z, r, c), (w_s, w_t) in zip(th, EDGE_WIDTHS):
             s, t = dlfc.predict(x, yy, z, views_uv[:, 0], views_uv[:, 1])
-            out *= disc_image(np.hypot(ss - s[:, None, None], tt - t[:, None, None]), r, c)[0]
+            out *= anisotropic_disc(ss - s[:, None, None], tt - t[:, None, None], r, c,
+                                    w_s, w_t)
         return out[fit] - y[fit]
 
     h = 1e-6
@@ -111,7 +128,7 @@ def test_normal_equations_match_a_finite_difference_jacobian(k):
                                          views_uv[None, :, 1])
     cost, jtj, jtr, meat = _normal_equations(origin, y, held, fit, np.ascontiguousarray(st),
                                              np.ascontiguousarray(dst), theta[:, 3:].copy(),
-                                             0.6)
+                                             EDGE_WIDTHS[:k])
     res = model(theta)
     assert cost == pytest.approx(res @ res, rel=1e-6)
     view_of = np.broadcast_to(np.arange(len(views_uv))[:, None, None], y.shape)[fit]
@@ -130,12 +147,14 @@ def test_patch_masks_against_disc_image():
     rc_held = np.array([[2.0, 0.9], [1.5, 0.6], [2.0, 1.0]])
     st_free = origin[None] + rng.uniform(3, 10, (1, views, 2))
     fixed, near, fit = _patch_masks(origin, n, st_held, rc_held, st_free, np.array([2.5]),
-                                    3.0, 0.6)
+                                    3.0, EDGE_WIDTHS)
     tt, ss = np.mgrid[0:n, 0:n].astype(float)
     for v in range(views):
         s, t = origin[v, 0] + ss, origin[v, 1] + tt
         rho = [np.hypot(s - st_held[q, v, 0], t - st_held[q, v, 1]) for q in range(3)]
-        expected = np.prod([disc_image(rho[q], *rc_held[q])[0] for q in range(3)], axis=0)
+        expected = np.prod([anisotropic_disc(s - st_held[q, v, 0], t - st_held[q, v, 1],
+                                             *rc_held[q], *EDGE_WIDTHS[q])
+                            for q in range(3)], axis=0)
         rho_free = np.hypot(s - st_free[0, v, 0], t - st_free[0, v, 1])
         assert np.array_equal(fit[v], rho_free <= 5.5)
         # the held image is what the model reads: on the fitted pixels; 1 elsewhere
@@ -144,6 +163,87 @@ def test_patch_masks_against_disc_image():
         assert np.all(fixed[v][~fit[v]] == 1.0)
         assert np.array_equal(near[v], (rho_free < 4.5) | np.any(
             [rho[q] < rc_held[q, 0] + 2 for q in range(3)], axis=0))
+
+
+def test_image_edge_widths_split_the_measured_blur_by_the_lattice():
+    """w_s w_t is the calibration's blur at the depth (interpolated between its card
+    depths), w_s^2 - w_t^2 the hexagonal resampling; a rectangular lattice is round, and
+    without a measured blur the widths multiply to EDGE_PX^2."""
+    rows = np.array([[-10.0, 0.7], [0.0, 0.5], [10.0, 0.7]])
+    z = np.array([-10.0, -5.0, 0.0, 3.0, 20.0, np.nan])
+    blur = np.array([0.7, 0.6, 0.5, 0.56, 0.7])
+    hexagonal = ImageEdge.of_frame("hex", rows).widths(z)
+    assert hexagonal.shape == (6, 2) and np.all(np.isfinite(hexagonal))
+    np.testing.assert_allclose(np.prod(hexagonal[:5], axis=1), blur ** 2)
+    np.testing.assert_allclose(np.diff(hexagonal[:, ::-1] ** 2, axis=1)[:, 0],
+                               HEX_RESAMPLING_PX2)
+    assert np.all(hexagonal[:, 0] > hexagonal[:, 1])
+    np.testing.assert_allclose(ImageEdge.of_frame("rect", rows).widths(z[:5]),
+                               np.c_[blur, blur])
+    np.testing.assert_allclose(ImageEdge().widths(z), EDGE_PX)
+    no_blur = ImageEdge.of_frame("hex", None).widths(z)
+    np.testing.assert_allclose(np.prod(no_blur, axis=1), EDGE_PX ** 2)
+
+
+@pytest.mark.parametrize("camera, anisotropy", [("small", HEX_RESAMPLING_PX2),
+                                                ("small-rect", 0.0)])
+def test_hexagonal_decoding_widens_image_edges_along_s(camera, anisotropy):
+    """A 1 mm particle rendered by the simulator (ideal optics, no noise) and decoded:
+    its images, fitted with a free edge width along s and along t, are wider along s by
+    about HEX_RESAMPLING_PX2 on a hexagonal lattice and round on a rectangular one."""
+    from scipy.optimize import least_squares
+
+    from plenoptrack import preset
+    from plenoptrack.lightfield import decode
+    from plenoptrack.simulate import make_optics
+
+    optics = make_optics(preset(camera), seed=0)
+    truth = pd.DataFrame({"x": [0.0], "y": [0.0], "z": [0.0], "diameter": [1.0]})
+    raw = render_frame(optics, truth, seed=1, noise=False)
+    lf = decode(raw, optics.true_grid, white=render_frame(optics, None, seed=1, noise=False))
+    tt, ss = np.mgrid[-7:8, -7:8].astype(float)
+    excess = []
+    for vi, ui in list(zip(*np.nonzero(lf.view_mask)))[::4]:
+        view = np.where(lf.spatial_mask, lf.data[vi, ui], np.nan).astype(float)
+        i, j = np.unravel_index(np.nanargmin(view), view.shape)
+        patch = view[i - 7:i + 8, j - 7:j + 8]
+
+        def residual(p):
+            s0, t0, r, c, w_s, w_t, level = p
+            return (level * anisotropic_disc(ss - s0, tt - t0, r, c, w_s, w_t) - patch).ravel()
+
+        fit = least_squares(residual, [0, 0, 3, 0.9, 0.6, 0.6, np.percentile(patch, 90)],
+                            bounds=([-3, -3, 0.5, 0.1, 0.1, 0.1, 0], [3, 3, 8, 1.2, 3, 3, 5]))
+        excess.append(fit.x[4] ** 2 - fit.x[5] ** 2)
+    assert len(excess) > 20
+    assert abs(np.median(excess) - anisotropy) < 0.1
+
+
+def test_edge_widths_along_s_and_t_remove_the_bias_of_a_round_edge():
+    """Two images overlapping along s, their edges wider along s than along t (as a
+    hexagonal lattice decodes them): a round edge misplaces them, the measured widths
+    recover them."""
+    dlfc = LinearCalibration()
+    views_uv, view_rc = _views()
+    truth = np.array([[0.0, 0.0, 1.0], [0.32, 0.02, -1.0]])
+    rc = np.array([[2.0, 0.9], [2.0, 0.9]])
+    widths = (0.75, 0.4)
+    data = np.ones((9, 9, 90, 110))
+    tt, ss = np.mgrid[0:90, 0:110].astype(float)
+    for (u, v), (vi, ui) in zip(views_uv, view_rc):
+        for (x, y, z), (r, c) in zip(truth, rc):
+            s, t = dlfc.predict(x, y, z, u, v)
+            data[vi, ui] *= anisotropic_disc(ss - s, tt - t, r, c, *widths)
+    data += np.random.default_rng(0).normal(0, 0.005, data.shape)
+    measured = ImageEdge(np.array([[0.0, np.sqrt(widths[0] * widths[1])]]),
+                         widths[0] ** 2 - widths[1] ** 2)
+    errors = {}
+    for name, edge in (("round", ImageEdge()), ("measured", measured)):
+        fit = fit_images(dlfc, views_uv, view_rc, data, truth, rc, np.zeros((0, 3)),
+                         np.zeros((0, 2)), edge=edge)
+        errors[name] = np.abs(fit.params[:, :3] - truth).max()
+    assert errors["measured"] < 0.002
+    assert errors["round"] > 3 * errors["measured"]
 
 
 def test_masked_row_percentile_matches_numpy():

@@ -11,7 +11,7 @@ from plenoptrack.evaluate import match_particles
 from plenoptrack.lightfield import LightField
 from plenoptrack.locate import perspective
 from plenoptrack.locate.perspective import ParticleState, PerspectiveLocator, locate_frame
-from plenoptrack.locate.refine import disc_image
+from plenoptrack.locate.refine import ImageEdge, disc_image
 from plenoptrack.locate.residual import (divide_out_particles, residual_light_field,
                                          transmission_model)
 from plenoptrack.simulate import make_scene, render_frame
@@ -34,6 +34,30 @@ def test_transmission_is_the_product_of_the_image_model_discs():
                 expected *= disc_image(np.hypot(ss - s[0], tt - s[1]), radius[p], c)[0]
         # the model leaves out erfc's last 6e-5 beyond 4 edge widths of each rim
         np.testing.assert_allclose(t[v], expected, atol=1e-4)
+
+
+def test_transmission_with_an_edge_width_per_particle_and_direction():
+    """Each image with its own edge widths along s and t, against the blurred disc of
+    the pixel's direction evaluated independently in plain numpy."""
+    from scipy.special import erfc
+
+    pred = np.array([[[10.2, 8.7]], [[13.1, 9.4]]])
+    radius, contrast = np.array([3.0, 2.2]), np.array([0.95, 0.6])
+    widths = np.array([[0.8, 0.4], [0.45, 0.7]])
+    t = transmission_model(20, 25, pred, radius, contrast, edge=widths)
+    tt, ss = np.mgrid[0:20, 0:25].astype(float)
+    expected = np.ones((20, 25))
+    for p in range(2):
+        ds, dt = ss - pred[p, 0, 0], tt - pred[p, 0, 1]
+        rho = np.hypot(ds, dt)
+        w = np.sqrt((widths[p, 0] ** 2 * ds ** 2 + widths[p, 1] ** 2 * dt ** 2)
+                    / np.maximum(rho, 1e-12) ** 2)
+        expected *= 1 - contrast[p] * 0.5 * erfc((rho - radius[p]) / (np.sqrt(2) * w))
+    np.testing.assert_allclose(t[0], expected, atol=1e-4)
+    # not the round model: the widths reach the kernel
+    assert np.abs(t[0] - transmission_model(20, 25, pred, radius, contrast)[0]).max() > 0.02
+    with pytest.raises(ValueError, match="edge"):
+        transmission_model(20, 25, pred, radius, contrast, edge=widths[:1])
 
 
 def _lightfield(data):
@@ -89,10 +113,13 @@ def test_dividing_out_in_one_pass_equals_the_transmission_then_the_division():
     contrast = rng.uniform(0.2, 1.0, n_p)
     contrast[5] = 0.0
     lf = _lightfield(data.copy())
-    for floor in (0.5, 0.2):
+    widths = rng.uniform(0.3, 0.9, (n_p, 2))
+    for floor, edge in ((0.5, 0.6), (0.2, 0.6), (0.5, widths)):
         expected = residual_light_field(
-            lf, view_rc, transmission_model(n_t, n_s, pred, radius, contrast), floor=floor)
-        got = divide_out_particles(lf, view_rc, pred, radius, contrast, floor=floor)
+            lf, view_rc, transmission_model(n_t, n_s, pred, radius, contrast, edge=edge),
+            floor=floor)
+        got = divide_out_particles(lf, view_rc, pred, radius, contrast, floor=floor,
+                                   edge=edge)
         np.testing.assert_array_equal(got.data, expected.data)
         assert not np.array_equal(got.data, data)        # something was divided out
     np.testing.assert_array_equal(lf.data, data)             # the input is not changed
@@ -283,8 +310,9 @@ def _three_particle_frame(render_hidden: bool, b_offset_mm: float = 0.0,
     lf = SimpleNamespace(data=data, u=np.arange(9) - 4.0, v=np.arange(9) - 4.0,
                          valid_fraction=np.ones((9, 9)))
     detections = pd.DataFrame({"dark_area": [10.0], "diameter_px": [4.0], "whole": [True]})
+    # the images are drawn with the round edge of EDGE_PX: the fits model them so
     ctx = SimpleNamespace(lf=lf, views=views_uv, dlfc=dlfc, detections=detections,
-                          volume_depth_mm=20.0)
+                          volume_depth_mm=20.0, image_edge=ImageEdge())
     positions = np.vstack([truth[:2] + [[0, 0, 0], [0, 0, b_offset_mm]], hidden_start])
     table = pd.DataFrame({"n_views": [81, 81, 81], "_fit_radius_px": rc[:, 0],
                           "_fit_contrast": [a_contrast, 0.95, 0.95],

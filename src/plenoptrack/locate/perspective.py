@@ -74,6 +74,7 @@ from .bodies import merge_bodies, one_body_pairs, parallax_px
 from .crowding import CROWDED_COVERAGE, image_coverage
 from .opacity import blur_at, opacity
 from .cluster import ProjectionGeometry, cluster_detections, plane_alphas
+from .refine import ImageEdge
 from .segment import segment_views
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings)
@@ -176,6 +177,10 @@ class FrameContext:
     max_area_ratio : float
         A region larger than this times one particle's image is a merged image
         (``segment.max_area_ratio``).
+    image_edge : ImageEdge
+        Edge blur of particle images along ``s`` and ``t`` for the image fits
+        (:class:`~plenoptrack.locate.refine.ImageEdge`: the lattice's resampling and
+        ``edge_blur``).
     """
 
     lf: LightField
@@ -195,6 +200,7 @@ class FrameContext:
     tolerance_px: float
     edge_blur: np.ndarray | None = None
     max_area_ratio: float = math.inf
+    image_edge: ImageEdge = field(default_factory=ImageEdge)
 
     @classmethod
     def build(cls, lf: LightField, calibration, detections: pd.DataFrame,
@@ -220,7 +226,9 @@ class FrameContext:
                    n_possible=int(lf.view_mask.sum()), volume_depth_mm=z_hi - z_lo,
                    merge_px=merge_px, tolerance_px=locator.grow.add_tolerance_px,
                    edge_blur=getattr(calibration, "edge_blur_by_depth", None),
-                   max_area_ratio=locator.segment.max_area_ratio)
+                   max_area_ratio=locator.segment.max_area_ratio,
+                   image_edge=ImageEdge.of_frame(
+                       lf.grid_type, getattr(calibration, "edge_blur_by_depth", None)))
 
 
 @dataclass(frozen=True, eq=False)
@@ -747,7 +755,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
             held = np.setdiff1d(np.flatnonzero(nearby[free].any(axis=0) & keep), free)
             fitted = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, pos[free], rc[free],
                                 pos[held], rc[held], max_depth_shift=max_shift,
-                                view_basis=basis)
+                                view_basis=basis, edge=ctx.image_edge)
             if fitted is None or not np.all(np.isfinite(fitted.params)):
                 continue
             theta = fitted.params
@@ -840,7 +848,8 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     pred = _predict_all(ctx.dlfc, np.where(live[:, None], state.positions, np.nan), views_uv)
     lf = ctx.lf
     residual = divide_out_particles(lf, view_rc, pred[live], radius[live], contrast[live],
-                                    floor=locator.check.hidden_floor)
+                                    floor=locator.check.hidden_floor,
+                                    edge=ctx.image_edge.widths(state.positions[live, 2]))
     found = segment_frame(residual, locator.segment, frame=frame)
     if len(found) == 0:
         return ctx, state, 0
@@ -883,7 +892,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         fit = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, positions2[[q]], start,
                          held_pos[near], held_rc[near],
                          max_depth_shift=0.1 * ctx.volume_depth_mm,
-                         reference=np.array([[*positions2[q], radius2[q], 0.0]]))
+                         reference=np.array([[*positions2[q], radius2[q], 0.0]]), edge=ctx.image_edge)
         if not _one_image_explains(fit, settings):
             new[q] = False
             continue
@@ -936,7 +945,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                          np.array([[own, held_rc[jl, 1]], [radius2[q], 0.9]]),
                          held_pos[others], held_rc[others],
                          max_depth_shift=ctx.volume_depth_mm,
-                         reference=np.array([[*held_pos[jl], *held_rc[jl]]]))
+                         reference=np.array([[*held_pos[jl], *held_rc[jl]]]), edge=ctx.image_edge)
         if (fit is None or not np.all(np.isfinite(fit.params))
                 or not np.all(np.isfinite(fit.sigma))
                 or fit.params[:, 4].min() < settings.split_min_contrast
@@ -1120,7 +1129,7 @@ def _still_explains_more(ctx: FrameContext, state: ParticleState, rows: np.ndarr
                          np.array([[r, contrast[q]]]), state.positions[held],
                          np.c_[radius[held], contrast[held]],
                          max_depth_shift=0.1 * ctx.volume_depth_mm,
-                         reference=np.array([[*xyz, r, 0.0]]))
+                         reference=np.array([[*xyz, r, 0.0]]), edge=ctx.image_edge)
         # a fit that moved into a neighbour's body explains that neighbour's pixels
         out[i] = (_one_image_explains(fit, settings)
                   and not _inside_bodies(ctx.dlfc, fit.params[0, :4], state.positions[held],
@@ -1310,7 +1319,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         held_rc = np.c_[radius[held], contrast[held]]
         fit = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, params[:, :3],
                          params[:, 3:], pos[held], held_rc,
-                         max_depth_shift=0.1 * ctx.volume_depth_mm)
+                         max_depth_shift=0.1 * ctx.volume_depth_mm, edge=ctx.image_edge)
         if (fit is None or not np.all(np.isfinite(fit.params))
                 or not fit.model_error <= settings.refine_max_model_error):
             return False
@@ -1364,7 +1373,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                             np.tile([start[j, 3], 0.9], (n, 1))])
             fit = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, xyz, rc, pos[held],
                              held_rc, max_depth_shift=ctx.volume_depth_mm,
-                             reference=reference)
+                             reference=reference, edge=ctx.image_edge)
             if (fit is not None and _explains_more(fit, error, settings, gain_bar)
                     and (best is None or fit.model_error < best.model_error)
                     and distinct(fit, m)):
@@ -1394,7 +1403,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         trial_error = best.model_error     # the group on every view, from the trial's fit
         best = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, best.params[:, :3],
                           best.params[:, 3:], pos[held], held_rc,
-                          max_depth_shift=ctx.volume_depth_mm)
+                          max_depth_shift=ctx.volume_depth_mm, edge=ctx.image_edge)
         return (best, trial_error) if distinct(best, m) else None
 
     for m in candidates:
@@ -1411,7 +1420,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             # no limit on its depth: only its model error is used, and one image that
             # wanders off in depth is one that does not explain the pixels
             one = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, pos[[m]],
-                             np.array([[radius[m], 0.9]]), pos[held], held_rc)
+                             np.array([[radius[m], 0.9]]), pos[held], held_rc, edge=ctx.image_edge)
             if one is None or not np.isfinite(one.model_error):
                 continue
             if never_fitted[m] and one.model_error <= split_max:
@@ -1472,7 +1481,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             one = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, pos[[q]],
                              np.array([[radius[q], contrast[q]]]), pos[near],
                              np.c_[radius[near], contrast[near]],
-                             max_depth_shift=0.1 * ctx.volume_depth_mm)
+                             max_depth_shift=0.1 * ctx.volume_depth_mm, edge=ctx.image_edge)
             if one is None or not np.all(np.isfinite(one.params)):
                 continue
             single_error[q] = one.model_error

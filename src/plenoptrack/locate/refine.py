@@ -30,7 +30,65 @@ from scipy.special import erfc
 from .dlfc import _views_kernel
 
 EDGE_PX = 0.6
-"""Width (standard deviation, view pixels) of the blurred edge of a particle image."""
+"""Width (standard deviation, view pixels) of the blurred edge of a particle image when
+the calibration measured none (:class:`ImageEdge`)."""
+
+HEX_RESAMPLING_PX2 = 2.0 / 9.0
+"""Variance (view pixels squared) that decoding a hexagonal lattice adds along ``s``: a
+sample between two lenses of a row, ``2 / sqrt(3)`` samples apart, is their linear
+blend (:func:`~plenoptrack.lightfield.decode`), whose spread averaged over the sample's
+place between them is ``(2 / sqrt 3)^2 / 6``. Along ``t`` (one lens row per sample) and
+on a rectangular lattice nothing is resampled."""
+
+
+@dataclasses.dataclass(frozen=True)
+class ImageEdge:
+    """Edge blur of particle images in the views, along ``s`` and ``t``.
+
+    A view samples a particle's shadow through each lens's footprint and the optics'
+    blur; decoding a hexagonal lattice blends neighbouring lenses along ``s`` on top
+    (:data:`HEX_RESAMPLING_PX2`), so an image's edge is wider along ``s`` than along
+    ``t``: on the ``small`` camera about 0.65 against 0.40 view pixels (isolated
+    particle images fitted with both widths free). A disc model with one width
+    misplaces the images of overlapping particles, whose shapes together it cannot
+    match.
+
+    Attributes
+    ----------
+    blur_by_depth : (K, 2) float ndarray or None
+        ``(z mm, sigma px)``: the views' edge blur the calibration measured on its dot
+        cards (:func:`~plenoptrack.locate.opacity.edge_blur_by_depth`), taken as the
+        geometric mean ``sqrt(w_s w_t)`` (a small dot's peak darkness is set by the
+        blurred area ``2 pi w_s w_t``); None: :data:`EDGE_PX` at every depth.
+    anisotropy_px2 : float
+        ``w_s^2 - w_t^2``, view pixels squared.
+    """
+
+    blur_by_depth: np.ndarray | None = None
+    anisotropy_px2: float = 0.0
+
+    @classmethod
+    def of_frame(cls, grid_type: str, blur_by_depth=None) -> "ImageEdge":
+        """The edge of a light field decoded from a ``grid_type`` lattice (``"hex"`` or
+        ``"rect"``), with the calibration's measured blur when it has one."""
+        rows = None
+        if blur_by_depth is not None and len(blur_by_depth):
+            rows = np.asarray(blur_by_depth, dtype=float).reshape(-1, 2)
+        return cls(rows, HEX_RESAMPLING_PX2 if grid_type == "hex" else 0.0)
+
+    def widths(self, z) -> np.ndarray:
+        """Edge widths ``(w_s, w_t)`` of images at depths ``z`` (N,), mm: (N, 2) view
+        pixels, ``w_s w_t`` the blur at that depth and ``w_s^2 - w_t^2`` the
+        anisotropy."""
+        z = np.atleast_1d(np.asarray(z, dtype=float))
+        mean = np.full(z.shape, EDGE_PX)
+        if self.blur_by_depth is not None:
+            rows = self.blur_by_depth
+            mean = np.interp(np.nan_to_num(z, nan=float(np.median(rows[:, 0]))),
+                             rows[:, 0], rows[:, 1])
+        d = float(self.anisotropy_px2)
+        wt2 = 0.5 * (np.sqrt(d * d + 4.0 * mean ** 4) - d)
+        return np.sqrt(np.stack([wt2 + d, wt2], axis=-1))
 
 _SQRT2 = math.sqrt(2.0)
 _BOUNDS = np.array([[-np.inf, -np.inf, -np.inf, 0.5, 0.05],
@@ -170,7 +228,8 @@ def _gather_patches(data, view_rc, s0, t0, n):  # pragma: no cover - compiled
 def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixed_rc, *,
                margin_px: float = 3.0, max_iter: int = 30, xyz_tol: float = 1e-4,
                step_sigma: float = 0.05, max_depth_shift: float = math.inf,
-               view_basis: np.ndarray | None = None, reference: np.ndarray | None = None):
+               view_basis: np.ndarray | None = None, reference: np.ndarray | None = None,
+               edge: ImageEdge | None = None):
     """Fit ``k`` free particles to the view pixels around them, neighbours held fixed.
 
     Parameters
@@ -212,6 +271,9 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
         Another model of the same place, ``(x, y, z, r, c)`` per image (e.g. one image
         where the fit has two): its residuals on the fitted pixels give
         :attr:`ImageFit.reference_cost`.
+    edge : ImageEdge, optional
+        Edge blur of the images, each particle's at its starting depth (default:
+        :data:`EDGE_PX` along both axes).
 
     Returns
     -------
@@ -234,11 +296,13 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
         return None
     basis = basis[keep]
     st_held = dlfc.predict_in_views(fixed_xyz, basis)
+    edge = ImageEdge() if edge is None else edge
+    held_edge = edge.widths(np.asarray(fixed_xyz, dtype=float).reshape(-1, 3)[:, 2])
     fixed, near, fit = _patch_masks(origin, values.shape[1], st_held,
                                     np.ascontiguousarray(fixed_rc, dtype=np.float64),
                                     np.ascontiguousarray(st_free[:, keep]),
                                     np.ascontiguousarray(free_rc[:, 0], dtype=np.float64),
-                                    margin_px, EDGE_PX)
+                                    margin_px, held_edge)
     fit &= inside                      # pixels beyond the view are neither fitted
     near |= ~inside                    # nor background
     background = _masked_row_percentile(values, near, 60.0, min_count=5)
@@ -261,7 +325,7 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     theta, sigma, cost, within, n_evaluations, reference_cost = _levenberg_marquardt(
         origin, np.ascontiguousarray(y), fixed, fit, np.ascontiguousarray(basis), xyz_e,
         tensor, centre_xyz, scale_xyz, theta, lo, hi, absolute, float(step_sigma),
-        int(max_iter), float(max_depth_shift), EDGE_PX, ref)
+        int(max_iter), float(max_depth_shift), edge.widths(theta[:, 2]), ref)
     if not within:
         return None
     return ImageFit(theta, sigma[:, :3], int(fit.sum()),
@@ -455,6 +519,25 @@ def _half_erfc(x, gauss):  # pragma: no cover - compiled
     return h if x >= 0.0 else 1.0 - h
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _edge_argument(ds, dt, rho, radius, w_s, w_t):  # pragma: no cover - compiled
+    """``x = (rho - r) / (sqrt 2 w)`` of a pixel at ``(ds, dt)`` (``rho`` its distance)
+    from an image's centre, with the edge width ``w`` of the pixel's direction
+    (``w^2 = (w_s^2 ds^2 + w_t^2 dt^2) / rho^2``), and its derivatives with respect to
+    ``ds``, ``dt`` and ``r``."""
+    ws2, wt2 = w_s * w_s, w_t * w_t
+    q2 = ws2 * ds * ds + wt2 * dt * dt
+    if rho < 1e-6 or q2 <= 0.0:
+        w = math.sqrt(0.5 * (ws2 + wt2))
+        return (rho - radius) / (math.sqrt(2.0) * w), 0.0, 0.0, -1.0 / (math.sqrt(2.0) * w)
+    q = math.sqrt(q2)
+    c = 1.0 / (math.sqrt(2.0) * q)
+    x = (rho - radius) * rho * c
+    a = (2.0 * rho - radius) / rho       # d[(rho - r) rho] / d ds = a ds
+    b = (rho - radius) * rho / q2         # d q / d ds = ws2 ds / q
+    return x, c * ds * (a - b * ws2), c * dt * (a - b * wt2), -rho * c
+
+
 @numba.njit(cache=True, nogil=True)
 def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
                  edge):  # pragma: no cover - compiled
@@ -463,14 +546,13 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
     the background) and the pixels ``fit`` (within ``margin`` px of a free image) of
     patches with pixel ``[0, 0]`` at ``origin`` (K, 2). ``st_held`` (m, K, 2) and
     ``rc_held`` (m, 2) are the held particles' image centres, radii and contrasts;
-    ``st_free`` (k, K, 2) and ``r_free`` (k,) the free particles' centres and radii.
+    ``st_free`` (k, K, 2) and ``r_free`` (k,) the free particles' centres and radii;
+    ``edge`` (m, 2) the held images' edge widths ``(w_s, w_t)`` (:class:`ImageEdge`).
     Each image is visited only over the pixels it can reach (its box of the patch)."""
     n_views = origin.shape[0]
     fixed = np.ones((n_views, n, n))
     near = np.zeros((n_views, n, n), dtype=np.bool_)
     fit = np.zeros((n_views, n, n), dtype=np.bool_)
-    inv = 1.0 / (math.sqrt(2.0) * edge)
-    tail = 6.0 / inv            # beyond this from its rim a held image is 1 to 1e-17
     for view in range(n_views):
         s0, t0 = origin[view, 0], origin[view, 1]
         for q in range(st_free.shape[0]):
@@ -487,6 +569,8 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
         for q in range(st_held.shape[0]):
             cs, ct = st_held[q, view, 0], st_held[q, view, 1]
             radius, contrast = rc_held[q, 0], rc_held[q, 1]
+            # beyond this from its rim a held image is 1 to 1e-17
+            tail = 6.0 * math.sqrt(2.0) * max(edge[q, 0], edge[q, 1])
             i0, i1, j0, j1 = _box(ct - t0, cs - s0, radius + max(tail, 2.0), n)
             for i in range(i0, i1):
                 dt = t0 + i - ct
@@ -494,7 +578,7 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
                     ds = s0 + j - cs
                     rho = math.sqrt(ds * ds + dt * dt)
                     near[view, i, j] |= rho < radius + 2.0
-                    x = (rho - radius) * inv
+                    x = _edge_argument(ds, dt, rho, radius, edge[q, 0], edge[q, 1])[0]
                     if fit[view, i, j] and x < 6.0:   # the model reads the held image only there
                         fixed[view, i, j] *= 1.0 - contrast * _half_erfc(x, math.exp(-x * x))
     return fixed, near, fit
@@ -522,8 +606,8 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
     ``origin`` (K, 2) is each patch's ``(s, t)`` of pixel ``[0, 0]``; ``y``, ``fixed`` and
     ``fit`` (K, n, n) are the normalised pixels, the held neighbours' image and the pixels
     fitted; ``st`` (k, K, 2), ``jac`` (k, K, 2, 3) and ``rc`` (k, 2) are each free
-    particle's predicted centres, their derivatives and its radius and contrast. The
-    parameters are ordered ``(x, y, z, r, c)`` per particle. The Jacobian rows of one view
+    particle's predicted centres, their derivatives and its radius and contrast, ``edge``
+    (k, 2) its edge widths ``(w_s, w_t)`` (:class:`ImageEdge`). The parameters are ordered ``(x, y, z, r, c)`` per particle. The Jacobian rows of one view
     are collected and then reduced as dot products, which the compiler vectorises.
     """
     k = st.shape[0]
@@ -540,8 +624,8 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
     slope = np.empty(k)
     disc = np.empty(k)
     drho = np.empty((k, 3))
-    inv = 1.0 / (math.sqrt(2.0) * edge)
-    norm = 1.0 / (math.sqrt(2.0 * math.pi) * edge)
+    dr = np.empty(k)
+    norm = 1.0 / math.sqrt(math.pi)
     for view in range(y.shape[0]):
         m = 0
         for i in range(y.shape[1]):
@@ -553,14 +637,16 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
                 for q in range(k):
                     ds = s - st[q, view, 0]
                     dt = t - st[q, view, 1]
-                    rho = max(math.sqrt(ds * ds + dt * dt), 1e-9)
-                    x = (rho - rc[q, 0]) * inv
+                    rho = math.sqrt(ds * ds + dt * dt)
+                    x, dx_ds, dx_dt, dx_dr = _edge_argument(ds, dt, rho, rc[q, 0], edge[q, 0],
+                                                            edge[q, 1])
                     gauss = math.exp(-x * x)
                     disc[q] = _half_erfc(x, gauss)
-                    slope[q] = rc[q, 1] * gauss * norm   # df / d rho
+                    slope[q] = rc[q, 1] * gauss * norm   # df / dx
                     f[q] = 1.0 - rc[q, 1] * disc[q]
+                    dr[q] = dx_dr
                     for a in range(3):
-                        drho[q, a] = -(ds * jac[q, view, 0, a] + dt * jac[q, view, 1, a]) / rho
+                        drho[q, a] = -(dx_ds * jac[q, view, 0, a] + dx_dt * jac[q, view, 1, a])
                 model = fixed[view, i, j]
                 for q in range(k):
                     model *= f[q]
@@ -572,7 +658,7 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
                             others *= f[p]
                     for a in range(3):
                         rows[5 * q + a, m] = others * slope[q] * drho[q, a]
-                    rows[5 * q + 3, m] = -others * slope[q]
+                    rows[5 * q + 3, m] = others * slope[q] * dr[q]
                     rows[5 * q + 4, m] = -others * disc[q]
                 m += 1
         for p in range(m):

@@ -22,7 +22,7 @@ import numba
 import numpy as np
 
 from ..lightfield import LightField
-from .refine import EDGE_PX, _half_erfc
+from .refine import EDGE_PX, _edge_argument, _half_erfc
 
 __all__ = ["transmission_model", "residual_light_field", "divide_out_particles"]
 
@@ -30,15 +30,17 @@ __all__ = ["transmission_model", "residual_light_field", "divide_out_particles"]
 @numba.njit(cache=True, inline="always")
 def _box(s, t, r, edge, n_t, n_s):  # pragma: no cover - compiled
     """Pixel box ``(i0, i1, j0, j1)`` (inclusive) an image of radius ``r`` centred on
-    ``(s, t)`` darkens, rim blur included."""
+    ``(s, t)`` darkens, rim blur of the wider edge width ``edge`` included."""
     reach = r + 4.0 * edge
     return (max(0, int(math.floor(t - reach))), min(n_t - 1, int(math.ceil(t + reach))),
             max(0, int(math.floor(s - reach))), min(n_s - 1, int(math.ceil(s + reach))))
 
 
 @numba.njit(cache=True, inline="always")
-def _multiply_disc(out, s, t, r, c, edge, inv):  # pragma: no cover - compiled
-    """``out *= 1 - c D(|p - (s, t)|; r)`` over the disc's box (``out`` one view)."""
+def _multiply_disc(out, s, t, r, c, w_s, w_t):  # pragma: no cover - compiled
+    """``out *= 1 - c D(|p - (s, t)|; r)`` over the disc's box (``out`` one view), edge
+    widths ``w_s`` and ``w_t`` along ``s`` and ``t``."""
+    edge = max(w_s, w_t)
     i0, i1, j0, j1 = _box(s, t, r, edge, out.shape[0], out.shape[1])
     reach = r + 4.0 * edge
     # erfc is within 6e-5 of 2 or 0 beyond 4 edge widths of the rim:
@@ -52,7 +54,7 @@ def _multiply_disc(out, s, t, r, c, edge, inv):  # pragma: no cover - compiled
             if rho2 <= inner:
                 out[i, j] *= 1.0 - c
             else:
-                x = (math.sqrt(rho2) - r) * inv
+                x = _edge_argument(j - s, i - t, math.sqrt(rho2), r, w_s, w_t)[0]
                 out[i, j] *= 1.0 - c * _half_erfc(x, math.exp(-x * x))
 
 
@@ -67,7 +69,6 @@ def _divide_out(data, view_rc, pred, radius, contrast, edge, floor, background,
     so a pixel where boxes overlap is divided once, by the product of all its discs.
     """
     n_t, n_s = data.shape[2], data.shape[3]
-    inv = 1.0 / (math.sqrt(2.0) * edge)
     trans = np.ones((n_t, n_s), dtype=np.float32)
     for v in range(view_rc.shape[0]):
         if not has_background[v]:
@@ -76,14 +77,14 @@ def _divide_out(data, view_rc, pred, radius, contrast, edge, floor, background,
         for p in range(pred.shape[0]):
             s, t = pred[p, v, 0], pred[p, v, 1]
             if np.isfinite(s) and np.isfinite(t) and radius[p] > 0.0 and contrast[p] > 0.0:
-                _multiply_disc(trans, s, t, radius[p], contrast[p], edge, inv)
+                _multiply_disc(trans, s, t, radius[p], contrast[p], edge[p, 0], edge[p, 1])
         bg = background[v]
         for p in range(pred.shape[0]):
             s, t = pred[p, v, 0], pred[p, v, 1]
             if not (np.isfinite(s) and np.isfinite(t) and radius[p] > 0.0
                     and contrast[p] > 0.0):
                 continue
-            i0, i1, j0, j1 = _box(s, t, radius[p], edge, n_t, n_s)
+            i0, i1, j0, j1 = _box(s, t, radius[p], max(edge[p, 0], edge[p, 1]), n_t, n_s)
             for i in range(i0, i1 + 1):
                 for j in range(j0, j1 + 1):
                     tr = trans[i, j]
@@ -102,18 +103,27 @@ def _divide_out(data, view_rc, pred, radius, contrast, edge, floor, background,
 def _transmission(n_t, n_s, pred, radius, contrast, edge, out):  # pragma: no cover - compiled
     """Product over particles of ``1 - c D(|p - mu|; r)`` in each view: ``pred``
     (P, V, 2) image centres ``(s, t)``, ``radius`` and ``contrast`` (P,); into ``out``
-    (V, n_t, n_s), filled with 1 first."""
-    inv = 1.0 / (math.sqrt(2.0) * edge)
+    (V, n_t, n_s), filled with 1 first; ``edge`` (P, 2) edge widths ``(w_s, w_t)``."""
     for v in range(out.shape[0]):
         out[v] = 1.0
         for p in range(pred.shape[0]):
             s, t = pred[p, v, 0], pred[p, v, 1]
             if np.isfinite(s) and np.isfinite(t) and radius[p] > 0.0 and contrast[p] > 0.0:
-                _multiply_disc(out[v], s, t, radius[p], contrast[p], edge, inv)
+                _multiply_disc(out[v], s, t, radius[p], contrast[p], edge[p, 0], edge[p, 1])
+
+
+def _edge_widths(edge, n: int) -> np.ndarray:
+    """``edge`` (a float, or (n, 2) widths) as (n, 2) contiguous float64 widths."""
+    widths = np.asarray(edge, dtype=np.float64)
+    if widths.ndim == 0:
+        widths = np.full((n, 2), float(widths))
+    if widths.shape != (n, 2):
+        raise ValueError(f"edge must be a float or ({n}, 2) widths; got shape {widths.shape}")
+    return np.ascontiguousarray(widths)
 
 
 def transmission_model(n_t: int, n_s: int, pred: np.ndarray, radius: np.ndarray,
-                       contrast: np.ndarray, edge: float = EDGE_PX) -> np.ndarray:
+                       contrast: np.ndarray, edge: float | np.ndarray = EDGE_PX) -> np.ndarray:
     """The fraction of the back-light the modelled particles let through, per view pixel.
 
     Parameters
@@ -125,8 +135,10 @@ def transmission_model(n_t: int, n_s: int, pred: np.ndarray, radius: np.ndarray,
         where it has none.
     radius, contrast : (P,) float ndarray
         Image radius (view pixels) and contrast (1: opaque) of each particle.
-    edge : float
-        Edge blur (standard deviation, view pixels).
+    edge : float or (P, 2) float ndarray
+        Edge blur (standard deviation, view pixels): one width for every image and
+        direction, or each particle's ``(w_s, w_t)``
+        (:meth:`~plenoptrack.locate.refine.ImageEdge.widths`).
 
     Returns
     -------
@@ -145,7 +157,8 @@ def transmission_model(n_t: int, n_s: int, pred: np.ndarray, radius: np.ndarray,
     out = np.empty((pred.shape[1], int(n_t), int(n_s)), dtype=np.float32)
     _transmission(int(n_t), int(n_s), pred,
                   np.ascontiguousarray(radius, dtype=np.float64),
-                  np.ascontiguousarray(contrast, dtype=np.float64), float(edge), out)
+                  np.ascontiguousarray(contrast, dtype=np.float64),
+                  _edge_widths(edge, pred.shape[0]), out)
     return out
 
 
@@ -187,7 +200,7 @@ def residual_light_field(lf: LightField, view_rc: np.ndarray, transmission: np.n
 
 def divide_out_particles(lf: LightField, view_rc: np.ndarray, pred: np.ndarray,
                          radius: np.ndarray, contrast: np.ndarray, *, floor: float = 0.5,
-                         edge: float = EDGE_PX) -> LightField:
+                         edge: float | np.ndarray = EDGE_PX) -> LightField:
     """:func:`residual_light_field` of :func:`transmission_model`, in one pass over the
     particles' images only.
 
@@ -209,8 +222,8 @@ def divide_out_particles(lf: LightField, view_rc: np.ndarray, pred: np.ndarray,
         Image radius (view pixels) and contrast (1: opaque) of each particle.
     floor : float
         See :func:`residual_light_field`.
-    edge : float
-        Edge blur (standard deviation, view pixels).
+    edge : float or (P, 2) float ndarray
+        See :func:`transmission_model`.
 
     Returns
     -------
@@ -222,8 +235,8 @@ def divide_out_particles(lf: LightField, view_rc: np.ndarray, pred: np.ndarray,
     background, has_background = _view_backgrounds(data, view_rc)
     _divide_out(data, view_rc, np.ascontiguousarray(pred, dtype=np.float64),
                 np.ascontiguousarray(radius, dtype=np.float64),
-                np.ascontiguousarray(contrast, dtype=np.float64), float(edge),
-                float(floor), background, has_background)
+                np.ascontiguousarray(contrast, dtype=np.float64),
+                _edge_widths(edge, len(radius)), float(floor), background, has_background)
     return dataclasses.replace(lf, data=data)
 
 
