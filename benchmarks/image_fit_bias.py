@@ -13,7 +13,9 @@ sphere per frame at ``--depths`` depths spread over 95 % of the volume of the ``
 camera at magnification -0.5 (the accuracy matrix's calibration: simulated white image
 and dot cards, ``calibrate`` defaults), located with the default locator, then fitted
 alone (no neighbours) with one disc from the located position, at each model edge width
-of ``--edges`` (view pixels; the locator's is ``refine.EDGE_PX``), on the views more
+of ``--edges`` (round, view pixels) and with the locator's own edge (``locator edge``:
+:class:`~plenoptrack.locate.refine.ImageEdge`, wider along s on a hexagonal grid and
+the calibration's blur at each depth), on the views more
 than ``--min-valid`` valid (the locator's bar, 0.5, by default). Prints and writes
 (``--out``) a table of the depth errors per size and depth, and per size the mean error
 at negative and at positive depth.
@@ -92,6 +94,13 @@ def measure_size(runner, size: float, optics: str, seed: int, depths: int,
                     refine.EDGE_PX = default_edge
                 row[f"fit edge {edge:g}"] = (float(fit.params[0, 2] - true.z)
                                              if fit is not None else np.nan)
+            # the locator's own edge: wider along s on a hexagonal grid, the calibration's
+            # blur at the particle's depth (refine.ImageEdge)
+            fit = refine.fit_images(ctx.dlfc, views_uv, view_rc, lf.data, xyz,
+                                    np.array([[radius, 0.9]]), np.zeros((0, 3)),
+                                    np.zeros((0, 2)), edge=ctx.image_edge)
+            row["fit locator edge"] = (float(fit.params[0, 2] - true.z)
+                                       if fit is not None else np.nan)
         rows.append(row)
     return pd.DataFrame(rows)
 
