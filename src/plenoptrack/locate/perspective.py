@@ -808,15 +808,15 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     split's gain bar, images that move apart by a view pixel across the views and stand
     apart in some view or in space, neither one with another particle's image); the
     located particle then takes the pair's fit. Each other one, best seen first, is
-    fitted to the frame's own pixels (:func:`~plenoptrack.locate.refine.fit_images`) beside the particles located (and
-    those of this search already kept), and kept when its image is opaque
-    (``check.split_min_contrast``), explains the pixels better than the model without it
-    by ``check.refine_max_model_error**2`` in mean square (the split's test,
-    :func:`split_merged_particles`), and neither lies inside a located particle nor
-    overlaps one with images that keep their offset across the views (nothing tells
-    those from one elongated image). The kept ones join the frame with their regions,
-    their position, sigma and image from the fit (``REFINED``; their size too, in
-    :func:`measure_particles`: their regions were cut by the images divided out).
+    fitted to the frame's own pixels (:func:`~plenoptrack.locate.refine.fit_images`)
+    beside the particles located (and those of this search already kept), and kept when
+    its image is opaque (``check.split_min_contrast``), explains the pixels better than
+    the model without it by ``check.refine_max_model_error**2`` in mean square (the
+    split's test, :func:`split_merged_particles`), and neither lies inside a located
+    particle nor overlaps one with images that keep their offset across the views
+    (nothing tells those from one elongated image). The kept ones join the frame with
+    their regions, their position, sigma and image from the fit (``REFINED``; their size
+    too, in :func:`measure_particles`: their regions were cut by the images divided out).
     Nothing is searched when every located particle's last image fit explains its pixels
     to within ``check.refine_max_model_error``, the gain a particle found must bring: one
     whose images merge with a located particle's would have spoilt that one's fit. Returns
@@ -892,7 +892,8 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         fit = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, positions2[[q]], start,
                          held_pos[near], held_rc[near],
                          max_depth_shift=0.1 * ctx.volume_depth_mm,
-                         reference=np.array([[*positions2[q], radius2[q], 0.0]]), edge=ctx.image_edge)
+                         reference=np.array([[*positions2[q], radius2[q], 0.0]]),
+                         edge=ctx.image_edge)
         if not _one_image_explains(fit, settings):
             new[q] = False
             continue

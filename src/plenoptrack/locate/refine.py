@@ -607,8 +607,9 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
     ``fit`` (K, n, n) are the normalised pixels, the held neighbours' image and the pixels
     fitted; ``st`` (k, K, 2), ``jac`` (k, K, 2, 3) and ``rc`` (k, 2) are each free
     particle's predicted centres, their derivatives and its radius and contrast, ``edge``
-    (k, 2) its edge widths ``(w_s, w_t)`` (:class:`ImageEdge`). The parameters are ordered ``(x, y, z, r, c)`` per particle. The Jacobian rows of one view
-    are collected and then reduced as dot products, which the compiler vectorises.
+    (k, 2) its edge widths ``(w_s, w_t)`` (:class:`ImageEdge`). The parameters are
+    ordered ``(x, y, z, r, c)`` per particle. The Jacobian rows of one view are collected
+    and then reduced as dot products, which the compiler vectorises.
     """
     k = st.shape[0]
     n_par = 5 * k
