@@ -177,10 +177,6 @@ class FrameContext:
     max_area_ratio : float
         A region larger than this times one particle's image is a merged image
         (``segment.max_area_ratio``).
-    image_edge : ImageEdge
-        Edge blur of particle images along ``s`` and ``t`` for the image fits
-        (:class:`~plenoptrack.locate.refine.ImageEdge`: the lattice's resampling and
-        ``edge_blur``).
     """
 
     lf: LightField
@@ -200,7 +196,13 @@ class FrameContext:
     tolerance_px: float
     edge_blur: np.ndarray | None = None
     max_area_ratio: float = math.inf
-    image_edge: ImageEdge = field(default_factory=ImageEdge)
+
+    @property
+    def image_edge(self) -> ImageEdge:
+        """Edge blur of particle images along ``s`` and ``t`` for the image fits
+        (:class:`~plenoptrack.locate.refine.ImageEdge`): the lattice's resampling and
+        ``edge_blur``."""
+        return ImageEdge.of_frame(self.lf.grid_type, self.edge_blur)
 
     @classmethod
     def build(cls, lf: LightField, calibration, detections: pd.DataFrame,
@@ -226,9 +228,7 @@ class FrameContext:
                    n_possible=int(lf.view_mask.sum()), volume_depth_mm=z_hi - z_lo,
                    merge_px=merge_px, tolerance_px=locator.grow.add_tolerance_px,
                    edge_blur=getattr(calibration, "edge_blur_by_depth", None),
-                   max_area_ratio=locator.segment.max_area_ratio,
-                   image_edge=ImageEdge.of_frame(
-                       lf.grid_type, getattr(calibration, "edge_blur_by_depth", None)))
+                   max_area_ratio=locator.segment.max_area_ratio)
 
 
 @dataclass(frozen=True, eq=False)
@@ -946,7 +946,8 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                          np.array([[own, held_rc[jl, 1]], [radius2[q], 0.9]]),
                          held_pos[others], held_rc[others],
                          max_depth_shift=ctx.volume_depth_mm,
-                         reference=np.array([[*held_pos[jl], *held_rc[jl]]]), edge=ctx.image_edge)
+                         reference=np.array([[*held_pos[jl], *held_rc[jl]]]),
+                         edge=ctx.image_edge)
         if (fit is None or not np.all(np.isfinite(fit.params))
                 or not np.all(np.isfinite(fit.sigma))
                 or fit.params[:, 4].min() < settings.split_min_contrast
@@ -1421,7 +1422,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             # no limit on its depth: only its model error is used, and one image that
             # wanders off in depth is one that does not explain the pixels
             one = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, pos[[m]],
-                             np.array([[radius[m], 0.9]]), pos[held], held_rc, edge=ctx.image_edge)
+                             np.array([[radius[m], 0.9]]), pos[held], held_rc,
+                             edge=ctx.image_edge)
             if one is None or not np.isfinite(one.model_error):
                 continue
             if never_fitted[m] and one.model_error <= split_max:

@@ -5,13 +5,15 @@ other, and a particle seen apart from its neighbour in only part of the aperture
 biased depth from the rest. This step refits such a particle to the pixels of every
 usable view around its predicted image. The model of a view patch is the product of the
 particles' images, each a disc of radius ``r`` (view pixels) and contrast ``c`` with an
-error-function edge of width :data:`EDGE_PX`, centred on the DLFC prediction of the
-particle's ``(x, y, z)``::
+error-function edge, centred on the DLFC prediction of the particle's ``(x, y, z)``::
 
     I(p) = prod_q (1 - c_q D(|p - mu_q| ; r_q)),   D(rho; r) = erfc((rho - r) / (sqrt 2 w)) / 2
 
-each patch divided by its local background (the 60th percentile of its pixels more than
-2 pixels outside every predicted image). The particle's ``(x, y, z, r, c)`` are fitted by
+with the edge width ``w`` of the pixel's direction from the centre,
+``w^2 = (w_s^2 ds^2 + w_t^2 dt^2) / rho^2`` (:class:`ImageEdge`: wider along ``s`` on a
+hexagonal grid; :data:`EDGE_PX` in every direction by default), and each patch divided
+by its local background (the 60th percentile of its pixels more than 2 pixels outside
+every predicted image). The particle's ``(x, y, z, r, c)`` are fitted by
 Levenberg-Marquardt with analytic derivatives (the DLFC's view-factorised form,
 :attr:`~plenoptrack.locate.dlfc.DLFC.view_model`, in one compiled loop), its neighbours
 held at their current positions; a particle whose strongest neighbour
