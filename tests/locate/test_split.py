@@ -5,7 +5,8 @@ import pandas as pd
 import pytest
 
 from plenoptrack.evaluate import match_particles
-from plenoptrack.locate.perspective import PerspectiveLocator, _view_subgrid, locate_frame
+from plenoptrack.locate.perspective import (PerspectiveLocator, _line_of_sight_pair,
+                                           _view_subgrid, locate_frame, split_start_travel)
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.simulate import make_scene, render_frame
 
@@ -458,3 +459,31 @@ def test_a_split_half_without_centroids_takes_its_pairs_views():
     for t in (table.drop(columns=_SPLIT_OF), table.assign(**{_SPLIT_OF: np.nan})):
         o, u = _with_pair_centroids(t, owner, uv, keep)
         assert o is owner and u is uv
+
+
+def test_a_split_starts_its_two_images_apart_by_a_third_of_the_image_radius(small_calibrated):
+    """The two starting images lie on the line of sight of the merged image's
+    central-view image, and their images travel ``split_start_travel(radius)`` view
+    pixels about the merged image's (sqrt(8 var) over the views): a third of the radius,
+    at least one view pixel."""
+    _, calib = small_calibrated
+    dlfc = calib.dlfc
+    u, v = np.meshgrid(np.arange(-5.0, 6.0), np.arange(-5.0, 6.0))    # sensor pixels
+    inside = np.hypot(u, v) <= 5.0
+    views_uv = np.c_[u[inside], v[inside]]
+    xyz = np.array([0.4, -0.3, 2.5])
+    assert split_start_travel(1.5) == 1.0 and split_start_travel(np.nan) == 1.0
+    for radius in (1.5, 4.0, 9.0):
+        travel = split_start_travel(radius)
+        assert travel == pytest.approx(max(1.0, radius / 3.0))
+        pair = _line_of_sight_pair(dlfc, xyz, views_uv, travel)
+        assert pair[0, 2] < xyz[2] < pair[1, 2]
+        centre = np.array(dlfc.predict(*xyz, 0.0, 0.0))
+        here = np.stack(dlfc.predict(*xyz, views_uv[:, 0], views_uv[:, 1]), axis=-1)
+        for q in pair:
+            # the same central-view image: on the line of sight
+            assert np.allclose(dlfc.predict(*q, 0.0, 0.0), centre, atol=1e-6)
+            there = np.stack(dlfc.predict(*q, views_uv[:, 0], views_uv[:, 1]), axis=-1)
+            offset = there - here
+            moved = np.sqrt(8.0 * np.sum(np.var(offset, axis=0)))
+            assert moved == pytest.approx(travel, rel=0.05)

@@ -1198,8 +1198,9 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     almost well enough), or that was never fitted, is refitted as two (a never fitted
     one only once a one-image fit has left more than that unexplained)
     (:func:`~plenoptrack.locate.refine.fit_images`, its neighbours held), started on the
-    line of sight of its central-view image one view pixel of image travel either side
-    of it in depth (:func:`_line_of_sight_pair`). The two are kept when both images are
+    line of sight of its central-view image, either side of it in depth by a third of
+    its image radius of image travel, at least one view pixel
+    (:func:`_line_of_sight_pair`, :func:`split_start_travel`). The two are kept when both images are
     opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
     (model error at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
     pair's own pixels, a mean-square residual lower than the single image's by at least
@@ -1368,7 +1369,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         :func:`distinct`; None if no replacement does."""
         best = None
         for j in range(len(start)):
-            pair = _line_of_sight_pair(ctx.dlfc, start[j, :3], views_uv)
+            pair = _line_of_sight_pair(ctx.dlfc, start[j, :3], views_uv,
+                                       split_start_travel(start[j, 3]))
             xyz = np.vstack([np.delete(start[:, :3], j, axis=0),
                              pair if n == 2 else [pair[0], start[j, :3], pair[1]]])
             rc = np.vstack([np.delete(start[:, 3:], j, axis=0),
@@ -1615,14 +1617,16 @@ def _view_subgrid(view_rc: np.ndarray, stride: int, *, min_views: int = 12) -> n
     return keep if keep.sum() >= min_views else np.ones(len(view_rc), dtype=bool)
 
 
-def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray) -> np.ndarray:
+def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray,
+                        travel_px: float = 1.0) -> np.ndarray:
     """(2, 3) starting positions of a split: the points of the line of sight through
-    ``xyz`` (mm) of its central-view image ``(u, v) = (0, 0)`` whose images move one view
-    pixel (:func:`~plenoptrack.locate.uncertainty.image_travel_px`) nearer to and farther
-    from those of ``xyz`` over the views, in front of it and behind it."""
+    ``xyz`` (mm) of its central-view image ``(u, v) = (0, 0)`` whose images move
+    ``travel_px`` view pixels (:func:`~plenoptrack.locate.uncertainty.image_travel_px`)
+    nearer to and farther from those of ``xyz`` over the views, in front of it and
+    behind it."""
     _, jac = dlfc.predict_with_jacobian(xyz[0], xyz[1], xyz[2], views_uv[:, 0], views_uv[:, 1])
     rate = np.sqrt(8.0 * np.sum(np.var(jac[:, :, 2], axis=0)))       # travel, px per mm
-    dz = 1.0 / max(rate, 1e-6)
+    dz = travel_px / max(rate, 1e-6)
     s0, t0 = dlfc.predict(xyz[0], xyz[1], xyz[2], 0.0, 0.0)
     out = np.empty((2, 3))
     for i, z in enumerate((xyz[2] - dz, xyz[2] + dz)):
@@ -1632,6 +1636,18 @@ def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray) -> np.ndarr
             q[:2] += np.linalg.solve(j[:, :2], [s0 - st[0], t0 - st[1]])
         out[i] = q
     return out
+
+
+def split_start_travel(radius_px: float) -> float:
+    """Image travel (view pixels) between a split's starting image and each of the two
+    it is replaced by: a third of the image's radius, at least one view pixel. Two
+    discs whose images nearly coincide are nearly one disc: the normal equations of
+    their positions, radii and contrasts are then nearly singular, and the first damped
+    steps go wherever the pixels' noise sends them (on 2 mm spheres one image's contrast
+    ran to its bound and its position off the volume). Starting them apart by a fixed
+    fraction of their radius keeps the trial fit's conditioning the same at every
+    image size; at one view pixel, small images start as before."""
+    return max(1.0, radius_px / 3.0) if np.isfinite(radius_px) else 1.0
 
 
 def _centroid_offsets(ctx: FrameContext, owner: np.ndarray, particle: int,
