@@ -5,9 +5,8 @@ import pandas as pd
 import pytest
 
 from plenoptrack.evaluate import match_particles
-from plenoptrack.locate.perspective import (PerspectiveLocator, _found_twice,
-                                           _line_of_sight_pair, _view_subgrid, locate_frame,
-                                           split_start_travel)
+from plenoptrack.locate.perspective import (PerspectiveLocator, _line_of_sight_pair,
+                                           _view_subgrid, locate_frame, split_start_travel)
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.simulate import make_scene, render_frame
 
@@ -488,34 +487,3 @@ def test_a_split_starts_its_two_images_apart_by_a_third_of_the_image_radius(smal
             offset = there - here
             moved = np.sqrt(8.0 * np.sum(np.var(offset, axis=0)))
             assert moved == pytest.approx(travel, rel=0.05)
-
-
-def test_a_particle_found_twice_is_told_from_one_behind_it():
-    """An unexplained particle whose images lie on those of an explained particle seen in
-    more views is that particle found twice; one on the same line of sight whose images
-    move apart by their parallax is not, nor one whose partner is itself unexplained or
-    seen in fewer views."""
-    u, v = np.meshgrid(np.arange(-5.0, 6.0), np.arange(-5.0, 6.0))
-    uv = np.c_[u.ravel(), v.ravel()]                                   # (V, 2)
-
-    def images(centre, parallax):
-        return np.asarray(centre, dtype=float) + parallax * uv          # (V, 2)
-
-    pred = np.stack([
-        images([10.0, 10.0], 0.20),      # 0: the particle, explained, 120 views
-        images([10.3, 10.0], 0.25),      # 1: found twice: its pieces, 14 views
-        images([10.0, 10.0], 1.20),      # 2: behind it on its line of sight, 40 views
-        images([30.0, 30.0], 0.20),      # 3: unexplained, 60 views
-        images([30.2, 30.0], 0.22),      # 4: on 3, unexplained too, 20 views
-        images([10.2, 10.1], 0.21),      # 5: on 0, seen in more views than 0
-    ])
-    radius = np.array([2.0, 1.5, 1.5, 2.0, 1.5, 2.0])
-    n_views = np.array([120, 14, 40, 60, 20, 130])
-    explained = np.array([True, False, False, False, False, False])
-    candidates = np.array([1, 2, 3, 4, 5])
-    assert _found_twice(pred, radius, n_views, explained, candidates).tolist() == [1]
-    # the partner found with its pixels unexplained too tells nothing
-    assert len(_found_twice(pred, radius, n_views, np.zeros(6, dtype=bool), candidates)) == 0
-    # nor one in fewer views than the candidate
-    assert len(_found_twice(pred, radius, np.array([10, 14, 40, 60, 20, 130]), explained,
-                            candidates)) == 0

@@ -1238,17 +1238,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     centroids within ``ctx.tolerance_px`` of its image (its ``n_views`` and
     ``residual_px`` theirs). The unexplained neighbours of a particle moved are refitted
     beside it in turn.
-
-    A particle never fitted before whose one-image fit leaves its pixels unexplained and
-    that no split took apart is flagged ``UNEXPLAINED``; one of those whose images are one
-    with those of a particle seen in more views whose pixels are explained is that
-    particle found twice and is dropped (:func:`_found_twice`): on the realistic camera a
-    glint splits an image into two pieces by its cores in some views, and the pieces that
-    merging two particles of one image released were taken up again by the one merged
-    away and solved on the particle's line of sight (on the development frames of
-    0.2-2 mm spheres, 4 of their 5 false particles). Keeping the particle merged away
-    from taking up the released pieces instead cost recall in crowds (development 0.05
-    per microlens: 0.849 -> 0.824): there it is often a second particle."""
+    """
     from .refine import fit_images
 
     table = state.table
@@ -1523,14 +1513,6 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
             & np.all(np.isfinite(pos[:n]), axis=1)
             & ((flags[:n] & int(TriangulationFlag.SPLIT)) == 0))
     flags[np.flatnonzero(left)] |= unexplained
-    # One of them whose images are one with those of a particle seen in more views whose
-    # pixels are explained (:func:`_coincides`) is that particle found twice: the pieces
-    # its image's cores split it into in some views, released when the two were merged
-    # and taken up again by the one merged away. It is dropped.
-    seen = np.r_[table["n_views"].to_numpy(float), np.asarray(n_views, dtype=float)]
-    explained = np.all(np.isfinite(pos), axis=1) & ((flags & unexplained) == 0)
-    twice = _found_twice(pred, radius, seen, explained, np.flatnonzero(left))
-    pos[twice] = np.nan
     # A particle put back by its image keeps only the centroids on that image: the others
     # were regions merged with a neighbour's, and its scatter (residual_px, n_views, hence
     # chi2 and the frame's typical scatter) is that of the centroids it keeps.
@@ -1666,23 +1648,6 @@ def split_start_travel(radius_px: float) -> float:
     fraction of their radius keeps the trial fit's conditioning the same at every
     image size; at one view pixel, small images start as before."""
     return max(1.0, radius_px / 3.0) if np.isfinite(radius_px) else 1.0
-
-
-def _found_twice(pred: np.ndarray, radius: np.ndarray, n_views: np.ndarray,
-                 explained: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-    """The ``candidates`` (rows) that are another particle found twice: an image of each
-    is one (:func:`_coincides`) with one of a particle that is ``explained`` (located, its
-    pixels explained by its image) and seen in more ``n_views``.
-
-    ``pred`` (P, V, 2) are the particles' images in the views, ``radius`` (P,) their image
-    radii (view pixels), ``n_views`` (P,) their centroid counts, ``explained`` (P,) bool.
-    """
-    spans = ImageSpans(pred)
-    out = [m for m in np.asarray(candidates, dtype=np.int64)
-           if len(others := np.flatnonzero(explained & (n_views > n_views[m])))
-           and _coincides(pred[[m]], radius[[m]], pred[others], radius[others],
-                          spans.subset(others))]
-    return np.asarray(out, dtype=np.int64)
 
 
 def _centroid_offsets(ctx: FrameContext, owner: np.ndarray, particle: int,
