@@ -1198,10 +1198,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     almost well enough), or that was never fitted, is refitted as two (a never fitted
     one only once a one-image fit has left more than that unexplained)
     (:func:`~plenoptrack.locate.refine.fit_images`, its neighbours held), started on the
-    line of sight of its central-view image, either side of it in depth by a third of
-    its image radius of image travel, at least one view pixel
-    (:func:`_line_of_sight_pair`, :func:`split_start_travel`). The two are kept when both images are
-    opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
+    line of sight of its central-view image, in front of it and behind it by a third of
+    its image radius of image travel (at least one view pixel;
+    :func:`_line_of_sight_pair`, :func:`split_start_travel`). The two are kept when both
+    images are opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
     (model error at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
     pair's own pixels, a mean-square residual lower than the single image's by at least
     :func:`split_gain_bar`: images of particles never located add to both alike, and
