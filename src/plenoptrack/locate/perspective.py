@@ -1198,10 +1198,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     almost well enough), or that was never fitted, is refitted as two (a never fitted
     one only once a one-image fit has left more than that unexplained)
     (:func:`~plenoptrack.locate.refine.fit_images`, its neighbours held), started on the
-    line of sight of its central-view image, in front of it and behind it by a third of
-    its image radius of image travel (at least one view pixel;
-    :func:`_line_of_sight_pair`, :func:`split_start_travel`). The two are kept when both
-    images are opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
+    line of sight of its central-view image one view pixel of image travel in front of
+    it and behind it (:func:`_line_of_sight_pair`); a fit that runs off from there is
+    tried once more from a third of the image radius of travel
+    (:func:`split_start_travel`). The two are kept when both images are opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
     (model error at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
     pair's own pixels, a mean-square residual lower than the single image's by at least
     :func:`split_gain_bar`: images of particles never located add to both alike, and
@@ -1369,15 +1369,19 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         :func:`distinct`; None if no replacement does."""
         best = None
         for j in range(len(start)):
-            pair = _line_of_sight_pair(ctx.dlfc, start[j, :3], views_uv,
-                                       split_start_travel(start[j, 3]))
-            xyz = np.vstack([np.delete(start[:, :3], j, axis=0),
-                             pair if n == 2 else [pair[0], start[j, :3], pair[1]]])
             rc = np.vstack([np.delete(start[:, 3:], j, axis=0),
                             np.tile([start[j, 3], 0.9], (n, 1))])
-            fit = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, xyz, rc, pos[held],
-                             held_rc, max_depth_shift=ctx.volume_depth_mm,
-                             reference=reference, edge=ctx.image_edge)
+            # one view pixel of travel apart first; a fit that runs off from there is
+            # tried once more from a start a third of the image radius apart
+            for travel in dict.fromkeys((1.0, split_start_travel(start[j, 3]))):
+                pair = _line_of_sight_pair(ctx.dlfc, start[j, :3], views_uv, travel)
+                xyz = np.vstack([np.delete(start[:, :3], j, axis=0),
+                                 pair if n == 2 else [pair[0], start[j, :3], pair[1]]])
+                fit = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, xyz, rc,
+                                 pos[held], held_rc, max_depth_shift=ctx.volume_depth_mm,
+                                 reference=reference, edge=ctx.image_edge)
+                if fit is not None:
+                    break
             if (fit is not None and _explains_more(fit, error, settings, gain_bar)
                     and (best is None or fit.model_error < best.model_error)
                     and distinct(fit, m)):
@@ -1640,13 +1644,13 @@ def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray,
 
 def split_start_travel(radius_px: float) -> float:
     """Image travel (view pixels) between a split's starting image and each of the two
-    it is replaced by: a third of the image's radius, at least one view pixel. Two
-    discs whose images nearly coincide are nearly one disc: the normal equations of
-    their positions, radii and contrasts are then nearly singular, and the first damped
-    steps go wherever the pixels' noise sends them (on 2 mm spheres one image's contrast
-    ran to its bound and its position off the volume). Starting them apart by a fixed
-    fraction of their radius keeps the trial fit's conditioning the same at every
-    image size; at one view pixel, small images start as before."""
+    it is replaced by, for a second try when the fit from one view pixel ran off: a
+    third of the image's radius, at least one view pixel. Two large discs one view pixel
+    apart are nearly one disc: the normal equations of their positions, radii and
+    contrasts are nearly singular, and the first damped steps go wherever the pixels'
+    noise sends them (on 2 mm spheres one image's contrast ran to its bound and its
+    position off the volume). Apart by a fixed fraction of their radius, the fit is as
+    well conditioned at every image size."""
     return max(1.0, radius_px / 3.0) if np.isfinite(radius_px) else 1.0
 
 

@@ -422,8 +422,8 @@ class CheckSettings:
         Try to separate each particle whose refit could not explain the pixels into two
         particles on nearly one line of sight, which the centroids had taken for one
         (:func:`~plenoptrack.locate.perspective.split_merged_particles`): a joint fit of
-        two images started either side of it in depth by a third of its image radius of
-        image travel (at least one view pixel).
+        two images started one view pixel of image travel either side of it in depth
+        (once more a third of its image radius apart when that fit runs off).
         Needs ``refine_images``.
     split_max_model_error : float
         A particle is tried as two when its last image fit leaves more than this RMS
