@@ -1201,8 +1201,9 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     line of sight of its central-view image one view pixel of image travel in front of
     it and behind it (:func:`_line_of_sight_pair`); a fit that runs off from there is
     tried once more from a third of the image radius of travel
-    (:func:`split_start_travel`). The two are kept when both images are opaque enough (``settings.split_min_contrast``), the fit explains the pixels better
-    (model error at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
+    (:func:`split_start_travel`). The two are kept when both images are opaque enough
+    (``settings.split_min_contrast``), the fit explains the pixels better (model error
+    at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
     pair's own pixels, a mean-square residual lower than the single image's by at least
     :func:`split_gain_bar`: images of particles never located add to both alike, and
     cancel in the difference but not in the ratio), their
