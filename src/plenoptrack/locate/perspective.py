@@ -467,7 +467,8 @@ def segment_frame(lf: LightField, settings: SegmentSettings, *, frame: int = 0) 
         warnings.simplefilter("ignore", NoParticlesWarning)
         detections = segment_views(lf, contrast=settings.contrast,
                                    core_contrast=settings.core_contrast,
-                                   min_core_ratio=settings.min_core_ratio, **kw)
+                                   min_core_ratio=settings.min_core_ratio,
+                                   centroid_clip=settings.centroid_clip, **kw)
     if len(detections) and settings.max_view_ratio is not None:
         # A view with far more regions than the typical view is dominated by noise (a
         # dim, partly vignetted rim view): its regions would only inflate k and the

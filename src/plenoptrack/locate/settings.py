@@ -98,6 +98,21 @@ class SegmentSettings:
         particles, and judging the others against it lost them: recall 0.44 to 0.19 at
         magnification -1 on the development seeds when every core was judged so). 0
         counts every core. Chosen on the development seeds of the accuracy matrix.
+    centroid_clip : float
+        A pixel counts in its image's darkness-weighted centroid with at most this
+        fraction of the largest weight in its region (in (0, 1]; 1, the default, leaves
+        the weights as they are; the parts of a region shared out between its cores
+        keep theirs). An opaque particle's image is a dark plateau with a soft edge, and
+        the edge tells where it is; a bright spot on the plateau (a specular glint,
+        light let through the body) pulls an uncapped centroid away from itself, the
+        same way in every view. Capped, the plateau weighs evenly. Try 0.7 for sparse
+        fields of glinting particles of 1 mm and more: on the realistic development
+        frames of the accuracy matrix (glints lit from one side), 0.7 took the median
+        lateral error of 1 mm spheres from (-2.3, -1.2) to (-1.1, 0.0) um and their
+        robust lateral error down by 23-36 % (2 mm: 27-44 %). It costs in crowds, where
+        a capped centroid weighs the outline that touching images disturb: at 0.05
+        particles per microlens the robust depth error rose by a quarter. See the
+        locating guide.
     area_range : (float, float)
         Accepted region areas in a view, view pixels.
     max_eccentricity : float
@@ -122,6 +137,7 @@ class SegmentSettings:
     contrast: float = 0.15
     core_contrast: float | None = 0.85
     min_core_ratio: float = 0.08
+    centroid_clip: float = 1.0
     area_range: tuple[float, float] = (2.0, math.inf)
     max_eccentricity: float = 1.0
     max_view_ratio: float | None = 2.0
@@ -139,6 +155,8 @@ class SegmentSettings:
                  self.core_contrast)
         _require(0 <= self.min_core_ratio < 1, "min_core_ratio", "in [0, 1)",
                  self.min_core_ratio)
+        _require(0 < self.centroid_clip <= 1, "centroid_clip", "in (0, 1]",
+                 self.centroid_clip)
         lo, hi = _pair("area_range", self.area_range)
         _require(0 <= lo < hi, "area_range", "(low, high) with 0 <= low < high", self.area_range)
         object.__setattr__(self, "area_range", (lo, hi))
