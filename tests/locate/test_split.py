@@ -487,3 +487,47 @@ def test_a_split_tried_again_starts_its_images_a_third_of_the_radius_apart(small
             offset = there - here
             moved = np.sqrt(8.0 * np.sum(np.var(offset, axis=0)))
             assert moved == pytest.approx(travel, rel=0.05)
+
+
+def test_a_triple_whose_third_image_fades_is_fitted_again_as_its_pair(small_calibrated,
+                                                                      monkeypatch):
+    """Two 1 mm particles 0.25 mm apart laterally and 3.9 mm in depth (a pair missed on a
+    realistic development frame of the accuracy matrix's 1 mm cell). When the pair's
+    fit from its line-of-sight start runs off, the three-image trial can find both
+    particles with its third image faded out (contrast at its bound): a triple the
+    split's tests reject, but the two opaque images are the pair, fitted again alone."""
+    import plenoptrack.locate.perspective as perspective
+    import plenoptrack.locate.refine as refine
+
+    optics, calib = small_calibrated
+    truth = _truth([(-2.5, 1.2, -3.0), (-2.4, -1.4, 6.0),
+                    (2.712, 1.419, 4.994), (2.917, 1.563, 8.932)], 1.0)
+    raw = render_frame(optics, truth, seed=np.random.default_rng([0, 3, 0]))
+    starts, fits = [], []
+    line_of_sight_pair, fit_images = perspective._line_of_sight_pair, refine.fit_images
+
+    def pair_start(*args, **kwargs):
+        starts.append(line_of_sight_pair(*args, **kwargs))
+        return starts[-1]
+
+    def pair_runs_off(dlfc, views_uv, view_rc, data, free_xyz, *args, **kwargs):
+        free = np.atleast_2d(free_xyz)
+        if len(free) == 2 and any(np.allclose(free, s) for s in starts):
+            return None                  # the pair from its own start: as if it ran off
+        fit = fit_images(dlfc, views_uv, view_rc, data, free_xyz, *args, **kwargs)
+        fits.append(fit)
+        return fit
+
+    monkeypatch.setattr(perspective, "_line_of_sight_pair", pair_start)
+    monkeypatch.setattr(refine, "fit_images", pair_runs_off)
+    locator = PerspectiveLocator.from_dict({"check": {"find_hidden": False,
+                                                      "hidden_joint": False}})
+    found = locate_frame(raw, calib, locator=locator).particles
+    pairs = match_particles(found, truth, tolerance_mm=0.3)
+    assert len(found) == 4 and len(pairs) == 4
+    m, t = _paired(found, truth, pairs)
+    line = t["particle"].isin([2, 3]).to_numpy()
+    assert np.all((m["flags"].to_numpy()[line] & SPLIT) > 0)
+    # the route taken: a three-image fit with one image at the contrast bound
+    assert any(f is not None and len(f.params) == 3 and f.params[:, 4].min() < 0.5
+               for f in fits)
