@@ -1218,9 +1218,6 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     ``settings.split_max_model_error``), three images are tried under the same tests,
     started at the pair's starts and the image itself: a pair cannot explain three
     particles whose images all merge and can settle between them with one faint image.
-    When no pair passed and such a fit leaves one image faded out (contrast below
-    ``settings.split_min_contrast``) beside two opaque ones, those two are fitted again
-    alone as the pair, which the pair's own start missed.
     While the group still leaves the pixels unexplained, one of its images is split
     again under the same tests, up to ``settings.split_max_images`` images. The image
     nearer the merged solution in depth takes the particle's row, the others are
@@ -1366,13 +1363,12 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         return not _coincides(group_pred, fit.params[:, 3], pred[others], radius[others],
                               spans.subset(others))
 
-    def best_replacement(m, held, held_rc, start, error, reference, n, refit_faint=False):
+    def best_replacement(m, held, held_rc, start, error, reference, n):
         """The best fit on the trial views of ``start`` (k, 5) with one image replaced
         by ``n`` (2: the line-of-sight pair of :func:`_line_of_sight_pair`; 3: the pair
         and the image itself) that explains the pixels better than the ``reference``
         model with model error ``error`` (:func:`_explains_more`) and passes
-        :func:`distinct`; None if no replacement does. With ``refit_faint``, a fit of
-        three whose one image faded out is fitted again without it."""
+        :func:`distinct`; None if no replacement does."""
         best = None
         for j in range(len(start)):
             rc = np.vstack([np.delete(start[:, 3:], j, axis=0),
@@ -1388,13 +1384,6 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                                  reference=reference, edge=ctx.image_edge)
                 if fit is not None:
                     break
-            if fit is not None and refit_faint and n > 2 and np.sum(
-                    fit.params[:, 4] < settings.split_min_contrast) == 1:
-                opaque = fit.params[:, 4] >= settings.split_min_contrast
-                fit = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data,
-                                 fit.params[opaque, :3], fit.params[opaque, 3:], pos[held],
-                                 held_rc, max_depth_shift=ctx.volume_depth_mm,
-                                 reference=reference, edge=ctx.image_edge)
             if (fit is not None and _explains_more(fit, error, settings, gain_bar)
                     and (best is None or fit.model_error < best.model_error)
                     and distinct(fit, m)):
@@ -1415,12 +1404,9 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         # by three on its line of sight (itself and the pair's starts) finds them.
         if (len(start) + 2 <= settings.split_max_images
                 and (best is None or best.model_error > split_max)):
-            # a triple whose one image fades out has found a pair that the pair's own
-            # start missed: when no pair passed, those two are fitted again alone
             more = best_replacement(m, held, held_rc, start,
                                     *((error, reference) if best is None
-                                      else (best.model_error, best.params)), 3,
-                                    refit_faint=best is None)
+                                      else (best.model_error, best.params)), 3)
             best = best if more is None else more
         if best is None or all_views:
             return None if best is None else (best, best.model_error)
