@@ -511,3 +511,18 @@ def test_the_cap_changes_only_the_centroid():
     moved = ["s", "t"]
     pd.testing.assert_frame_equal(plain.drop(columns=moved), capped.drop(columns=moved))
     assert not np.allclose(plain[moved].to_numpy(), capped[moved].to_numpy())
+
+
+def test_an_image_without_a_plateau_is_not_capped():
+    """A 2-pixel image's peak is its edge: no pixel above the cap has its four
+    neighbours above it too, and its centroid is the uncapped one."""
+    rng = np.random.default_rng(5)
+    for _ in range(10):
+        centre = np.array([20.0, 20.0]) + rng.uniform(-0.5, 0.5, 2)
+        image = _glinting_disc((41, 41), centre, 1.0, glint=0.5)
+        plain, capped = segment_view(image), segment_view(image, centroid_clip=0.7)
+        pd.testing.assert_frame_equal(plain, capped)
+    # a large image has a plateau, and its centroid moves
+    image = _glinting_disc((41, 41), (20.2, 19.7), 4.0, glint=0.5)
+    assert not np.allclose(segment_view(image)[["s", "t"]].to_numpy(),
+                           segment_view(image, centroid_clip=0.7)[["s", "t"]].to_numpy())

@@ -333,8 +333,8 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
     """Segment one view; write per-region sums into ``out``; return the region count.
 
     A pixel's centroid weight is capped at ``centroid_clip`` times the largest weight
-    in its region, in regions not shared out between cores; 1 leaves the weights as
-    they are.
+    in its region, in regions not shared out between cores that have a plateau above
+    the cap; 1 leaves the weights as they are.
 
     With ``core_contrast > 0`` a region with several cores is written as one row per
     core (its part of the region, see :func:`_split_by_cores`) instead of one row.
@@ -438,6 +438,24 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
             if 0 <= un < n_reg and weight[pi[p], pj[p]] > top[un]:
                 top[un] = weight[pi[p], pj[p]]
         top[:n_reg] *= centroid_clip
+        # only a plateau is capped: a region some pixel of which lies above the cap
+        # with its four neighbours (a small image's peak is its edge, and capping it
+        # only pulls the centroid towards the pixel grid)
+        plateau = np.zeros(n_reg, dtype=np.bool_)
+        for p in range(n_px):
+            i, j = pi[p], pj[p]
+            un = unit[i, j]
+            if un < 0 or un >= n_reg or plateau[un] or weight[i, j] < top[un]:
+                continue
+            if 0 < i < h - 1 and 0 < j < w - 1:
+                inner = True
+                for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
+                    if unit[i + di, j + dj] != un or weight[i + di, j + dj] < top[un]:
+                        inner = False
+                plateau[un] = inner
+        for un in range(n_reg):
+            if not plateau[un]:
+                top[un] = np.inf
     row_of = np.full(n_units, -1, dtype=np.int64)
     n_row = 0
     for p in range(n_px):
@@ -817,14 +835,15 @@ def segment_array(data: np.ndarray, u, v, *, view_mask=None, spatial_mask=None,
         particle of its own (in [0, 1); 0 counts every core).
     centroid_clip : float
         Cap on a pixel's centroid weight, as a fraction of the largest weight in its
-        region, in (0, 1]; 1 leaves the weights uncapped. The parts of a region shared
-        out between its cores keep their weights. A capped
-        image weighs its dark plateau evenly, so a bright spot on it (a specular glint,
-        light let through the body) no longer pulls the centroid away from itself; the
-        soft edge, which carries the position, keeps its grey levels. The cost: an image
-        whose edge is sharp against the pixel grid is pulled more towards pixel centres
-        (pixel-locking), 1.7 times the centroid scatter of a blurred 3-pixel disc at a
-        cap of 0.7 against none.
+        region, in (0, 1]; 1 (default) leaves the weights uncapped. Only a region with a
+        plateau above the cap (a pixel above it whose four neighbours are too) is
+        capped, and the parts of a region shared out between its cores keep their
+        weights. A capped image weighs its dark plateau evenly, so a bright spot on it
+        (a specular glint, light let through the body) no longer pulls the centroid away
+        from itself; the soft edge, which carries the position, keeps its grey levels. A
+        small image has no plateau: capping its peak, which is its edge, would only
+        pull the centroid towards the pixel grid (1.7 times the centroid scatter of a
+        blurred 3-pixel disc at a cap of 0.7 against none).
 
     Returns
     -------
