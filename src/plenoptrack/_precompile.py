@@ -111,6 +111,7 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate.segment._block_mean", "plenoptrack.locate.segment._fill_nan",
     "plenoptrack.locate.segment._interp_axis", "plenoptrack.locate.segment._grid_row",
     "plenoptrack.locate.segment._at", "plenoptrack.locate.segment._segment_one",
+    "plenoptrack.locate.segment._centroid_caps",
     "plenoptrack.locate.segment._label_pixel", "plenoptrack.locate.segment._label_cores",
     "plenoptrack.locate.segment._split_by_cores", "plenoptrack.locate.segment._add_rim_shadow",
     "plenoptrack.locate.segment._reset", "plenoptrack.locate.segment._work_arrays",

@@ -328,6 +328,41 @@ def _background_offset(rel_dark, valid, contrast):  # pragma: no cover - compile
 
 
 @numba.njit(cache=True)
+def _centroid_caps(weight, unit, pi, pj, n_reg, n_units, clip):  # pragma: no cover - compiled
+    """(n_units,) cap on the centroid weight of each unit's pixels: ``clip`` times the
+    largest weight of a whole region (unit below ``n_reg``) that has a plateau above
+    that level, some pixel above it with its four neighbours; infinite (no cap) for the
+    rest, for the parts of regions shared out between cores and for every unit when
+    ``clip`` is 1. A small image has no plateau: its peak is its edge, and capping it
+    would only pull the centroid towards the pixel grid."""
+    top = np.full(n_units, np.inf)
+    if clip >= 1.0:
+        return top
+    h, w = unit.shape
+    top[:n_reg] = 0.0
+    for p in range(pi.shape[0]):
+        un = unit[pi[p], pj[p]]
+        if 0 <= un < n_reg and weight[pi[p], pj[p]] > top[un]:
+            top[un] = weight[pi[p], pj[p]]
+    top[:n_reg] *= clip
+    plateau = np.zeros(n_reg, dtype=np.bool_)
+    for p in range(pi.shape[0]):
+        i, j = pi[p], pj[p]
+        un = unit[i, j]
+        if un < 0 or un >= n_reg or plateau[un] or weight[i, j] < top[un]:
+            continue
+        if 0 < i < h - 1 and 0 < j < w - 1:
+            plateau[un] = (unit[i - 1, j] == un and weight[i - 1, j] >= top[un]
+                           and unit[i + 1, j] == un and weight[i + 1, j] >= top[un]
+                           and unit[i, j - 1] == un and weight[i, j - 1] >= top[un]
+                           and unit[i, j + 1] == un and weight[i, j + 1] >= top[un])
+    for un in range(n_reg):
+        if not plateau[un]:
+            top[un] = np.inf
+    return top
+
+
+@numba.njit(cache=True)
 def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_core_ratio,
                  conn8, centroid_clip, out, work):  # pragma: no cover - compiled
     """Segment one view; write per-region sums into ``out``; return the region count.
@@ -429,33 +464,7 @@ def _segment_one(img, mask, zero_invalid, b, rb, contrast, core_contrast, min_co
         n_units = n_reg
         for p in range(n_px):
             unit[pi[p], pj[p]] = reg[pi[p], pj[p]]
-    # the cap on the centroid weights of each whole region (parts keep theirs)
-    top = np.full(n_units, np.inf)
-    if centroid_clip < 1.0:
-        top[:n_reg] = 0.0
-        for p in range(n_px):
-            un = unit[pi[p], pj[p]]
-            if 0 <= un < n_reg and weight[pi[p], pj[p]] > top[un]:
-                top[un] = weight[pi[p], pj[p]]
-        top[:n_reg] *= centroid_clip
-        # only a plateau is capped: a region some pixel of which lies above the cap
-        # with its four neighbours (a small image's peak is its edge, and capping it
-        # only pulls the centroid towards the pixel grid)
-        plateau = np.zeros(n_reg, dtype=np.bool_)
-        for p in range(n_px):
-            i, j = pi[p], pj[p]
-            un = unit[i, j]
-            if un < 0 or un >= n_reg or plateau[un] or weight[i, j] < top[un]:
-                continue
-            if 0 < i < h - 1 and 0 < j < w - 1:
-                inner = True
-                for di, dj in ((-1, 0), (1, 0), (0, -1), (0, 1)):
-                    if unit[i + di, j + dj] != un or weight[i + di, j + dj] < top[un]:
-                        inner = False
-                plateau[un] = inner
-        for un in range(n_reg):
-            if not plateau[un]:
-                top[un] = np.inf
+    top = _centroid_caps(weight, unit, pi, pj, n_reg, n_units, centroid_clip)
     row_of = np.full(n_units, -1, dtype=np.int64)
     n_row = 0
     for p in range(n_px):
