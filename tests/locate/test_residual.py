@@ -338,3 +338,95 @@ def test_an_unexplained_hidden_particle_is_kept_only_if_it_still_explains_its_pi
     assert np.isfinite(after.positions[2]).all() == kept
     assert (after.table.loc[2, "n_views"] > 0) == kept
     np.testing.assert_array_equal(after.positions[:2], state.positions[:2])
+
+
+def test_uncovered_views_count_the_free_regions_no_located_image_covers():
+    """``_n_uncovered_views`` against the definition checked region by region: the
+    views (usable ones only) holding a region that no particle owns whose centroid is
+    farther than radius + grow tolerance from every located image's centre there."""
+    from types import SimpleNamespace
+
+    rng = np.random.default_rng(5)
+    n_u = n_v = 5
+    views = np.array([[u, v] for v in range(n_v) for u in range(n_u)], float) - 2.0
+    valid = rng.uniform(0.2, 1.0, (n_v, n_u))                # some views not usable
+    usable = valid[(views[:, 1] + 2).astype(int), (views[:, 0] + 2).astype(int)] > 0.5
+    lf = SimpleNamespace(u=np.arange(n_u) - 2.0, v=np.arange(n_v) - 2.0,
+                         valid_fraction=valid)
+    n_fit = int(usable.sum())
+    counts = []
+    for _ in range(20):
+        m = 30
+        view = rng.integers(0, len(views), m)
+        st = rng.uniform(0, 30, (m, 2))
+        owner = rng.choice([-2, -1, 0, 1], m)
+        pred = rng.uniform(0, 30, (6, n_fit, 2))
+        pred[rng.random((6, n_fit)) < 0.1] = np.nan
+        radius = rng.uniform(1.0, 6.0, 6)
+        ctx = SimpleNamespace(lf=lf, views=views, view=view, st=st, tolerance_px=1.0)
+        fit_index = np.cumsum(usable) - 1
+        expected = set()
+        for k in range(m):
+            if owner[k] >= 0 or not usable[view[k]]:
+                continue
+            d = np.hypot(*(pred[:, fit_index[view[k]]] - st[k]).T)
+            if not np.any(d <= radius + 1.0):
+                expected.add(view[k])
+        got = perspective._n_uncovered_views(ctx, owner, pred, radius)
+        assert got == len(expected)
+        counts.append(got)
+        assert perspective._n_uncovered_views(ctx, owner, pred[:0], radius[:0]) == len(
+            np.unique(view[(owner < 0) & usable[view]]))
+    assert 0 < min(counts) < max(counts) < n_fit           # neither none nor all covered
+
+
+def test_a_particle_whose_regions_were_freed_is_found_when_every_fit_explains(
+        small_calibrated):
+    """A sparse frame (12 particles of 0.6 mm), located up to the image fits; one
+    particle is then dropped and its regions freed, as when a particle built from
+    merged images is dropped and the real ones it took regions from are left
+    unclustered. Every fit left explains its pixels, so the fit test alone would not
+    search; the regions no located image covers (in more than ``min_views`` views)
+    start the search, which finds the particle again within 0.1 mm."""
+    import warnings
+
+    optics, calib = small_calibrated
+    scene = make_scene(calib.camera, n_particles=12, seed=31, diameter_mm=0.6)
+    raw = render_frame(optics, scene.truth, seed=np.random.default_rng([31, 3, 0]))
+    locator = PerspectiveLocator()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        lf = perspective._decoded(raw, calib, 0, None)
+        detections = perspective.segment_frame(lf, locator.segment, frame=0)
+        ctx = perspective.FrameContext.build(lf, calib, detections, locator)
+        state = perspective._cluster_and_solve(
+            ctx, ParticleState.start(ctx, locator.segment), locator)
+        state = perspective.check_particles(ctx, state, locator)
+        state = perspective.refine_particles(ctx, state, locator)
+    fit_error = state.table[perspective._FIT_ERROR].to_numpy(float)
+    live = state.live(locator.solve.min_views)
+    explained = live & (fit_error <= locator.check.refine_max_model_error)
+    # the best-seen particle whose fit explains its pixels, matched to a true one
+    found = pd.DataFrame(state.positions, columns=["x", "y", "z"])
+    pairs = match_particles(found[explained], scene.truth, tolerance_mm=0.2)
+    n_views = state.table["n_views"].to_numpy(float)
+    drop = int(max(pairs["measured_index"], key=lambda j: n_views[j]))
+    true_xyz = scene.truth.loc[pairs.set_index("measured_index").loc[drop, "truth_index"],
+                               ["x", "y", "z"]].to_numpy(float)
+    keep = explained.copy()
+    keep[drop] = False
+    owner = np.where(np.isin(state.owner, np.flatnonzero(~keep)), -1, state.owner)
+    positions = state.positions.copy()
+    positions[~keep] = np.nan
+    table = state.table.assign(n_views=np.where(keep, n_views, 0))
+    freed = dataclasses.replace(state, owner=owner, positions=positions, table=table)
+    # the fit test alone would not search
+    assert not np.any(freed.live(locator.solve.min_views)
+                      & (fit_error > locator.check.refine_max_model_error))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        _, joined, n_new = perspective.find_hidden_particles(ctx, freed, locator, calib)
+    assert n_new >= 1
+    new_xyz = joined.positions[state.n_particles:]
+    err = np.abs(new_xyz - true_xyz)
+    assert np.any(np.all(err <= [0.05, 0.05, 0.1], axis=1)), new_xyz

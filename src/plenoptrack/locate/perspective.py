@@ -843,10 +843,17 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     # whose images merge with a located particle's in most views spoils that one's fit.
     fit_error = (table[_FIT_ERROR].to_numpy(float) if _FIT_ERROR in table.columns
                  else np.full(n, np.nan))
-    if not np.any(live & (fit_error > locator.check.refine_max_model_error)):
-        return ctx, state, 0
     views_uv, view_rc = _fit_views(ctx)
     pred = _predict_all(ctx.dlfc, np.where(live[:, None], state.positions, np.nan), views_uv)
+    # ... or one whose images no located particle's cover, in half as many views as a
+    # located particle is typically seen in: regions freed when a particle built from
+    # merged images was dropped are never clustered again (noise specks, seen in a few
+    # noisy views, are not worth a search)
+    n_views = state.table["n_views"].to_numpy(float)
+    enough = max(locator.solve.min_views, 0.5 * float(np.median(n_views[live])))
+    if (not np.any(live & (fit_error > locator.check.refine_max_model_error))
+            and _n_uncovered_views(ctx, state.owner, pred[live], radius[live]) < enough):
+        return ctx, state, 0
     lf = ctx.lf
     residual = divide_out_particles(lf, view_rc, pred[live], radius[live], contrast[live],
                                     floor=locator.check.hidden_floor,
@@ -1019,6 +1026,28 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
             int(new.sum()))
 
 
+def _n_uncovered_views(ctx: FrameContext, owner: np.ndarray, pred: np.ndarray,
+                       radius: np.ndarray) -> int:
+    """The number of (fit) views holding a region no particle owns (``owner`` < 0,
+    unassigned or held back as merged) whose centroid lies inside none of the images
+    ``pred`` (P, V, 2) of radius ``radius`` (P,), view pixels, widened by the grow
+    tolerance."""
+    usable = _usable_views(ctx)
+    fit_view = np.cumsum(usable) - 1                 # ctx.views index -> _fit_views index
+    free = np.flatnonzero((owner < 0) & usable[ctx.view])
+    if len(free) == 0:
+        return 0
+    if len(pred) == 0:
+        return len(np.unique(ctx.view[free]))
+    n_v = pred.shape[1]
+    reach = radius + ctx.tolerance_px
+    q, d, dist = pairs_within(ctx.st[free], fit_view[ctx.view[free]], float(reach.max()),
+                              pred.reshape(-1, 2), np.tile(np.arange(n_v), len(pred)))
+    covered = np.zeros(len(free), dtype=bool)
+    covered[q[dist <= reach[d // n_v]]] = True
+    return len(np.unique(ctx.view[free[~covered]]))
+
+
 def search_hidden_rounds(ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator,
                          calibration, *, frame: int = 0) -> tuple[FrameContext, ParticleState]:
     """Stage 5d repeated: up to ``check.hidden_rounds`` rounds of
@@ -1176,11 +1205,17 @@ _FIT_CONTRAST = "_fit_contrast"
 def _fit_views(ctx: FrameContext) -> tuple[np.ndarray, np.ndarray]:
     """The views an image fit uses (more than half of their samples valid): their
     ``(u, v)`` (V, 2) and their ``(v, u)`` index into the light field (V, 2)."""
-    lf = ctx.lf
-    vi = np.searchsorted(lf.v, ctx.views[:, 1])
-    ui = np.searchsorted(lf.u, ctx.views[:, 0])
-    usable = lf.valid_fraction[vi, ui] > MIN_VIEW_FRACTION
+    vi = np.searchsorted(ctx.lf.v, ctx.views[:, 1])
+    ui = np.searchsorted(ctx.lf.u, ctx.views[:, 0])
+    usable = _usable_views(ctx)
     return ctx.views[usable], np.c_[vi, ui][usable]
+
+
+def _usable_views(ctx: FrameContext) -> np.ndarray:
+    """(len(ctx.views),) bool: the views of :func:`_fit_views`."""
+    lf = ctx.lf
+    return (lf.valid_fraction[np.searchsorted(lf.v, ctx.views[:, 1]),
+                              np.searchsorted(lf.u, ctx.views[:, 0])] > MIN_VIEW_FRACTION)
 
 
 def split_merged_particles(ctx: FrameContext, state: ParticleState,
