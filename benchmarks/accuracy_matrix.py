@@ -79,8 +79,11 @@ image, decoded once, flat-fields every frame located with that calibration (as
 every cell with that magnification are then simulated with the same camera, optics mode
 and seed but ``dotcard_depths=[]`` (no cards rendered twice); the script checks that their
 true optics equal those of the calibration data set. Each cell gets
-``ceil(min_particles / n)`` frames (``--min-particles``), each frame an independent
-random scene, so that sparse cells still hold enough particles.
+``max(min_frames, ceil(min_particles / n))`` frames (``--min-particles``,
+``--min-frames``), each frame an independent random scene, so that sparse cells still hold
+enough particles. ``--acceptance`` takes at least 3 frames per cell and seed: the recall of
+a crowded cell swings by a few hundredths from frame to frame with any change to the
+locator, and one frame per seed left its targets unreadable.
 
 Metrics (per cell, optics mode and seed set; matched pairs pooled over the seeds)
 -------------------------------------------------------------------------------
@@ -391,6 +394,11 @@ def source_density(truth: pd.DataFrame, camera) -> float:
     return density(truth, camera)
 
 
+def frames_per_seed(cell: Cell, min_particles: int, min_frames: int = 1) -> int:
+    """Frames of a cell per seed: at least ``min_frames`` and ``min_particles`` particles."""
+    return max(1, int(min_frames), math.ceil(min_particles / n_particles(cell)))
+
+
 def make_cell_scene(cell: Cell, seed: int, frames: int):
     """Independent random scenes, one per frame, in one :class:`Scene`."""
     from plenoptrack.simulate import random_particles
@@ -498,9 +506,10 @@ def _clean(value):
 class Runner:
     """Calibrates once per (magnification, optics, seed) and runs the cells on it."""
 
-    def __init__(self, tmp: Path, min_particles: int, t0: float):
+    def __init__(self, tmp: Path, min_particles: int, t0: float, min_frames: int = 1):
         self.tmp = tmp
         self.min_particles = min_particles
+        self.min_frames = min_frames
         self.t0 = t0
         self.warm = False
         self.calibrations: list[dict] = []
@@ -548,7 +557,7 @@ class Runner:
         from plenoptrack.simulate import simulate_dataset
 
         n = n_particles(cell)
-        frames = max(1, math.ceil(self.min_particles / n))
+        frames = frames_per_seed(cell, self.min_particles, self.min_frames)
         scene = make_cell_scene(cell, seed, frames)
         folder = self.tmp / f"frames_{zlib.crc32(cell.name.encode())}_{optics}_{seed}"
         sim = simulate_dataset(cell.preset, folder, seed=seed, scene=scene,
@@ -823,7 +832,8 @@ def write_report(out: Path, doc: dict) -> Path:
               f"- base cell: {meta['base']}; one-axis sweeps around it; every cell with "
               f"optics ideal and realistic, the effect cells with the ideal optics plus one "
               f"group of effects"),
-             f"- at least {meta['min_particles']} particles per cell and seed (independent "
+             f"- at least {meta['min_particles']} particles and "
+             f"{meta.get('min_frames', 1)} frames per cell and seed (independent "
              "random scenes, one per frame)",
              f"- matching: Hungarian within an ellipsoid of half-axes {TOL_LATERAL_MM} mm "
              f"(x, y) x 0.5/|M| and {TOL_DEPTH_MM} mm (z) x (0.5/|M|)^2; `chance` = expected "
@@ -1059,6 +1069,8 @@ def main(argv=None) -> int:
                         help="optics modes (default both)")
     parser.add_argument("--min-particles", type=int, default=None,
                         help="fewest particles per cell and seed (default 80, quick 40)")
+    parser.add_argument("--min-frames", type=int, default=None,
+                        help="fewest frames per cell and seed (default 1, acceptance 3)")
     parser.add_argument("--out", type=Path,
                         default=Path(__file__).parent / "results" / "accuracy_matrix",
                         help="output folder (default benchmarks/results/accuracy_matrix/)")
@@ -1070,6 +1082,9 @@ def main(argv=None) -> int:
     min_particles = args.min_particles or (40 if args.quick else 80)
     if min_particles < 1:
         parser.error(f"--min-particles must be at least 1; got {min_particles}")
+    min_frames = args.min_frames or (3 if args.acceptance else 1)
+    if min_frames < 1:
+        parser.error(f"--min-frames must be at least 1; got {min_frames}")
 
     import plenoptrack
     from plenoptrack.locate.perspective import PerspectiveLocator
@@ -1101,7 +1116,7 @@ def main(argv=None) -> int:
     results = []
     done = 0
     with tempfile.TemporaryDirectory(prefix="accuracy_matrix_") as tmp:
-        runner = Runner(Path(tmp), min_particles, t0)
+        runner = Runner(Path(tmp), min_particles, t0, min_frames)
         for preset_name, mag, optics, seed_set, seed, todo in jobs:
             calib, white, cal_optics = runner.calibrate(preset_name, mag, optics, seed)
             for cell in todo:
@@ -1144,14 +1159,14 @@ def main(argv=None) -> int:
                     "hall": args.hall, "acceptance": args.acceptance, "wall_s": wall, "cpus": len(__import__("os").sched_getaffinity(0)),
                     "dev_seeds": list(seed_sets["development"]),
                     "validation_seeds": list(seed_sets["validation"]),
-                    "base": BASE, "min_particles": min_particles,
+                    "base": BASE, "min_particles": min_particles, "min_frames": min_frames,
                     "tolerance": {"lateral_mm_at_M0.5": TOL_LATERAL_MM,
                                   "depth_mm_at_M0.5": TOL_DEPTH_MM},
                     "locator": PerspectiveLocator().settings(), "skipped": skipped,
                     "python": sys.version.split()[0]},
            "cells": [c.params() | {"n_particles": n_particles(c),
                                    "footprint": footprint_fraction(c),
-                                   "frames": max(1, math.ceil(min_particles / n_particles(c))),
+                                   "frames": frames_per_seed(c, min_particles, min_frames),
                                    "tolerance_mm": list(tolerances(c.magnification)),
                                    "chance": next((r["chance"] for r in results
                                                    if r["cell"] == c.name), math.nan)}

@@ -27,3 +27,26 @@ def test_sparse_cells_are_sparse_where_their_particles_are(matrix):
     for cell in (c for c in cells if c.axis == "density"):
         whole = matrix.n_microlenses(matrix._camera(cell))
         assert matrix.n_particles(cell) == round(cell.density * whole)
+
+
+def test_more_frames_per_seed_keep_the_earlier_frames(matrix):
+    """``frames_per_seed``: at least ``min_frames`` frames and ``min_particles``
+    particles per cell and seed; and a cell's scene of more frames starts with the same
+    frames (the acceptance's extra frames of crowded cells add frames, they do not
+    redraw the first)."""
+    cells, _ = matrix.build_cells(quick=False, hall=False, shapes=None, acceptance=True)
+    crowded = next(c for c in cells if c.axis == "density" and c.density == 0.05)
+    n = matrix.n_particles(crowded)
+    assert n > 80                                                  # one frame holds 80
+    assert matrix.frames_per_seed(crowded, 80) == 1
+    assert matrix.frames_per_seed(crowded, 80, 3) == 3
+    assert matrix.frames_per_seed(crowded, 3 * n + 1, 3) == 4
+    sparse = next(c for c in cells if c.axis == "sparse")
+    assert matrix.frames_per_seed(sparse, 80, 3) * matrix.n_particles(sparse) >= 80
+    one = matrix.make_cell_scene(crowded, 900, 1).truth
+    three = matrix.make_cell_scene(crowded, 900, 3).truth
+    assert sorted(three["frame"].unique()) == [0, 1, 2]
+    first = three[three["frame"] == 0].reset_index(drop=True)
+    assert first[["x", "y", "z", "diameter"]].equals(one[["x", "y", "z", "diameter"]])
+    later = three[three["frame"] == 1][["x", "y", "z"]].to_numpy()
+    assert not (later[:, None, :] == first[["x", "y", "z"]].to_numpy()[None]).all(-1).any()
