@@ -819,8 +819,10 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     their regions, their position, sigma and image from the fit (``REFINED``; their size
     too, in :func:`measure_particles`: their regions were cut by the images divided out).
     Nothing is searched when every located particle's last image fit explains its pixels
-    to within ``check.refine_max_model_error``, the gain a particle found must bring: one
-    whose images merge with a located particle's would have spoilt that one's fit. Returns
+    to within ``check.refine_max_model_error``, the gain a particle found must bring (one
+    whose images merge with a located particle's would have spoilt that one's fit), and
+    no more than a few views hold regions no located image covers
+    (:func:`_may_hide_particles`). Returns
     the frame context over both sets of regions, the joined state and the number of
     particles added.
     """
@@ -839,20 +841,11 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     contrast = (np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
                 if _FIT_CONTRAST in table.columns else np.full(n, 0.9))
     live &= np.isfinite(radius) & (radius > 0)
-    # Only a frame whose image fits left something unexplained can hide a particle: one
-    # whose images merge with a located particle's in most views spoils that one's fit.
     fit_error = (table[_FIT_ERROR].to_numpy(float) if _FIT_ERROR in table.columns
                  else np.full(n, np.nan))
     views_uv, view_rc = _fit_views(ctx)
     pred = _predict_all(ctx.dlfc, np.where(live[:, None], state.positions, np.nan), views_uv)
-    # ... or one whose images no located particle's cover, in half as many views as a
-    # located particle is typically seen in: regions freed when a particle built from
-    # merged images was dropped are never clustered again (noise specks, seen in a few
-    # noisy views, are not worth a search)
-    n_views = state.table["n_views"].to_numpy(float)
-    enough = max(locator.solve.min_views, 0.5 * float(np.median(n_views[live])))
-    if (not np.any(live & (fit_error > locator.check.refine_max_model_error))
-            and _n_uncovered_views(ctx, state.owner, pred[live], radius[live]) < enough):
+    if not _may_hide_particles(ctx, state, live, fit_error, pred, radius, locator):
         return ctx, state, 0
     lf = ctx.lf
     residual = divide_out_particles(lf, view_rc, pred[live], radius[live], contrast[live],
@@ -1024,6 +1017,24 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                         ignore_index=True))
     return (FrameContext.build(lf, calibration, detections, locator), joined,
             int(new.sum()))
+
+
+def _may_hide_particles(ctx: FrameContext, state: ParticleState, live: np.ndarray,
+                        fit_error: np.ndarray, pred: np.ndarray, radius: np.ndarray,
+                        locator: PerspectiveLocator) -> bool:
+    """Whether the frame can hide a particle the search would find: some ``live``
+    particle's last image fit leaves more than ``check.refine_max_model_error``
+    unexplained (one whose images merge with a located particle's in most views spoils
+    that one's fit), or regions no located image covers (``pred`` (P, V, 2), ``radius``
+    (P,)) are seen in at least half as many views as a located particle typically is
+    (its median ``n_views``, and at least ``solve.min_views``): regions freed when a
+    particle built from merged images was dropped are never clustered again, while
+    noise specks, seen in a few noisy views, are not worth a search."""
+    if np.any(live & (fit_error > locator.check.refine_max_model_error)):
+        return True
+    n_views = state.table["n_views"].to_numpy(float)
+    enough = max(locator.solve.min_views, 0.5 * float(np.median(n_views[live])))
+    return _n_uncovered_views(ctx, state.owner, pred[live], radius[live]) >= enough
 
 
 def _n_uncovered_views(ctx: FrameContext, owner: np.ndarray, pred: np.ndarray,
