@@ -1030,6 +1030,8 @@ def _may_hide_particles(ctx: FrameContext, state: ParticleState, live: np.ndarra
     (its median ``n_views``, and at least ``solve.min_views``): regions freed when a
     particle built from merged images was dropped are never clustered again, while
     noise specks, seen in a few noisy views, are not worth a search."""
+    if not live.any():
+        return False                        # nothing to divide out
     if np.any(live & (fit_error > locator.check.refine_max_model_error)):
         return True
     n_views = state.table["n_views"].to_numpy(float)
