@@ -497,10 +497,10 @@ class CheckSettings:
         refined and split again. It runs only in frames where a located particle's fit
         leaves more than ``refine_max_model_error`` unexplained, or where regions no
         particle owns and no located image covers are seen in half as many views as a
-        located particle typically is (regions freed when the checks drop a particle). On the accuracy
-        matrix's validation cells it adds +0.45 recall and +0.16 precision summed over
-        the cells, at 1.18 times the time per frame (docs: locating). Needs
-        ``refine_images``.
+        located particle typically is (regions freed when the checks drop a particle).
+        On the accuracy matrix's validation cells it adds +0.45 recall and +0.16
+        precision summed over the cells, at 1.18 times the time per frame (docs:
+        locating). Needs ``refine_images``.
     hidden_rounds : int
         At most this many rounds of that search, each on the residual of every particle
         located so far (found in the rounds before included), as iterative particle
