@@ -323,13 +323,13 @@ def test_a_large_particles_held_images_join_it():
     assert np.all(got == _assign._MERGED)
 
 
-def test_a_solve_reuses_exactly_the_particles_whose_centroids_did_not_change(small_calibrated):
+def test_a_solve_reuses_exactly_the_particles_whose_centroids_did_not_change(small_calibrated,
+                                                                          clustered_and_solved):
     """:class:`~plenoptrack.locate.perspective.SolveMemo`: after a frame's solve rounds,
     solving again with the memo gives what solving every particle afresh gives (positions
     within 1e-6 mm, the same centroids kept); a particle that lost a centroid is the one
     solved again, and a new frame context solves them all."""
     import dataclasses
-    import warnings
 
     from plenoptrack.locate.settings import PerspectiveLocator
 
@@ -337,13 +337,7 @@ def test_a_solve_reuses_exactly_the_particles_whose_centroids_did_not_change(sma
     scene = make_scene(calib.camera, n_particles=30, seed=4, diameter_mm=0.4)
     raw = _frame(optics, scene.truth, 4)
     locator = PerspectiveLocator()
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        lf = perspective._decoded(raw, calib, 0, None)
-        detections = perspective.segment_frame(lf, locator.segment, frame=0)
-        ctx = perspective.FrameContext.build(lf, calib, detections, locator)
-        state = perspective._cluster_and_solve(
-            ctx, perspective.ParticleState.start(ctx, locator.segment), locator)
+    ctx, state = clustered_and_solved(raw, calib, locator)
     settings = locator.solve
     assert state.solved is not None and state.n_particles >= 25
 

@@ -74,31 +74,27 @@ def test_too_few_residuals_give_no_pattern():
     assert fit_locking_pattern(rng.normal(0, 0.05, (300, 2)), phase, travel) is None
 
 
-def _checked_frame(small_calibrated, n_particles, seed):
+def _checked_frame(small_calibrated, clustered_and_solved, n_particles, seed):
     """Calibration, scene, frame context and particle state of one rendered frame of
     0.4 mm spheres, located up to the consistency checks (where the correction runs)."""
     optics, calib = small_calibrated
     scene = make_scene(calib.camera, n_particles=n_particles, seed=seed, diameter_mm=0.4)
     raw = render_frame(optics, scene.truth, seed=np.random.default_rng([seed, 3, 0]))
     locator = PerspectiveLocator()
+    ctx, state = clustered_and_solved(raw, calib, locator)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        lf = perspective._decoded(raw, calib, 0, None)
-        detections = perspective.segment_frame(lf, locator.segment, frame=0)
-        ctx = perspective.FrameContext.build(lf, calib, detections, locator)
-        state = perspective._cluster_and_solve(
-            ctx, perspective.ParticleState.start(ctx, locator.segment), locator)
         state = perspective.check_particles(ctx, state, locator)
     return calib, scene, ctx, state
 
 
-def test_locator_learns_the_pattern_the_truth_shows(small_calibrated):
+def test_locator_learns_the_pattern_the_truth_shows(small_calibrated, clustered_and_solved):
     """One frame of 40 isolated 0.4 mm particles (ideal optics): the pattern learned from
     the centroids' scatter about the located particles against the same fit to their
     scatter about the predictions of the true positions (an independent reference):
     the two agree at the phases of a 20 x 20 grid (correlation above 0.8, RMS within a
     factor 1.5)."""
-    calib, scene, ctx, state = _checked_frame(small_calibrated, 40, 41)
+    calib, scene, ctx, state = _checked_frame(small_calibrated, clustered_and_solved, 40, 41)
     locator = PerspectiveLocator()
     learned, travel = perspective.learn_pixel_locking(ctx, state, locator.solve, calib.grid)
     assert learned is not None
@@ -127,11 +123,12 @@ def test_locator_learns_the_pattern_the_truth_shows(small_calibrated):
 
 
 def test_a_frame_without_its_own_pattern_uses_the_calibrations(small_calibrated,
+                                                                 clustered_and_solved,
                                                                  monkeypatch):
     """With ``solve.locking_from_calibration``, every centroid moves by the calibration's
     pattern at its phase and its particle's travel when the frame shows none; without it,
     or without a calibration pattern, nothing moves."""
-    calib, scene, ctx, state = _checked_frame(small_calibrated, 4, 43)
+    calib, scene, ctx, state = _checked_frame(small_calibrated, clustered_and_solved, 4, 43)
     locator = PerspectiveLocator()
     own, travel = perspective.learn_pixel_locking(ctx, state, locator.solve, calib.grid)
     assert own is None                                       # four particles are too few

@@ -381,7 +381,7 @@ def test_uncovered_views_count_the_free_regions_no_located_image_covers():
 
 
 def test_a_particle_whose_regions_were_freed_is_found_when_every_fit_explains(
-        small_calibrated):
+        small_calibrated, clustered_and_solved):
     """A sparse frame (12 particles of 0.6 mm), located up to the image fits; one
     particle is then dropped and its regions freed, as when a particle built from
     merged images is dropped and the real ones it took regions from are left
@@ -394,13 +394,9 @@ def test_a_particle_whose_regions_were_freed_is_found_when_every_fit_explains(
     scene = make_scene(calib.camera, n_particles=12, seed=31, diameter_mm=0.6)
     raw = render_frame(optics, scene.truth, seed=np.random.default_rng([31, 3, 0]))
     locator = PerspectiveLocator()
+    ctx, state = clustered_and_solved(raw, calib, locator)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        lf = perspective._decoded(raw, calib, 0, None)
-        detections = perspective.segment_frame(lf, locator.segment, frame=0)
-        ctx = perspective.FrameContext.build(lf, calib, detections, locator)
-        state = perspective._cluster_and_solve(
-            ctx, ParticleState.start(ctx, locator.segment), locator)
         state = perspective.check_particles(ctx, state, locator)
         state = perspective.refine_particles(ctx, state, locator)
     fit_error = state.table[perspective._FIT_ERROR].to_numpy(float)
