@@ -246,6 +246,53 @@ def test_edge_widths_along_s_and_t_remove_the_bias_of_a_round_edge():
     assert errors["round"] > 3 * errors["measured"]
 
 
+@pytest.mark.parametrize("radius, w_s, w_t", [(1.2, 0.65, 0.40), (0.8, 0.65, 0.40),
+                                              (3.0, 0.5, 0.5), (6.0, 0.9, 0.6)])
+def test_area_radius_is_the_radius_of_the_models_summed_darkness(radius, w_s, w_t):
+    """The fitted image model's darkness summed over a fine grid is c pi R^2 with R
+    ImageEdge.area_radius of its radius, at the edge widths of the image's depth."""
+    edge = ImageEdge(np.array([[-5.0, np.sqrt(w_s * w_t)], [5.0, np.sqrt(w_s * w_t)]]),
+                     w_s ** 2 - w_t ** 2)
+    np.testing.assert_allclose(edge.widths([0.0])[0], [w_s, w_t])
+    step = 0.01
+    grid = np.arange(-radius - 8, radius + 8, step)
+    ss, tt = np.meshgrid(grid, grid)
+    darkness = 1.0 - anisotropic_disc(ss, tt, radius, 0.7, w_s, w_t)
+    summed = darkness.sum() * step ** 2
+    r_area = edge.area_radius(np.array([radius]), np.array([0.0]))[0]
+    np.testing.assert_allclose(0.7 * np.pi * r_area ** 2, summed, rtol=2e-3)
+    assert r_area > radius                 # the edge's spread lies mostly outside r
+    assert np.isnan(edge.area_radius(np.array([np.nan]), np.array([0.0]))[0])
+
+
+@pytest.mark.parametrize("silhouette, blur", [(1.3, 0.55), (2.5, 0.55), (1.6, 0.8)])
+def test_a_fitted_image_casts_the_shadow_of_the_blurred_silhouette(silhouette, blur):
+    """Views of an opaque disc blurred by a Gaussian, rendered by supersampling and
+    filtering (not with the fit's own model): the fitted image's shadow, ``c pi R^2``
+    with ``R`` its area radius, is the disc's within 4 % (2 % in radius), at sizes where
+    the fitted radius alone misses it by 6-22 % in area."""
+    from scipy.ndimage import gaussian_filter
+
+    dlfc = LinearCalibration()
+    views_uv, view_rc = _views()
+    xyz, sub = np.array([[0.0, 0.0, 2.0]]), 8
+    data = np.ones((9, 9, 90, 110))
+    fine = (np.arange(90 * sub) + 0.5) / sub - 0.5, (np.arange(110 * sub) + 0.5) / sub - 0.5
+    for (u, v), (vi, ui) in zip(views_uv, view_rc):
+        s, t = dlfc.predict(*xyz[0], u, v)
+        ss, tt = np.meshgrid(fine[1] - s, fine[0] - t)
+        shadow = gaussian_filter((np.hypot(ss, tt) < silhouette).astype(float), blur * sub)
+        data[vi, ui] -= shadow.reshape(90, sub, 110, sub).mean(axis=(1, 3))
+    data += np.random.default_rng(0).normal(0, 0.002, data.shape)
+    edge = ImageEdge(np.array([[0.0, blur]]))
+    fit = fit_images(dlfc, views_uv, view_rc, data, xyz, np.array([[1.5, 0.9]]),
+                     np.zeros((0, 3)), np.zeros((0, 2)), edge=edge)
+    radius, contrast = fit.params[0, 3:]
+    shadow_radius = math.sqrt(contrast) * edge.area_radius(np.array([radius]), xyz[:, 2])[0]
+    assert abs(shadow_radius / silhouette - 1) < 0.02
+    assert abs(math.sqrt(contrast) * radius / silhouette - 1) > 0.02   # r alone does not
+
+
 def test_masked_row_percentile_matches_numpy():
     rng = np.random.default_rng(2)
     values = rng.normal(size=(6, 5, 5))

@@ -1911,14 +1911,19 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     particles["minor_axis"] = shape.loc[keep, "minor_px"].to_numpy() / scale
     particles["orientation"] = shape.loc[keep, "orientation"].to_numpy()
     # A split particle's regions are the merged pair's, a hidden one's were cut by the
-    # images divided out: their size comes from the image fit.
+    # images divided out: their size comes from the image fit, the disc that casts the
+    # fitted image's shadow (with solve.opacity its contrast is the body's opacity).
     from_fit = split.copy()
     if _HIDDEN in table.columns:
         radius_fit = table.loc[keep, _FIT_RADIUS].to_numpy(float)
         from_fit |= (table.loc[keep, _HIDDEN].fillna(False).to_numpy(bool)
                      & np.isfinite(radius_fit))
     if from_fit.any():
-        fitted = 2.0 * table.loc[keep, _FIT_RADIUS].to_numpy(float)[from_fit] / mag[from_fit]
+        rows = table.loc[keep][from_fit]
+        fitted = 2.0 * ctx.image_edge.area_radius(rows[_FIT_RADIUS].to_numpy(float),
+                                                  rows["z"].to_numpy(float)) / mag[from_fit]
+        if not solve.opacity:
+            fitted *= np.sqrt(np.clip(rows[_FIT_CONTRAST].to_numpy(float), 0.0, 1.0))
         for column in ("diameter", "major_axis", "minor_axis"):
             particles.loc[particles.index[from_fit], column] = fitted
         particles.loc[particles.index[from_fit], "orientation"] = np.nan

@@ -27,7 +27,7 @@ import math
 
 import numba
 import numpy as np
-from scipy.special import erfc
+from scipy.special import erfc, ndtr
 
 from .dlfc import _views_kernel
 
@@ -91,6 +91,44 @@ class ImageEdge:
         d = float(self.anisotropy_px2)
         wt2 = 0.5 * (np.sqrt(d * d + 4.0 * mean ** 4) - d)
         return np.sqrt(np.stack([wt2 + d, wt2], axis=-1))
+
+    def area_radius(self, radius, z) -> np.ndarray:
+        """Radius of the sharp disc that casts as much shadow as a fitted image.
+
+        A particle's image is its silhouette blurred, and blur moves no light: the
+        image's summed darkness is ``c pi R^2`` for a silhouette of radius ``R``, at any
+        blur. The image model of :func:`fit_images`, ``c D(rho)`` with an edge of width
+        ``w`` about the radius ``r``, sums to ``c pi E[rho^2; rho > 0]`` for ``rho``
+        normal about ``r`` with spread ``w``::
+
+            R^2 = (r^2 + w^2) Phi(r / w) + r w phi(r / w)
+
+        with ``w^2 = (w_s^2 + w_t^2) / 2`` (the edge width averaged over directions;
+        :meth:`widths` at the particle's depth). ``c R^2`` is what the pixels fix; the
+        split between ``c`` and ``R`` is the model's (``R`` is the body's radius when
+        ``c`` is its opacity). For images a few edge widths across, ``r`` itself lies
+        well inside the silhouette: on the realistic ``small`` camera (development seeds
+        of the accuracy matrix) ``2 r`` read 0.90 of a 0.4 mm sphere's image diameter
+        and 0.99 of a 1 mm one's, ``2 R`` 1.00 and 1.01.
+
+        Parameters
+        ----------
+        radius : (N,) float array_like
+            Fitted image radii ``r``, view pixels.
+        z : (N,) float array_like
+            The particles' depths, mm.
+
+        Returns
+        -------
+        (N,) float ndarray
+            ``R``, view pixels (NaN where ``radius`` is).
+        """
+        r = np.asarray(radius, dtype=float)
+        w = np.sqrt(np.mean(self.widths(z) ** 2, axis=-1)).reshape(r.shape)
+        a = r / w
+        inside = ndtr(a)
+        density = np.exp(-0.5 * a * a) / math.sqrt(2.0 * math.pi)
+        return np.sqrt((r * r + w * w) * inside + r * w * density)
 
 _SQRT2 = math.sqrt(2.0)
 _BOUNDS = np.array([[-np.inf, -np.inf, -np.inf, 0.5, 0.05],
