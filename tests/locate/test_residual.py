@@ -426,3 +426,56 @@ def test_a_particle_whose_regions_were_freed_is_found_when_every_fit_explains(
     new_xyz = joined.positions[state.n_particles:]
     err = np.abs(new_xyz - true_xyz)
     assert np.any(np.all(err <= [0.05, 0.05, 0.1], axis=1)), new_xyz
+
+
+def test_a_companion_offset_is_kept_per_particle_the_farthest_laterally():
+    """Offsets to darkness the search could not take apart: each particle keeps the one
+    farthest from it laterally, over the candidates of a round and over the rounds."""
+    table = pd.DataFrame({"n_views": [20, 20, 20]})
+    state = ParticleState(owner=np.zeros(0, dtype=np.int64), initial=np.zeros((3, 3)),
+                          positions=np.zeros((3, 3)), table=table)
+    assert perspective._with_companions(state, {}) is state
+    found = {}
+    perspective._note_companion(found, 0, [0.1, 0.0, 2.0])
+    perspective._note_companion(found, 0, [0.0, 0.05, -3.0])      # nearer: not kept
+    perspective._note_companion(found, 2, [np.nan, 0.0, 0.0])     # not a position
+    perspective._note_companion(found, 1, [0.0, -0.2, 0.5])
+    assert sorted(found) == [0, 1]
+    first = perspective._with_companions(state, found)
+    columns = list(perspective._COMPANION)
+    np.testing.assert_array_equal(first.table.loc[0, columns], [0.1, 0.0, 2.0])
+    np.testing.assert_array_equal(first.table.loc[1, columns], [0.0, -0.2, 0.5])
+    assert first.table.loc[2, columns].isna().all()
+    # a later round: a farther one replaces, a nearer one does not
+    later = perspective._with_companions(first, {0: np.array([0.0, 0.3, 0.0]),
+                                                 1: np.array([0.1, 0.0, 0.0])})
+    np.testing.assert_array_equal(later.table.loc[0, columns], [0.0, 0.3, 0.0])
+    np.testing.assert_array_equal(later.table.loc[1, columns], [0.0, -0.2, 0.5])
+    assert columns[0] not in state.table.columns                 # the input is not changed
+
+
+def test_darkness_the_search_cannot_take_apart_widens_sigma(small_calibrated):
+    """160 particles of 0.4 mm (about 0.05 per microlens): some particles have darkness
+    beside them that the hidden-particle search finds and cannot take apart from them;
+    ``solve.companion_error`` widens their sigma and no one else's, moves nothing, and
+    leaves fewer of the matched particles beyond 3 sigma."""
+    optics, calib = small_calibrated
+    scene = make_scene(calib.camera, n_particles=160, seed=21, diameter_mm=0.4)
+    raw = render_frame(optics, scene.truth, seed=np.random.default_rng([21, 3, 0]))
+    assert PerspectiveLocator().solve.companion_error                  # on by default
+    off = PerspectiveLocator.from_dict({"solve": {"companion_error": False}})
+    on_found = locate_frame(raw, calib).particles
+    off_found = locate_frame(raw, calib, locator=off).particles
+    xyz, sigma = ["x", "y", "z"], ["sigma_x", "sigma_y", "sigma_z"]
+    np.testing.assert_array_equal(on_found[xyz].to_numpy(), off_found[xyz].to_numpy())
+    on_sigma, off_sigma = on_found[sigma].to_numpy(), off_found[sigma].to_numpy()
+    assert np.all(on_sigma >= off_sigma)
+    widened = np.any(on_sigma > off_sigma, axis=1)
+    assert widened.sum() >= 5
+    pairs = match_particles(on_found, scene.truth, tolerance_mm=1.0)
+    error = np.abs(on_found.loc[pairs["measured_index"], xyz].to_numpy()
+                   - scene.truth.loc[pairs["truth_index"], xyz].to_numpy())
+    rows = pairs["measured_index"].to_numpy()
+    beyond = {name: int(np.any(error > 3 * s[rows], axis=1).sum())
+              for name, s in (("on", on_sigma), ("off", off_sigma))}
+    assert beyond["on"] < beyond["off"]

@@ -6,7 +6,7 @@ import pytest
 from plenoptrack.locate.uncertainty import (centroid_geometry, image_travel_px,
                                            model_error_mm, reduced_chi2, sampling_groups,
                                            total_sigma, typical_scatter_px2,
-                                           with_unexplained_pixels)
+                                           with_unexplained_pixels, with_unresolved_companion)
 
 
 class _Report:
@@ -315,3 +315,19 @@ def test_image_fit_sampling_error_is_sized_by_the_typical_centroid_scatter():
     before = total_sigma(stat, None, from_centroids=from_centroids, **kw)
     np.testing.assert_allclose(got[1:], before[1:])
     np.testing.assert_allclose(before[2], stat[2] * np.sqrt(4.0 + 100.0))
+
+
+def test_an_unresolved_companion_adds_the_rms_of_a_shift_up_to_half_its_offset():
+    """A particle that took in anything from none to half of a companion's offset (a
+    uniform fraction) is off by that shift: its RMS, per axis, is added in quadrature;
+    rows without a companion (NaN) keep their sigma."""
+    sigma = np.array([[0.004, 0.003, 0.05], [0.004, 0.003, 0.05], [0.01, 0.01, 0.1]])
+    offset = np.array([[0.2, -0.1, 1.5], [np.nan] * 3, [0.0, 0.0, 0.0]])
+    out = with_unresolved_companion(sigma, offset)
+    rng = np.random.default_rng(0)
+    shift = rng.uniform(0.0, 0.5, (200_000, 1)) * offset[0]
+    rms = np.sqrt(np.mean(shift ** 2, axis=0))
+    np.testing.assert_allclose(out[0], np.hypot(sigma[0], rms), rtol=2e-3)
+    np.testing.assert_array_equal(out[1:], sigma[1:])
+    # a particle off by such a shift lies within 2 sigma of it (uniform: at most sqrt 3)
+    assert np.all(np.abs(shift).max(axis=0) <= 2 * out[0])

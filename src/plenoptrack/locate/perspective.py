@@ -80,7 +80,8 @@ from .settings import (CheckSettings, ClusterSettings, GrowSettings, Perspective
                        SegmentSettings, SolveSettings)
 from .triangulate import TriangulationFlag, triangulate_clusters
 from .uncertainty import (centroid_geometry, image_travel_px, reduced_chi2, total_sigma,
-                          typical_scatter_px2, with_shape_error, with_unexplained_pixels)
+                          typical_scatter_px2, with_shape_error, with_unexplained_pixels,
+                          with_unresolved_companion)
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
@@ -880,6 +881,7 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
     # (check.refine_max_model_error**2 in mean square).
     positions2 = state2.positions.copy()
     fits = {}                                     # the fit that admitted each one
+    companions = {}            # located row -> offset to darkness not taken apart from it
     held_pos, held_rc = state.positions[live], np.c_[radius[live], contrast[live]]
     held_pred, settings = pred[live], locator.check
     held_spans = live_spans
@@ -913,6 +915,11 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         merged = ((dist < fit.params[0, 3] + held_rc[close, 0])
                   & (parallax_px(offset) < 1.0))
         if np.any(inside) or np.any(merged):
+            # beside a particle, not inside its body (that was its own image), and not
+            # taken apart from it: darkness its fit may have taken in
+            for jl in np.flatnonzero(close)[merged]:
+                if jl < len(live_rows) and not inside[jl]:
+                    _note_companion(companions, live_rows[jl], fit.params[0, :3] - held_pos[jl])
             new[q] = False
             continue
         positions2[q] = fit.params[0, :3]
@@ -949,17 +956,20 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                          max_depth_shift=ctx.volume_depth_mm,
                          reference=np.array([[*held_pos[jl], *held_rc[jl]]]),
                          edge=ctx.image_edge)
-        if (fit is None or not np.all(np.isfinite(fit.params))
-                or not np.all(np.isfinite(fit.sigma))
-                or fit.params[:, 4].min() < settings.split_min_contrast
-                or not _explains_more(fit, fit.reference_error, settings, gain_bar)):
-            continue
-        fitted_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)
-        if not _two_images(ctx.dlfc, fit.params, fitted_pred):
-            continue
-        rest = np.setdiff1d(np.arange(len(held_pos)), [jl])
-        if _coincides(fitted_pred, fit.params[:, 3], held_pred[rest], held_rc[rest, 0],
-                      held_spans.subset(rest)):
+        apart = (fit is not None and np.all(np.isfinite(fit.params))
+                 and np.all(np.isfinite(fit.sigma))
+                 and fit.params[:, 4].min() >= settings.split_min_contrast
+                 and _explains_more(fit, fit.reference_error, settings, gain_bar))
+        if apart:
+            fitted_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)
+            rest = np.setdiff1d(np.arange(len(held_pos)), [jl])
+            apart = (_two_images(ctx.dlfc, fit.params, fitted_pred)
+                     and not _coincides(fitted_pred, fit.params[:, 3], held_pred[rest],
+                                        held_rc[rest, 0], held_spans.subset(rest)))
+        if not apart:
+            if not _inside_bodies(ctx.dlfc, np.r_[positions2[q], radius2[q]],
+                                  held_pos[[jl]], held_rc[[jl], 0])[0]:
+                _note_companion(companions, j, positions2[q] - held_pos[jl])
             continue
         joint[j] = fit
         held_pos[jl], held_rc[jl] = fit.params[0, :3], fit.params[0, 3:]
@@ -972,6 +982,8 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
         held_rc = np.vstack([held_rc, fit.params[1:, 3:]])
         held_pred = np.concatenate([held_pred, fitted_pred[1:]])
         held_spans = held_spans.extended(fitted_pred[1:])
+    state = _with_companions(state, companions)
+    table = state.table
     if not new.any():
         return ctx, state, 0
     if joint:
@@ -1017,6 +1029,37 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                         ignore_index=True))
     return (FrameContext.build(lf, calibration, detections, locator), joined,
             int(new.sum()))
+
+
+def _note_companion(companions: dict, row: int, offset: np.ndarray) -> None:
+    """Record in ``companions`` (row -> (3,) offset, mm) darkness at ``offset`` from the
+    located particle ``row`` that the hidden-particle search found in the residual and
+    could not take apart from it, keeping the farthest (laterally) for each particle."""
+    row, offset = int(row), np.asarray(offset, dtype=float)
+    if not np.all(np.isfinite(offset)):
+        return
+    known = companions.get(row)
+    if known is None or np.hypot(*offset[:2]) > np.hypot(*known[:2]):
+        companions[row] = offset
+
+
+def _with_companions(state: ParticleState, companions: dict) -> ParticleState:
+    """``state`` with each particle's companion offset (:data:`_COMPANION` columns) set
+    to the one ``companions`` holds for it where that is farther (laterally) than the one
+    an earlier round of the search recorded."""
+    if not companions:
+        return state
+    table = state.table.copy()
+    for column in _COMPANION:
+        if column not in table.columns:
+            table[column] = np.nan
+    rows = np.array(sorted(companions))
+    found = np.array([companions[r] for r in rows])
+
+    known = table.loc[rows, list(_COMPANION)].to_numpy(float)
+    farther = ~(np.hypot(known[:, 0], known[:, 1]) >= np.hypot(found[:, 0], found[:, 1]))
+    table.loc[rows[farther], list(_COMPANION)] = found[farther]
+    return dataclasses.replace(state, table=table)
 
 
 def _may_hide_particles(ctx: FrameContext, state: ParticleState, live: np.ndarray,
@@ -1213,6 +1256,9 @@ _HIDDEN = "_hidden"
 _FIT_RADIUS = "_fit_radius_px"
 _SPLIT_OF = "_split_of"
 _FIT_CONTRAST = "_fit_contrast"
+_COMPANION = ("_companion_dx", "_companion_dy", "_companion_dz")
+"""State-table columns: the offset (mm) from a particle to the darkness beside it that the
+hidden-particle search found and could not take apart from it (:func:`_note_companion`)."""
 
 
 def _fit_views(ctx: FrameContext) -> tuple[np.ndarray, np.ndarray]:
@@ -1900,6 +1946,9 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                    n_views=n_views, z=particles["z"].to_numpy(float),
                                    travel_px=travel if solve.sampling_error else None,
                                    from_centroids=~refined, typical_sigma=typical_sigma)
+    if solve.companion_error and _COMPANION[0] in table.columns:
+        particles[sigma] = with_unresolved_companion(
+            particles[sigma].to_numpy(float), table.loc[keep, list(_COMPANION)].to_numpy(float))
     particles["chi2"] = np.where(split, np.nan, chi2)
     particles["travel_px"] = travel
     particles.insert(0, T_COLUMN, frame)

@@ -266,6 +266,13 @@ class SolveSettings:
         group the pixels still do not fit, or an image fit given up for the centroid
         solution) by ``e / check.refine_max_model_error``
         (:func:`~plenoptrack.locate.uncertainty.with_unexplained_pixels`).
+    companion_error : bool
+        Add to the uncertainty of a particle beside which the hidden-particle search found
+        darkness it could not take apart from it (a candidate outside its body whose
+        images merge with its own without parallax, or that a joint fit could not
+        separate) the RMS of a shift towards that darkness by up to half the offset,
+        ``offset / (2 sqrt 3)`` per axis
+        (:func:`~plenoptrack.locate.uncertainty.with_unresolved_companion`).
     shape_error : float
         Standard uncertainty of where an irregular particle's centre of mass lies relative
         to the centre its silhouettes show, per axis, as a fraction of its measured
@@ -321,6 +328,7 @@ class SolveSettings:
     excess_scatter: bool = True
     sampling_error: bool = True
     unexplained_error: bool = True
+    companion_error: bool = True
     shape_error: float = 0.0
     size_error: tuple[float, float] = (0.002, 0.01)
     opacity: bool = True
