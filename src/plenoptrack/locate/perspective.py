@@ -919,7 +919,8 @@ def find_hidden_particles(ctx: FrameContext, state: ParticleState,
             # taken apart from it: darkness its fit may have taken in
             for jl in np.flatnonzero(close)[merged]:
                 if jl < len(live_rows) and not inside[jl]:
-                    _note_companion(companions, live_rows[jl], fit.params[0, :3] - held_pos[jl])
+                    _note_companion(companions, live_rows[jl],
+                                    fit.params[0, :3] - held_pos[jl])
             new[q] = False
             continue
         positions2[q] = fit.params[0, :3]
@@ -1055,8 +1056,8 @@ def _with_companions(state: ParticleState, companions: dict) -> ParticleState:
             table[column] = np.nan
     rows = np.array(sorted(companions))
     found = np.array([companions[r] for r in rows])
-
     known = table.loc[rows, list(_COMPANION)].to_numpy(float)
+    # True where none was known (NaN compares False)
     farther = ~(np.hypot(known[:, 0], known[:, 1]) >= np.hypot(found[:, 0], found[:, 1]))
     table.loc[rows[farther], list(_COMPANION)] = found[farther]
     return dataclasses.replace(state, table=table)
@@ -1883,7 +1884,10 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     scaled first where the particle's image fit left its pixels unexplained, model error
     above ``max_model_error``,
     :func:`~plenoptrack.locate.uncertainty.with_unexplained_pixels`) plus the DLFC's model
-    error (:func:`~plenoptrack.locate.uncertainty.total_sigma`) and, with
+    error (:func:`~plenoptrack.locate.uncertainty.total_sigma`), with
+    ``solve.companion_error`` the offset to darkness beside them that the hidden-particle
+    search could not take apart from them
+    (:func:`~plenoptrack.locate.uncertainty.with_unresolved_companion`) and, with
     ``solve.shape_error``,
     the uncertainty of an irregular body's centre
     (:func:`~plenoptrack.locate.uncertainty.with_shape_error`); size and shape come from their
@@ -1948,7 +1952,8 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                    from_centroids=~refined, typical_sigma=typical_sigma)
     if solve.companion_error and _COMPANION[0] in table.columns:
         particles[sigma] = with_unresolved_companion(
-            particles[sigma].to_numpy(float), table.loc[keep, list(_COMPANION)].to_numpy(float))
+            particles[sigma].to_numpy(float),
+            table.loc[keep, list(_COMPANION)].to_numpy(float))
     particles["chi2"] = np.where(split, np.nan, chi2)
     particles["travel_px"] = travel
     particles.insert(0, T_COLUMN, frame)
