@@ -1054,12 +1054,11 @@ def _with_companions(state: ParticleState, companions: dict) -> ParticleState:
     for column in _COMPANION:
         if column not in table.columns:
             table[column] = np.nan
-    rows = np.array(sorted(companions))
-    found = np.array([companions[r] for r in rows])
-    known = table.loc[rows, list(_COMPANION)].to_numpy(float)
-    # True where none was known (NaN compares False)
-    farther = ~(np.hypot(known[:, 0], known[:, 1]) >= np.hypot(found[:, 0], found[:, 1]))
-    table.loc[rows[farther], list(_COMPANION)] = found[farther]
+    rows = sorted(companions)
+    kept = dict(companions)
+    for row, known in zip(rows, table.loc[rows, list(_COMPANION)].to_numpy(float)):
+        _note_companion(kept, row, known)          # the farther of the two stays
+    table.loc[rows, list(_COMPANION)] = np.array([kept[r] for r in rows])
     return dataclasses.replace(state, table=table)
 
 
