@@ -6,7 +6,9 @@ import pytest
 
 from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.perspective import (PerspectiveLocator, _line_of_sight_pair,
-                                           _view_subgrid, locate_frame, split_start_travel)
+                                           _view_subgrid, _without_vanished, locate_frame,
+                                           split_start_travel)
+from plenoptrack.locate.refine import ImageFit
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.simulate import make_scene, render_frame
 
@@ -492,3 +494,59 @@ def test_a_split_tried_again_starts_its_images_a_third_of_the_radius_apart(small
             offset = there - here
             moved = np.sqrt(8.0 * np.sum(np.var(offset, axis=0)))
             assert moved == pytest.approx(travel, rel=0.05)
+
+
+def _image_fit(params, model_error, noise=0.01, n_pixels=1000):
+    """An ImageFit of ``params`` (k, 5) whose model error is ``model_error``."""
+    params = np.asarray(params, dtype=float)
+    return ImageFit(params=params, sigma=np.full((len(params), 3), 0.01), n_pixels=n_pixels,
+                    n_views=10, cost=n_pixels * (model_error ** 2 + noise ** 2), noise=noise)
+
+
+def test_a_fit_marks_the_images_it_drove_to_a_lower_bound_as_vanished():
+    fit = _image_fit([[0, 0, 1, 3.2, 0.05], [0, 0, 2, 0.5, 0.8], [0, 0, 3, 3.1, 0.9],
+                      [0, 0, 4, 0.51, 0.06]], 0.02)
+    assert fit.vanished.tolist() == [True, True, False, False]
+
+
+def test_a_split_is_refitted_without_its_vanished_image_and_kept_only_where_it_holds(
+        small_calibrated):
+    """Three images replacing one, the third driven to nothing: the two left are refitted
+    and the refit replaces the fit when it explains the pixels and its images stay on
+    the split image's line of sight; otherwise the fit is left as it was (and fails the
+    split's contrast test). A fit with nothing vanished, or with no more images left than
+    it started from, is not refitted."""
+    _, calib = small_calibrated
+    dlfc = calib.dlfc
+    u, v = np.meshgrid(np.arange(-5.0, 6.0), np.arange(-5.0, 6.0))
+    views_uv = np.c_[u.ravel(), v.ravel()]
+    start = np.array([[0.4, -0.3, 2.5, 3.5, 0.9]])
+    near, far = _line_of_sight_pair(dlfc, start[0, :3], views_uv, 3.0)
+    pair = np.array([[*near, 3.4, 0.9], [*far, 3.5, 0.9]])
+    fit = _image_fit(np.vstack([pair, [1.5, 0.2, 9.0, 7.0, 0.05]]), 0.05)
+    calls = []
+
+    def refit_to(params, model_error):
+        def refit(kept):
+            calls.append(kept)
+            return None if params is None else _image_fit(params, model_error)
+        return refit
+
+    kept = _without_vanished(fit, start, 0, dlfc, 0.06, refit_to(pair, 0.04))
+    assert kept is not fit and np.array_equal(kept.params, pair)
+    assert np.array_equal(calls[-1], pair)                  # the two left, as fitted
+    # the refit still leaves the pixels unexplained, fails, or ran off the line of sight
+    assert _without_vanished(fit, start, 0, dlfc, 0.06, refit_to(pair, 0.08)) is fit
+    assert _without_vanished(fit, start, 0, dlfc, 0.06, refit_to(None, 0.0)) is fit
+    off_line = pair.copy()
+    off_line[1, :2] += 0.5                                  # mm: several image radii
+    assert _without_vanished(fit, start, 0, dlfc, 0.06, refit_to(off_line, 0.04)) is fit
+    # nothing vanished, or one image left of one started from: no refit
+    calls.clear()
+    whole = _image_fit(np.vstack([pair, [1.5, 0.2, 9.0, 4.0, 0.3]]), 0.05)
+    assert _without_vanished(whole, start, 0, dlfc, 0.06, refit_to(pair, 0.04)) is whole
+    both_gone = _image_fit(np.vstack([pair[:1], [[0.4, -0.3, 6.0, 0.5, 0.3],
+                                                 [0.4, -0.3, 9.0, 4.0, 0.05]]]), 0.05)
+    assert _without_vanished(both_gone, start, 0, dlfc, 0.06, refit_to(pair, 0.04)) is both_gone
+    assert calls == []
+    assert _without_vanished(None, start, 0, dlfc, 0.06, refit_to(pair, 0.04)) is None

@@ -1312,6 +1312,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     ``settings.split_max_model_error``), three images are tried under the same tests,
     started at the pair's starts and the image itself: a pair cannot explain three
     particles whose images all merge and can settle between them with one faint image.
+    An image a fit drives to nothing is dropped and the images left are refitted, kept
+    when they explain the pixels and stay on the line of sight (:func:`_without_vanished`).
     While the group still leaves the pixels unexplained, one of its images is split
     again under the same tests, up to ``settings.split_max_images`` images. The image
     nearer the merged solution in depth takes the particle's row, the others are
@@ -1478,6 +1480,12 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                                  reference=reference, edge=ctx.image_edge)
                 if fit is not None:
                     break
+            fit = _without_vanished(
+                fit, start, j, ctx.dlfc, split_max,
+                lambda kept: fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, kept[:, :3],
+                                        kept[:, 3:], pos[held], held_rc,
+                                        max_depth_shift=ctx.volume_depth_mm,
+                                        reference=reference, edge=ctx.image_edge))
             if (fit is not None and _explains_more(fit, error, settings, gain_bar)
                     and (best is None or fit.model_error < best.model_error)
                     and distinct(fit, m)):
@@ -1757,6 +1765,32 @@ def _centroid_offsets(ctx: FrameContext, owner: np.ndarray, particle: int,
     mine = np.flatnonzero(owner == particle)
     image = _predict_all(ctx.dlfc, np.reshape(xyz, (1, 3)), ctx.views)[0]
     return mine, np.hypot(*(ctx.st[mine] - image[ctx.view[mine]]).T)
+
+
+def _without_vanished(fit, start: np.ndarray, j: int, dlfc, max_error: float, refit):
+    """A split's fit without the images it drove to nothing, where that leaves a split.
+
+    ``fit`` replaced image ``j`` of ``start`` (k, 5) by two or three images on its line of
+    sight. An image it drove to the lower bound of its radius or contrast
+    (:attr:`~plenoptrack.locate.refine.ImageFit.vanished`) fails the split's contrast test
+    and with it the whole fit, though the images left may be the split: a pair 4 mm apart
+    in depth that a pair's start ran off from can be found by three images, one of which
+    vanishes. When more than ``k`` images are left, ``refit(params)`` fits them again from
+    where ``fit`` left them; the refit is returned when it explains the pixels (model error
+    at most ``max_error``) and its new images stay on image ``j``'s line of sight (their
+    central-view centres within its radius of its own), else ``fit`` unchanged. ``fit``
+    may be None.
+    """
+    if fit is None or not fit.vanished.any() or (~fit.vanished).sum() <= len(start):
+        return fit
+    again = refit(fit.params[~fit.vanished])
+    if again is None or not again.model_error <= max_error:
+        return fit
+    new = (np.arange(len(fit.params)) >= len(start) - 1)[~fit.vanished]
+    centre = np.array(dlfc.predict(*start[j, :3], 0.0, 0.0))
+    centres = np.array(dlfc.predict(*again.params[new, :3].T, 0.0, 0.0))
+    on_line = np.hypot(*(centres - centre[:, None])) <= start[j, 3]
+    return again if on_line.all() else fit
 
 
 def _coincides(pred: np.ndarray, radius: np.ndarray, other_pred: np.ndarray,

@@ -185,6 +185,13 @@ class ImageFit:
         return math.sqrt(max(self.cost / max(self.n_pixels, 1) - self.noise ** 2, 0.0))
 
     @property
+    def vanished(self) -> np.ndarray:
+        """(k,) bool: the images the fit drove to the lower bound of their radius or
+        contrast, which no longer draw a particle (a group of images started with one
+        too many puts the spare one there)."""
+        return np.any(self.params[:, 3:] <= _BOUNDS[0, 3:] * (1.0 + 1e-6), axis=1)
+
+    @property
     def reference_error(self) -> float:
         """:attr:`model_error` of the ``reference`` model on the fit's own pixels (NaN
         without a reference): two models compared on the same pixels, where images that
