@@ -350,7 +350,8 @@ def test_the_split_bar_stands_above_the_frames_typical_misfit():
 def test_the_split_gain_bar_is_what_sets_a_candidate_apart_from_a_typical_image():
     """A split must lower the mean-square model error by the bar squared less the
     frame's typical (median) fit error squared: the hall2019-like frame (median 0.05,
-    bar 0.06) asks 0.06**2 - 0.05**2; with the fixed bar alone the full bar squared.
+    bar 0.06) asks 0.06**2 - 0.05**2; with the fixed bar alone the full bar squared; a
+    frame with no image fitted takes the typical error the fixed bar stands for.
     Checked against values computed by hand, and never negative, whatever the ratio."""
     from plenoptrack.locate.perspective import split_bar, split_gain_bar
     from plenoptrack.locate.settings import CheckSettings
@@ -365,7 +366,9 @@ def test_the_split_gain_bar_is_what_sets_a_candidate_apart_from_a_typical_image(
     # bar / ratio, so the gain stays what a candidate at the floor would need
     crowded = np.full(5, 0.1)
     assert split_gain_bar(crowded, settings) == pytest.approx(0.08 ** 2 * (1 - 1 / 1.2 ** 2))
-    assert split_gain_bar(np.array([]), settings) == pytest.approx(0.05 ** 2)
+    # no image fitted in the frame: the typical error is the one the fixed bar stands for
+    for none in (np.array([]), np.full(4, np.nan)):
+        assert split_gain_bar(none, settings) == pytest.approx(0.05 ** 2 * (1 - 1 / 1.2 ** 2))
     off = CheckSettings(split_floor_ratio=0.0)
     assert split_gain_bar(tight, off) == split_bar(tight, off) ** 2 == pytest.approx(0.0025)
     for ratio in (0.5, 1.0, 1.2, 3.0):
@@ -550,3 +553,39 @@ def test_a_split_is_refitted_without_its_vanished_image_and_kept_only_where_it_h
     assert _without_vanished(both_gone, start, 0, dlfc, 0.06, refit_to(pair, 0.04)) is both_gone
     assert calls == []
     assert _without_vanished(None, start, 0, dlfc, 0.06, refit_to(pair, 0.04)) is None
+
+
+def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_no_fit(
+        small_calibrated, monkeypatch):
+    """A 0.39 mm particle 0.56 mm beside a 1.43 mm one and 3.1 mm nearer the camera,
+    alone in the frame: its images lie on the large one's in most views, the centroids
+    find one particle and the refinement fits nothing (no two particles overlap). The
+    split stage's one-image fit leaves the pixels unexplained and two images find both;
+    the frame's typical fit error, unknown, is the one the fixed bar stands for. Asked
+    for the whole bar squared (the typical error taken as 0) the pair was turned away and
+    only the large particle reported. The small one's depth is 0.4 mm off (3 sigma)."""
+    from plenoptrack.locate import perspective
+
+    optics, calib = small_calibrated
+    truth = _truth([(-0.641, 0.428, 0.204), (-1.081, 0.081, -2.902)], np.array([0.392, 1.434]))
+    raw = render_frame(optics, truth, seed=np.random.default_rng([12, 3, 0]))
+    found = locate_frame(raw, calib).particles
+    pairs = match_particles(found, truth, tolerance_mm=0.6)
+    assert len(found) == 2 and len(pairs) == 2
+    m, t = _paired(found, truth, pairs)
+    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    assert np.all(err[:, :2] < 0.02) and err[t["particle"] == 1, 2].item() < 0.1
+    small = (t["particle"] == 0).to_numpy()
+    assert err[small, 2].item() < 0.5
+    assert abs(m.loc[small, "diameter"].item() / 0.392 - 1) < 0.1
+    whole_bar = perspective.split_gain_bar
+
+    def typical_zero(fit_error, settings):
+        if np.isfinite(np.asarray(fit_error, dtype=float)).any():
+            return whole_bar(fit_error, settings)
+        return perspective.split_bar(fit_error, settings) ** 2
+
+    monkeypatch.setattr(perspective, "split_gain_bar", typical_zero)
+    found = locate_frame(raw, calib).particles
+    assert len(found) == 1
+    assert match_particles(found, truth, tolerance_mm=0.3)["truth_index"].tolist() == [1]
