@@ -1465,6 +1465,13 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         and the image itself) that explains the pixels better than the ``reference``
         model with model error ``error`` (:func:`_explains_more`) and passes
         :func:`distinct`; None if no replacement does."""
+        def trial_fit(params):
+            """Images ``params`` (k, 5) fitted on the trial views beside ``held``."""
+            return fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, params[:, :3],
+                              params[:, 3:], pos[held], held_rc,
+                              max_depth_shift=ctx.volume_depth_mm, reference=reference,
+                              edge=ctx.image_edge)
+
         best = None
         for j in range(len(start)):
             rc = np.vstack([np.delete(start[:, 3:], j, axis=0),
@@ -1475,17 +1482,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 pair = _line_of_sight_pair(ctx.dlfc, start[j, :3], views_uv, travel)
                 xyz = np.vstack([np.delete(start[:, :3], j, axis=0),
                                  pair if n == 2 else [pair[0], start[j, :3], pair[1]]])
-                fit = fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, xyz, rc,
-                                 pos[held], held_rc, max_depth_shift=ctx.volume_depth_mm,
-                                 reference=reference, edge=ctx.image_edge)
+                fit = trial_fit(np.c_[xyz, rc])
                 if fit is not None:
                     break
-            fit = _without_vanished(
-                fit, start, j, ctx.dlfc, split_max,
-                lambda kept: fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, kept[:, :3],
-                                        kept[:, 3:], pos[held], held_rc,
-                                        max_depth_shift=ctx.volume_depth_mm,
-                                        reference=reference, edge=ctx.image_edge))
+            fit = _without_vanished(fit, start, j, ctx.dlfc, split_max, trial_fit)
             if (fit is not None and _explains_more(fit, error, settings, gain_bar)
                     and (best is None or fit.model_error < best.model_error)
                     and distinct(fit, m)):
