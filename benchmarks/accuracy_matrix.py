@@ -963,7 +963,7 @@ def write_figures(out: Path, rows: list[dict]) -> list[str]:
         axes[0, 1].set_ylim(0, 1.02)
         axes[1, 0].set_yscale("log")
         axes[1, 0].yaxis.set_major_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
-        axes[1, 0].yaxis.set_minor_formatter(matplotlib.ticker.FormatStrFormatter("%.2g"))
+        axes[1, 0].yaxis.set_minor_formatter(matplotlib.ticker.FuncFormatter(_two_and_five))
         axes[1, 1].axhline(0, color="k", lw=0.5)
         axes[0, 0].legend(fontsize=8)
         fig.suptitle(f"Accuracy along the {axis} axis (other axes at the base cell)")
@@ -1048,6 +1048,15 @@ def _source_hash() -> str:
     for f in sorted(root.rglob("*.py")):
         h.update(str(f.relative_to(root)).encode() + b"\0" + f.read_bytes())
     return h.hexdigest()[:12]
+
+
+def _two_and_five(value, _position=None) -> str:
+    """Label of a minor tick of a log axis: only 2 and 5 times a power of ten, so that the
+    labels of a decade spanning a short axis do not run into each other."""
+    if not value > 0:
+        return ""
+    mantissa = round(value / 10 ** math.floor(math.log10(value)), 6)
+    return f"{value:.2g}" if mantissa in (2.0, 5.0) else ""
 
 
 def main(argv=None) -> int:

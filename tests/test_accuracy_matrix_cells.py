@@ -50,3 +50,13 @@ def test_more_frames_per_seed_keep_the_earlier_frames(matrix):
     assert first[["x", "y", "z", "diameter"]].equals(one[["x", "y", "z", "diameter"]])
     later = three[three["frame"] == 1][["x", "y", "z"]].to_numpy()
     assert not (later[:, None, :] == first[["x", "y", "z"]].to_numpy()[None]).all(-1).any()
+
+
+def test_a_log_axis_labels_only_two_and_five_between_its_decades(matrix):
+    """The depth-spread panels span one or two decades on a short axis: every minor tick
+    labelled ran the labels into each other."""
+    label = matrix._two_and_five
+    assert [label(v) for v in (0.02, 0.05, 0.2, 5.0, 500.0)] == ["0.02", "0.05", "0.2", "5",
+                                                                 "5e+02"]
+    assert [label(v) for v in (0.03, 0.04, 0.06, 0.07, 0.08, 0.09, 0.3, 7.0)] == [""] * 8
+    assert label(0.0) == "" and label(-0.2) == ""
