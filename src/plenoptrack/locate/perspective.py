@@ -1783,7 +1783,8 @@ def _without_vanished(fit, start: np.ndarray, j: int, dlfc, max_error: float, re
     """A split's fit without the images it drove to nothing, where that leaves a split.
 
     ``fit`` replaced image ``j`` of ``start`` (k, 5) by two or three images on its line of
-    sight. An image it drove to the lower bound of its radius or contrast
+    sight: its rows are the other images of ``start`` and then the new ones, as
+    ``split_merged_particles`` orders them. An image it drove to the lower bound of its radius or contrast
     (:attr:`~plenoptrack.locate.refine.ImageFit.vanished`) fails the split's contrast test
     and with it the whole fit, though the images left may be the split: a pair 4 mm apart
     in depth that a pair's start ran off from can be found by three images, one of which
