@@ -18,7 +18,10 @@ their dark cores); cluster (every clustering pass); triangulate + addition (solv
 merging, centroid addition); checks (final consistency checks, last solve, table);
 refine (the image-model refinement of overlapped particles); total (the whole call). The
 same call with the refinement switched the other way (``check.refine_images``) is timed
-too (best of ``--repeat``) and printed as a ratio. Peak memory is the process's ``VmHWM``.
+too (best of ``--repeat``) and printed as a ratio; so is the same call with the
+decode's sampling geometry and lens centres computed afresh on every call, as they were
+before they were cached per grid (``tests/locate/_previous.py``; medians of ``--repeat``
+calls alternating with the default's). Peak memory is the process's ``VmHWM``.
 
 The baseline is the same call with the triangulation solved by one
 :func:`scipy.optimize.least_squares` call per particle (``solver="scipy"``), run once on
@@ -163,10 +166,12 @@ def _load_previous():
 
 
 @contextlib.contextmanager
-def _previous_steps(previous):
-    """Put the previous steps back into the locator for the duration of the block."""
+def _previous_steps(previous, only=None):
+    """Put the previous steps back into the locator for the duration of the block (those
+    of the modules ``only`` when given)."""
     swaps = [(importlib.import_module(module), name)
-             for module, names in previous.REPLACED.items() for name in names]
+             for module, names in previous.REPLACED.items() for name in names
+             if only is None or module in only]
     saved = [(mod, name, getattr(mod, name)) for mod, name in swaps]
     try:
         for mod, name in swaps:
@@ -515,6 +520,27 @@ def main() -> None:
           f"the default {t_total / t_flip:.2f}x that; recall {ev_flip.recall:.3f}, z error "
           f"{ev_flip.mean_error_z:+.4f} +- {ev_flip.std_error_z:.4f} mm, lateral RMS "
           f"{ev_flip.rms_error_lateral:.4f} mm")
+    # the decode's sampling geometry and lens centres computed afresh on every call, as
+    # before they were cached per grid (the pixel-locking correction asks for them too);
+    # alternating with the default call, medians (a fresh 180 MB light field faults its
+    # pages in, which makes single calls vary by a tenth of a second)
+    previous = _load_previous()
+    runs = {"cached": [], "afresh": []}
+    for _ in range(args.repeat):
+        for key in runs:
+            with (_previous_steps(previous, only=("plenoptrack.lightfield.decode",))
+                  if key == "afresh" else contextlib.nullcontext()):
+                t0 = time.perf_counter()
+                out = locate_frame(raw, calib, locator=locator)
+                runs[key].append((time.perf_counter() - t0, out.stage_seconds["decode"]
+                                  + out.stage_seconds["checks"]))
+            if key == "afresh" and not out.particles.equals(result.particles):
+                raise SystemExit("the sampling geometry computed afresh gives other particles")
+    med = {key: np.median(np.array(v), axis=0) for key, v in runs.items()}
+    print(f"  sampling geometry cached per grid / computed afresh on every call (medians of "
+          f"{args.repeat} alternating calls, same particles): {med['cached'][0]:.3f} / "
+          f"{med['afresh'][0]:.3f} s, ratio {med['afresh'][0] / med['cached'][0]:.2f}x; "
+          f"decode + checks stages {med['cached'][1]:.3f} / {med['afresh'][1]:.3f} s")
 
 if __name__ == "__main__":
     main()

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib
 import math
 
 import numpy as np
@@ -320,3 +321,32 @@ def test_views_below_min_view_fraction_are_left_out(white_kind):
     np.testing.assert_array_equal(part.view_mask, full.view_mask)
     with pytest.raises(SettingsError):
         decode(raw, grid, min_view_fraction=1.5)
+
+
+def test_sampling_is_cached_per_grid_and_equals_a_fresh_computation():
+    decode_module = importlib.import_module("plenoptrack.lightfield.decode")
+
+    grid = _lattice("hex")
+    rad = int(grid.pitch_px // 2)
+    cached = decode_module._sampling(grid, rad)
+    # an equal grid built anew (a calibration read again) hits the same entry
+    again = decode_module._sampling(_lattice("hex"), rad)
+    assert again is cached
+    fresh = decode_module._sampling.__wrapped__(grid, rad)
+    for name in ("j0", "w", "mask", "origin_px", "s_step_px", "t_step_px"):
+        np.testing.assert_array_equal(getattr(cached, name), getattr(fresh, name))
+    # another grid gets its own sampling
+    other = decode_module._sampling(_lattice("hex", pitch=14.5), rad)
+    assert other is not cached
+    np.testing.assert_array_equal(decode_module._lens_centres(grid), grid.centers())
+
+
+def test_light_fields_do_not_share_the_cached_sampling_arrays():
+    grid = _lattice("hex")
+    raw = _paint(grid, _linear).astype(np.float32)
+    first = decode(raw, grid)
+    mask = first.spatial_mask.copy()
+    first.spatial_mask[:] = ~first.spatial_mask     # a caller writing to its light field
+    second = decode(raw, grid)
+    np.testing.assert_array_equal(second.spatial_mask, mask)
+    np.testing.assert_array_equal(second.data, decode(raw, grid).data)

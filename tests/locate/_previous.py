@@ -5,7 +5,8 @@ merged images recomputing every fraction over all pairs after each particle it d
 and the triangulation that re-tests every centroid in every outlier-rejection round. :class:`ImageSpans` rules out no
 particle, so that the split and hidden-particle checks compare every particle's images
 with every other's in every view, as they did; :func:`_robust_sd` takes
-:func:`numpy.median` twice, as it did.
+:func:`numpy.median` twice, as it did; the decode's sampling geometry and lens centres
+are computed afresh on every call, as they were before they were cached per grid.
 
 They are the independent reference of ``test_perspective_steps.py``,
 ``test_cluster.py`` and ``test_triangulate.py`` and the baseline of
@@ -13,6 +14,7 @@ They are the independent reference of ``test_perspective_steps.py``,
 """
 # ruff: noqa: PLR1730
 
+import importlib
 import math
 import warnings
 
@@ -34,6 +36,7 @@ REPLACED = {
                                        "_release_unclaimed", "_explained_away",
                                        "_trim_refit", "ImageSpans"),
     "plenoptrack.locate.refine": ("_robust_sd",),
+    "plenoptrack.lightfield.decode": ("_sampling", "_lens_centres"),
     "plenoptrack.locate.cluster": ("_lloyd", "_kmeanspp_topup"),
     "plenoptrack.locate.triangulate": ("_triangulate",),
 }
@@ -540,3 +543,12 @@ def _robust_sd(values: np.ndarray) -> float:
     normal sample, robust to outliers (scipy's ``median_abs_deviation(x, scale="normal")``
     without its per-call overhead, which is most of the cost on patch-sized arrays)."""
     return float(np.median(np.abs(values - np.median(values))) / 0.6744897501960817)
+
+
+_sampling = importlib.import_module("plenoptrack.lightfield.decode")._sampling.__wrapped__
+"""The decode's sampling geometry without its per-grid cache."""
+
+
+def _lens_centres(grid):
+    """Every lens centre of ``grid``, computed afresh."""
+    return grid.centers()

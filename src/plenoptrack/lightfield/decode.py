@@ -14,6 +14,7 @@ over ``t`` rows; no Python loop runs over lenses, views or pixels.
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
@@ -319,8 +320,15 @@ class _Sampling:
     t_step_px: np.ndarray   # (2,)
 
 
+@functools.lru_cache(maxsize=8)
 def _sampling(grid: LensletGrid, rad: int) -> _Sampling:
-    """Where every spatial sample sits among the lenses of its lens row."""
+    """Where every spatial sample sits among the lenses of its lens row.
+
+    Cached per grid (a frozen, hashable value) and ``rad``: every frame of a run decodes
+    with the same grid, and the pixel-locking correction asks again for each frame (on a
+    29-megapixel sensor about 15 ms a call). The arrays are shared between the calls:
+    read them, never write to them (they are not flagged read-only, which would make
+    numba compile the kernels that take them once more)."""
     n_rows, n_cols = grid.shape
     a = np.asarray(grid.col_step_px)
     b = np.asarray(grid.row_step_px)
@@ -350,7 +358,7 @@ def _sampling(grid: LensletGrid, rad: int) -> _Sampling:
     w[w < 1e-9] = 0.0
 
     # a lens is usable when every bilinear tap of every (u, v) sample lies on the sensor
-    cen = grid.centers()
+    cen = _lens_centres(grid)
     rows, cols = grid.sensor_shape_px
     ok = ((cen[..., 0] - rad >= 0) & (cen[..., 0] + rad <= rows - 1)
           & (cen[..., 1] - rad >= 0) & (cen[..., 1] + rad <= cols - 1))
@@ -359,7 +367,14 @@ def _sampling(grid: LensletGrid, rad: int) -> _Sampling:
     mask = ok[tt, j0] & (ok[tt, j1] | (w == 0))
 
     origin = np.asarray(grid.origin_px) + j_start * a
-    return _Sampling(j0=j0, w=w, mask=mask, origin_px=origin, s_step_px=q * a, t_step_px=t_step)
+    return _Sampling(j0=j0, w=w, mask=mask, origin_px=origin, s_step_px=q * a,
+                     t_step_px=np.asarray(t_step, dtype=float))
+
+
+@functools.lru_cache(maxsize=8)
+def _lens_centres(grid: LensletGrid) -> np.ndarray:
+    """``grid.centers()``, cached per grid and shared like :func:`_sampling`'s arrays."""
+    return grid.centers()
 
 
 def _disc_fraction(u: np.ndarray, v: np.ndarray, radius: float, n_sub: int = 32) -> np.ndarray:
@@ -389,7 +404,7 @@ def _decode_array(raw: np.ndarray, grid: LensletGrid, samp: _Sampling, rad: int,
                   progress: bool, label: str, use: np.ndarray | None = None) -> np.ndarray:
     """The light field ``(n_v, n_u, n_t, n_s)`` of the views ``use`` (all when None;
     the others zero)."""
-    cen = grid.centers()
+    cen = _lens_centres(grid)
     n_ang = 2 * rad + 1
     n_t, n_s = samp.j0.shape
     if use is None:
@@ -525,8 +540,9 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: "np.ndarray | LightFiel
     del wdata
     if use is not None:
         valid = np.where(use, valid, 0.0)
+    # the light field gets its own copy of the cached sampling's mask
     return LightField(data=data, u=ang, v=ang.copy(), valid_fraction=valid,
-                      spatial_mask=samp.mask, origin_px=samp.origin_px,
+                      spatial_mask=samp.mask.copy(), origin_px=samp.origin_px,
                       s_step_px=samp.s_step_px, t_step_px=samp.t_step_px,
                       sensor_shape_px=grid.sensor_shape_px, grid_type=grid.grid_type,
                       flat_fielded=white is not None)
