@@ -522,8 +522,8 @@ def main() -> None:
           f"{ev_flip.rms_error_lateral:.4f} mm")
     # the decode's sampling geometry and lens centres computed afresh on every call, as
     # before they were cached per grid (the pixel-locking correction asks for them too);
-    # alternating with the default call, medians (a fresh 180 MB light field faults its
-    # pages in, which makes single calls vary by a tenth of a second)
+    # alternating with the default call, medians (single calls of either vary by up to a
+    # few tenths of a second, most of it in the decode stage)
     previous = _load_previous()
     runs = {"cached": [], "afresh": []}
     for _ in range(args.repeat):
