@@ -462,6 +462,22 @@ def test_a_patch_outside_every_view_gives_none():
                       np.array([[2.0, 0.9]]), np.zeros((0, 3)), np.zeros((0, 2))) is None
 
 
+def test_free_images_further_apart_than_a_view_give_none():
+    """Two images run far off to either side (x -+1e7 mm; their mean in the view) would
+    need one patch spanning both: no view holds it, and the fit gives none instead of
+    trying to gather a patch of about 1e8 pixels a side."""
+    dlfc = LinearCalibration()
+    views_uv, view_rc = _views()
+    truth = np.array([[0.0, 0.0, 1.0]])
+    rc = np.array([[1.8, 0.9]])
+    data = _render(dlfc, truth, rc, views_uv, view_rc, noise=0.01, seed=4)
+    off = np.array([[-1e7, 0.0, 1.0], [1e7, 0.0, 1.0]])
+    args = (dlfc, views_uv, view_rc, data)
+    assert fit_images(*args, off, np.tile(rc, (2, 1)), np.zeros((0, 3)),
+                      np.zeros((0, 2))) is None
+    assert fit_images(*args, truth, rc, np.zeros((0, 3)), np.zeros((0, 2))) is not None
+
+
 def test_patches_reaching_beyond_the_view_mark_their_pixels_outside():
     data = np.arange(2 * 1 * 6 * 8, dtype=float).reshape(2, 1, 6, 8)
     view_rc = np.array([[0, 0], [1, 0]])

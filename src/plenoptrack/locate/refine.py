@@ -326,8 +326,9 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     -------
     ImageFit or None
         The fitted parameters and their standard errors; None when fewer than 6 views
-        have a usable patch (its centre in the view, enough background pixels), or the
-        fit wandered beyond ``max_depth_shift``. Pixels beyond a view's edge are left
+        have a usable patch (its centre in the view, enough background pixels), the free
+        images lie further apart than a view is wide, or the fit wandered beyond
+        ``max_depth_shift``. Pixels beyond a view's edge are left
         out, so an image cut by the edge is fitted on its part in the view.
     """
     k = len(free_xyz)
@@ -337,7 +338,12 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     st_free = dlfc.predict_in_views(free_xyz, basis)
     centre = st_free.mean(axis=0)
     reach = np.max(np.hypot(*(st_free - centre[None]).transpose(2, 0, 1)))
-    half = int(math.ceil(reach + free_rc[:, 0].max() + margin_px))
+    extent = reach + free_rc[:, 0].max() + margin_px
+    if not extent <= max(data.shape[2:]):
+        # the free images lie further apart than a view is wide (a fit that ran off):
+        # no patch holds them
+        return None
+    half = int(math.ceil(extent))
     keep, origin, values, inside = _patches(data, view_rc, centre, half)
     if keep.sum() < 6:
         return None
