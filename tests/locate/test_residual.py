@@ -479,3 +479,62 @@ def test_darkness_the_search_cannot_take_apart_widens_sigma(small_calibrated):
     beyond = {name: int(np.any(error > 3 * s[rows], axis=1).sum())
               for name, s in (("on", on_sigma), ("off", off_sigma))}
     assert beyond["on"] < beyond["off"]
+
+
+def _duplicate_frame(render_candidate: bool, candidate=(0.05, 0.0, 2.5),
+                     candidate_views: int = 7, third=None):
+    """A frame context and particle state for a weakly seen, unexplained particle (row
+    1, at ``candidate``) whose images nearly coincide with a strongly seen particle's
+    (row 0, at (0, 0, 1), drawn in the image); the candidate is drawn in the image
+    only with ``render_candidate``; ``third``, a strongly seen particle drawn in the
+    image beside them (the linear stand-in DLFC of the image-fit tests)."""
+    from types import SimpleNamespace
+
+    from test_refine import LinearCalibration, _render, _views
+
+    class Calibration(LinearCalibration):
+        def local_magnification(self, x, y, z):
+            return np.full(np.shape(x), 10.0)           # view pixels per mm
+
+    dlfc = Calibration()
+    views_uv, view_rc = _views()
+    xyz = [(0.0, 0.0, 1.0), candidate] + ([] if third is None else [third])
+    rc = np.full((len(xyz), 2), [2.0, 0.95])
+    drawn = [0] + ([1] if render_candidate else []) + ([2] if third is not None else [])
+    data = _render(dlfc, np.array(xyz)[drawn], rc[drawn], views_uv, view_rc, noise=0.01,
+                   seed=3)
+    lf = SimpleNamespace(data=data, u=np.arange(9) - 4.0, v=np.arange(9) - 4.0,
+                         valid_fraction=np.ones((9, 9)), view_mask=np.ones((9, 9), bool))
+    detections = pd.DataFrame({"dark_area": [10.0], "diameter_px": [4.0], "whole": [True]})
+    ctx = SimpleNamespace(lf=lf, views=views_uv, dlfc=dlfc, detections=detections,
+                          volume_depth_mm=20.0, image_edge=ImageEdge())
+    positions = np.array(xyz, dtype=float)
+    n_views = [81, candidate_views] + ([81] if third is not None else [])
+    flags = [33, 1 | 64] + ([33] if third is not None else [])
+    table = pd.DataFrame({"n_views": n_views, "_fit_radius_px": rc[:, 0],
+                          "_fit_contrast": rc[:, 1], "flags": flags})
+    state = ParticleState(owner=np.array([0]), initial=positions.copy(),
+                          positions=positions, table=table)
+    return ctx, state
+
+
+@pytest.mark.parametrize("case, kept", [
+    # nothing there: the strongly seen particle's image found again
+    ({"render_candidate": False}, False),
+    # a real particle behind it on nearly the same line of sight explains its pixels
+    ({"render_candidate": True}, True),
+    # seen in a quarter of the views: not tested
+    ({"render_candidate": False, "candidate_views": 21}, True),
+    # its images meet a second particle's too: not tested
+    ({"render_candidate": False, "third": (0.45, 0.0, 1.0)}, True),
+    # its images lie apart from the neighbour's (median distance above the radius)
+    ({"render_candidate": False, "candidate": (0.3, 0.0, 1.0)}, True),
+])
+def test_a_weak_particle_that_duplicates_one_neighbour_is_dropped(case, kept):
+    ctx, state = _duplicate_frame(**case)
+    after = perspective.drop_duplicate_particles(ctx, state, PerspectiveLocator())
+    assert np.isfinite(after.positions[1]).all() == kept
+    assert (after.table.loc[1, "n_views"] > 0) == kept
+    others = np.r_[0, 2:len(state.positions)]
+    np.testing.assert_array_equal(after.positions[others], state.positions[others])
+    np.testing.assert_array_equal(after.owner, state.owner)
