@@ -540,10 +540,10 @@ def decode(raw: np.ndarray, grid: LensletGrid, *, white: "np.ndarray | LightFiel
     del wdata
     if use is not None:
         valid = np.where(use, valid, 0.0)
-    # the light field gets its own copy of the cached sampling's mask
+    # the light field gets its own copies of the cached sampling's arrays
     return LightField(data=data, u=ang, v=ang.copy(), valid_fraction=valid,
-                      spatial_mask=samp.mask.copy(), origin_px=samp.origin_px,
-                      s_step_px=samp.s_step_px, t_step_px=samp.t_step_px,
+                      spatial_mask=samp.mask.copy(), origin_px=samp.origin_px.copy(),
+                      s_step_px=samp.s_step_px.copy(), t_step_px=samp.t_step_px.copy(),
                       sensor_shape_px=grid.sensor_shape_px, grid_type=grid.grid_type,
                       flat_fielded=white is not None)
 
