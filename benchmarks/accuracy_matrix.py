@@ -95,7 +95,10 @@ scale with the object-side pixel, ~1/|M|, depth errors with the depth resolution
 ``chance`` is the expected number of true particles inside one tolerance ellipsoid
 placed at random in the volume (a false positive can match by chance that often).
 
-recall, precision; depth bias (mean dz), depth std (ddof 1) and robust std (1.4826 MAD
+recall, precision; ``hidden``: fraction of the true particles hidden in every view the
+locator reads (:func:`plenoptrack.evaluate.hidden_particles`: each view's image wholly
+inside another particle's; no locator can see them, so ``1 - hidden`` bounds the
+recall) and ``rec. seen``, the recall of the others; depth bias (mean dz), depth std (ddof 1) and robust std (1.4826 MAD
 about the median); ``>3sz``: fraction of matched particles with |dz| > 3 sigma_z;
 ``1s``/``2s``: fraction with |d| <= 1 and 2 sigma for x, y and z (a calibrated sigma gives
 0.68 and 0.95); lateral RMS error; diameter ratio: median of measured diameter over the
@@ -440,7 +443,8 @@ def _silhouette_diameter(truth: pd.DataFrame) -> pd.Series:
 
 
 def match(measured: pd.DataFrame, truth: pd.DataFrame, magnification: float) -> pd.DataFrame:
-    """Pairs within the tolerance ellipsoid, with the measured and true columns needed."""
+    """Pairs within the tolerance ellipsoid, with the measured and true columns needed
+    (``hidden`` from the truth's column of that name, False without one)."""
     from plenoptrack.evaluate import match_particles
 
     tl, tz = tolerances(magnification)
@@ -456,15 +460,22 @@ def match(measured: pd.DataFrame, truth: pd.DataFrame, magnification: float) -> 
         "sigma_x": m["sigma_x"], "sigma_y": m["sigma_y"], "sigma_z": m["sigma_z"],
         "diameter": m["diameter"], "true_diameter": _silhouette_diameter(t),
         "x_true": t["x"], "y_true": t["y"], "z_true": t["z"],
+        "hidden": (t["hidden"].to_numpy(bool) if "hidden" in t
+                   else np.zeros(len(t), dtype=bool)),
         **{c: m[c] for c in ("chi2", "travel_px", "n_views", "flags") if c in m}})
 
 
-def metrics(pairs: pd.DataFrame, n_true: int, n_measured: int) -> dict:
-    """The metrics of the module notes from pooled pairs."""
+def metrics(pairs: pd.DataFrame, n_true: int, n_measured: int, n_hidden: int = 0) -> dict:
+    """The metrics of the module notes from pooled pairs (``n_hidden`` of the ``n_true``
+    particles hidden in every view)."""
     n = len(pairs)
+    n_seen = n_true - n_hidden
+    matched_seen = n - int(pairs["hidden"].sum()) if "hidden" in pairs else n
     out = {"n_true": int(n_true), "n_measured": int(n_measured), "n_matched": n,
            "recall": n / n_true if n_true else math.nan,
-           "precision": n / n_measured if n_measured else math.nan}
+           "precision": n / n_measured if n_measured else math.nan,
+           "n_hidden": int(n_hidden), "hidden": n_hidden / n_true if n_true else math.nan,
+           "recall_seen": matched_seen / n_seen if n_seen else math.nan}
     nan = math.nan
     if n == 0:
         return out | {k: nan for k in ("bias_z", "std_z", "rstd_z", "out3_x", "out3_y",
@@ -552,6 +563,7 @@ class Runner:
         return calib, white, sim.optics
 
     def run_cell(self, cell: Cell, optics: str, seed: int, calib, white, cal_optics) -> dict:
+        from plenoptrack.evaluate import hidden_particles
         from plenoptrack.io import read_raw
         from plenoptrack.locate.perspective import locate_frame
         from plenoptrack.simulate import simulate_dataset
@@ -567,10 +579,12 @@ class Runner:
             raise RuntimeError(f"{cell.name} {optics} seed {seed}: the frames' optics differ "
                                "from the calibration's; the calibration cannot be reused")
         locator = cell_locator(cell)
+        truth_all = sim.truth.assign(hidden=hidden_particles(sim.truth, calib.dlfc,
+                                                             _read_views(white)))
         pairs, n_measured, seconds, caught_all = [], 0, [], set()
         for f, path in enumerate(sim.frame_paths):
             raw = read_raw(path)
-            truth = sim.truth[sim.truth["frame"] == f]
+            truth = truth_all[truth_all["frame"] == f]
             with warnings.catch_warnings(record=True) as caught:
                 warnings.simplefilter("always")
                 if not self.warm:
@@ -591,9 +605,20 @@ class Runner:
         ns = [source_density(scene.truth[scene.truth["frame"] == f], scene.camera)
               for f in range(frames)]
         return {"pairs": pd.concat(pairs, ignore_index=True), "n_true": len(sim.truth),
+                "n_hidden": int(truth_all["hidden"].sum()),
                 "n_measured": n_measured, "frames": frames, "seconds": seconds,
                 "source_density": float(np.mean(ns)), "chance": chance,
                 "warnings": sorted(caught_all)}
+
+
+def _read_views(white) -> np.ndarray:
+    """(V, 2) ``(u, v)`` of the views the locator reads (more than half their samples
+    valid), from the decoded white image."""
+    from plenoptrack.locate.perspective import MIN_VIEW_FRACTION
+
+    u, v = np.meshgrid(white.u, white.v)
+    usable = white.valid_fraction > MIN_VIEW_FRACTION
+    return np.c_[u[usable], v[usable]]
 
 
 def aggregate(results: list[dict], keys: tuple[str, ...]) -> list[dict]:
@@ -614,7 +639,8 @@ def aggregate(results: list[dict], keys: tuple[str, ...]) -> list[dict]:
             "s_per_frame": float(np.mean(np.concatenate([g["seconds"] for g in group]))),
             "warnings": sorted({w for g in group for w in g["warnings"]})}
         row |= metrics(pairs, sum(g["n_true"] for g in group),
-                       sum(g["n_measured"] for g in group))
+                       sum(g["n_measured"] for g in group),
+                       sum(g.get("n_hidden", 0) for g in group))
         rows.append(row)
     return rows
 
@@ -700,7 +726,8 @@ def _acceptance_lines(doc: dict) -> list[str]:
 
 # --------------------------------------------------------------------------- report
 
-_TABLE_COLS = [("recall", "recall", "{:.2f}"), ("precision", "prec.", "{:.2f}"),
+_TABLE_COLS = [("recall", "recall", "{:.2f}"), ("hidden", "hidden", "{:.3f}"),
+               ("recall_seen", "rec. seen", "{:.2f}"), ("precision", "prec.", "{:.2f}"),
                ("bias_z", "dz bias", "{:+.3f}"), ("std_z", "dz std", "{:.3f}"),
                ("rstd_z", "dz rstd", "{:.3f}"), ("lat_rms", "lat RMS", "{:.3f}"),
                ("out3_z", ">3sz", "{:.2f}"), ("cov1_x", "1s x", "{:.2f}"),
@@ -738,7 +765,7 @@ def _table(rows: list[dict]) -> list[str]:
         fp = (r["n_measured"] - r["n_matched"]) / max(r["frames"], 1)
         cells = [p["preset"], r["axis"], r["optics"], f"{p['magnification']:g}",
                  f"{p['density']:g}", f"{r['source_density']:.3f}", size, str(len(r["seeds"])),
-                 str(r["n_true"]), f"{fp:.1f}", *[_fmt(r[k], s) for k, _, s in _TABLE_COLS]]
+                 str(r["n_true"]), f"{fp:.1f}", *[_fmt(r.get(k), s) for k, _, s in _TABLE_COLS]]
         lines.append("| " + " | ".join(cells) + " |")
     return lines
 
@@ -1138,7 +1165,7 @@ def main(argv=None) -> int:
                 r |= {"cell": cell.name, "axis": cell.axis, "cell_params": cell.params(),
                       "optics": optics, "seed_set": seed_set, "seed": seed}
                 results.append(r)
-                m = metrics(r["pairs"], r["n_true"], r["n_measured"])
+                m = metrics(r["pairs"], r["n_true"], r["n_measured"], r["n_hidden"])
                 print(f"[{done:3d}/{total}] {optics:9s} {seed_set[:3]} seed {seed} {cell.name}: "
                       f"n {r['n_true']} N_s {r['source_density']:.3f} recall {m['recall']:.2f} "
                       f"precision {m['precision']:.2f} dz bias {_fmt(m['bias_z'], '{:+.3f}')} "
@@ -1158,7 +1185,7 @@ def main(argv=None) -> int:
         checks = acceptance_checks(rows, bands)
     per_seed = [{k: v for k, v in r.items() if k not in ("pairs", "seconds", "cell_params")}
                 | {"s_per_frame": float(np.mean(r["seconds"]))}
-                | metrics(r["pairs"], r["n_true"], r["n_measured"]) for r in results]
+                | metrics(r["pairs"], r["n_true"], r["n_measured"], r["n_hidden"]) for r in results]
     args.out.mkdir(parents=True, exist_ok=True)
     figures = write_figures(args.out, rows)
     wall = time.perf_counter() - t0

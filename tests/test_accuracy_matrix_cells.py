@@ -60,3 +60,20 @@ def test_a_log_axis_labels_only_two_and_five_between_its_decades(matrix):
                                                                  "5e+02"]
     assert [label(v) for v in (0.03, 0.04, 0.06, 0.07, 0.08, 0.09, 0.3, 7.0)] == [""] * 8
     assert label(0.0) == "" and label(-0.2) == ""
+
+
+def test_recall_of_the_particles_some_view_shows(matrix):
+    """``recall_seen`` leaves out the true particles hidden in every view, matched or not;
+    ``recall`` counts them all."""
+    import pandas as pd
+
+    pairs = pd.DataFrame({"dx": [0.0] * 3, "dy": [0.0] * 3, "dz": [0.01, -0.01, 0.02],
+                          "sigma_x": [1.0] * 3, "sigma_y": [1.0] * 3, "sigma_z": [1.0] * 3,
+                          "diameter": [1.0] * 3, "true_diameter": [1.0] * 3,
+                          "hidden": [False, False, True]})
+    m = matrix.metrics(pairs, n_true=10, n_measured=4, n_hidden=3)
+    assert m["recall"] == pytest.approx(0.3)
+    assert m["hidden"] == pytest.approx(0.3)
+    assert m["recall_seen"] == pytest.approx(2 / 7)
+    assert matrix.metrics(pairs.drop(columns="hidden"), 10, 4)["recall_seen"] == \
+        pytest.approx(0.3)

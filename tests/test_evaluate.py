@@ -2,7 +2,7 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from plenoptrack.evaluate import evaluate_particles, match_particles
+from plenoptrack.evaluate import evaluate_particles, hidden_particles, match_particles
 
 
 def _truth(n=50, seed=0):
@@ -64,3 +64,56 @@ def test_empty_measurement():
 def test_missing_columns():
     with pytest.raises(ValueError, match=r"measured table has no column\(s\) \['z'\]"):
         evaluate_particles(pd.DataFrame({"x": [1.0], "y": [1.0]}), _truth())
+
+
+class _ShiftDLFC:
+    """Stand-in calibration: ``s = 10 x + z u``, ``t = 10 y + z v`` (10 view pixels per mm
+    laterally; the image moves by ``z`` view pixels per unit of ``u``)."""
+
+    def view_basis(self, u, v):
+        return np.column_stack([u, v]).astype(float)
+
+    def predict_in_views(self, xyz, basis):
+        xyz = np.reshape(xyz, (-1, 3))
+        s = 10.0 * xyz[:, None, 0] + xyz[:, None, 2] * basis[None, :, 0]
+        t = 10.0 * xyz[:, None, 1] + xyz[:, None, 2] * basis[None, :, 1]
+        return np.stack([s, t], axis=-1)
+
+
+_VIEWS = np.array([[u, v] for u in (-1.0, 0.0, 1.0) for v in (-1.0, 0.0, 1.0)])
+
+
+def _scene(rows, frame=0):
+    return pd.DataFrame(rows, columns=["x", "y", "z", "diameter"]).assign(frame=frame)
+
+
+def test_hidden_behind_a_larger_image_in_every_view():
+    # a 1 mm particle's image (radius 5 px) holds a 0.2 mm one's (radius 1 px) in every
+    # view while their centres part by at most 2.8 sqrt 2 = 3.96 px (the corner views);
+    # parting by 5 px frees it in some
+    big_and_small = _scene([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 2.8, 0.2]])
+    assert hidden_particles(big_and_small, _ShiftDLFC(), _VIEWS).tolist() == [False, True]
+    apart = _scene([[0.0, 0.0, 0.0, 1.0], [0.0, 0.0, 5.0, 0.2]])
+    assert not hidden_particles(apart, _ShiftDLFC(), _VIEWS).any()
+    # only the central view: 4.5 px off centre, its rim pokes out
+    off_centre = _scene([[0.0, 0.0, 0.0, 1.0], [0.45, 0.0, 0.0, 0.2]])
+    assert not hidden_particles(off_centre, _ShiftDLFC(), _VIEWS[[4]]).any()
+    assert hidden_particles(off_centre.assign(x=[0.0, 0.35]), _ShiftDLFC(),
+                            _VIEWS[[4]]).tolist() == [False, True]
+
+
+def test_hidden_by_two_neighbours_together_not_by_another_frame():
+    # two 1 mm images 6 px apart cover a 0.4 mm one (radius 2 px) between them, which
+    # neither covers alone; in another frame they hide nothing
+    trio = _scene([[-0.3, 0.0, 0.0, 1.0], [0.3, 0.0, 0.0, 1.0], [0.0, 0.0, 0.0, 0.4]])
+    assert hidden_particles(trio, _ShiftDLFC(), _VIEWS[[4]]).tolist() == [False, False, True]
+    split = pd.concat([trio.iloc[:2], trio.iloc[2:].assign(frame=1)], ignore_index=True)
+    assert not hidden_particles(split, _ShiftDLFC(), _VIEWS[[4]]).any()
+
+
+def test_hidden_uses_the_silhouette_area():
+    # an ellipsoid's silhouette larger than its volume-equivalent sphere's hides more
+    pair = _scene([[0.0, 0.0, 0.0, 0.5], [0.15, 0.0, 0.0, 0.2]])
+    assert not hidden_particles(pair, _ShiftDLFC(), _VIEWS[[4]]).any()
+    wide = pair.assign(projected_area=[np.pi * 0.4 ** 2, np.pi * 0.1 ** 2])
+    assert hidden_particles(wide, _ShiftDLFC(), _VIEWS[[4]]).tolist() == [False, True]

@@ -19,7 +19,7 @@ from ._columns import POS_COLUMNS, T_COLUMN
 from .errors import InputFileError, SettingsError
 
 __all__ = ["match_particles", "evaluate_particles", "Evaluation", "match_track_points",
-           "evaluate_tracks", "TrackEvaluation"]
+           "evaluate_tracks", "TrackEvaluation", "hidden_particles"]
 
 
 @dataclass(frozen=True)
@@ -129,6 +129,79 @@ def evaluate_particles(measured: pd.DataFrame, truth: pd.DataFrame, *,
         std_error_z=stat(pairs.dz, std),
         rms_error_lateral=stat(np.hypot(pairs.dx, pairs.dy), lambda a: np.sqrt(np.mean(a ** 2))),
     )
+
+
+_DISC_POINTS = np.concatenate([
+    [[0.0, 0.0]],
+    0.5 * np.c_[np.cos(np.arange(8) * np.pi / 4), np.sin(np.arange(8) * np.pi / 4)],
+    np.c_[np.cos(np.arange(16) * np.pi / 8), np.sin(np.arange(16) * np.pi / 8)]])
+"""Sample points of a unit disc (25, 2): the centre, 8 at half the radius, 16 on the rim.
+A particle's image is covered when all of them are."""
+
+
+def hidden_particles(truth: pd.DataFrame, dlfc, views_uv, *,
+                     step_mm: float = 0.01) -> np.ndarray:
+    """Which true particles no view shows: in every view the particle's image lies wholly
+    inside another particle's image of the same frame.
+
+    A back-lit camera sees an opaque particle only as its shadow, so one hidden inside a
+    larger or nearer particle's shadow in every view leaves no trace in the light field:
+    no locator can find it, and it bounds the recall any method can reach. Images are
+    discs of the particle's silhouette area (``projected_area``, else ``diameter``) at the
+    image centre the calibration predicts, scaled by the calibration's local view pixels
+    per mm; an image counts as covered when each of :data:`_DISC_POINTS` (its centre and
+    rings at half and the full radius) lies inside another image, so several
+    neighbours together can hide a particle.
+
+    Parameters
+    ----------
+    truth : DataFrame
+        Ground truth with ``x, y, z`` (mm), ``diameter`` (mm), optionally
+        ``projected_area`` (mm^2) and ``frame``.
+    dlfc : DLFC
+        The camera's calibration.
+    views_uv : (V, 2) float array_like
+        ``(u, v)`` of the views to consider (e.g. those a locator reads).
+    step_mm : float
+        Lateral step of the finite difference that gives view pixels per mm.
+
+    Returns
+    -------
+    (len(truth),) bool ndarray
+        True where the particle is hidden in every view.
+    """
+    views_uv = np.asarray(views_uv, dtype=float).reshape(-1, 2)
+    hidden = np.zeros(len(truth), dtype=bool)
+    if len(truth) == 0 or len(views_uv) == 0:
+        return hidden
+    basis = dlfc.view_basis(views_uv[:, 0], views_uv[:, 1])
+    diameter = truth["diameter"].to_numpy(float)
+    if "projected_area" in truth.columns:
+        area = truth["projected_area"].to_numpy(float)
+        diameter = np.where(np.isfinite(area), np.sqrt(4.0 * area / np.pi), diameter)
+    frames = (truth[T_COLUMN].to_numpy() if T_COLUMN in truth.columns
+              else np.zeros(len(truth), dtype=int))
+    xyz_all = truth[list(POS_COLUMNS)].to_numpy(float)
+    for frame in np.unique(frames):
+        rows = np.flatnonzero(frames == frame)
+        if len(rows) < 2:
+            continue
+        xyz = xyz_all[rows]
+        st = dlfc.predict_in_views(xyz, basis)                               # (n, V, 2)
+        moved = dlfc.predict_in_views(xyz + [step_mm, 0.0, 0.0], basis)
+        radius = 0.5 * diameter[rows, None] * np.hypot(*(moved - st).T).T / step_mm
+        covered = np.ones(len(rows), dtype=bool)
+        others = ~np.eye(len(rows), dtype=bool)[:, None, :]                 # (n, 1, n)
+        for view in range(len(views_uv)):
+            # every sample point of image i inside the image of some j other than i
+            points = st[:, None, view] + radius[:, None, view, None] * _DISC_POINTS
+            gap = np.linalg.norm(points[:, :, None] - st[None, None, :, view], axis=-1)
+            inside = (gap <= radius[None, None, :, view]) & others            # (n, P, n)
+            covered &= inside.any(axis=2).all(axis=1)
+            if not covered.any():
+                break
+        hidden[rows] = covered
+    return hidden
 
 
 @dataclass(frozen=True)

@@ -55,6 +55,7 @@ import contextlib
 import dataclasses
 import itertools
 import math
+import os
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -1449,6 +1450,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     scattered = table["residual_px"].to_numpy(float) > _MOVED_PX
     hidden = (table[_HIDDEN].fillna(False).to_numpy(bool) if _HIDDEN in table.columns
               else np.zeros(len(table), dtype=bool))
+    axes = _member_axes(ctx.detections, state.owner, state.n_particles)
 
     def neighbours(i, pred):
         """Particles whose images come within 4 view pixels of particle i's in a view."""
@@ -1529,7 +1531,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         return not _coincides(group_pred, fit.params[:, 3], pred[others], radius[others],
                               spans.subset(others))
 
-    def best_replacement(m, held, held_rc, start, error, reference, n):
+    def best_replacement(m, held, held_rc, start, error, reference, n, lateral=None):
         """The best fit on the trial views of ``start`` (k, 5) with one image replaced
         by ``n`` (2: the line-of-sight pair of :func:`_line_of_sight_pair`; 3: the pair
         and the image itself) that explains the pixels better than the ``reference``
@@ -1555,14 +1557,26 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 fit = trial_fit(np.c_[xyz, rc])
                 if fit is not None:
                     break
-            fit = _without_vanished(fit, start, j, ctx.dlfc, split_max, trial_fit)
-            if (fit is not None and _explains_more(fit, error, settings, gain_bar)
-                    and (best is None or fit.model_error < best.model_error)
-                    and distinct(fit, m)):
-                best = fit
+            fits = [_without_vanished(fit, start, j, ctx.dlfc, split_max, trial_fit)]
+            if lateral is not None and n == 2 and len(start) == 1:
+                fits.append(_without_vanished(trial_fit(lateral), start, j, ctx.dlfc,
+                                              split_max, trial_fit))
+            if os.environ.get("DBG"):
+                print("lateral", lateral, "error", error, "gain_bar", gain_bar)
+                for f_ in fits:
+                    if f_ is not None:
+                        gp = _predict_all(ctx.dlfc, f_.params[:, :3], views_uv)
+                        print("parallax", parallax_px(gp[0] - gp[1]), "maxoff", np.nanmax(np.hypot(*(gp[0]-gp[1]).T)), "apart", _apart_in_space(ctx.dlfc, f_.params), "two", _two_images(ctx.dlfc, f_.params, gp))
+                    print(None if f_ is None else (f_.params.round(3), f_.model_error,
+                          _explains_more(f_, error, settings, gain_bar), distinct(f_, m)))
+            for fit in fits:
+                if (fit is not None and _explains_more(fit, error, settings, gain_bar)
+                        and (best is None or fit.model_error < best.model_error)
+                        and distinct(fit, m)):
+                    best = fit
         return best
 
-    def split(m, held, held_rc, start, error, reference):
+    def split(m, held, held_rc, start, error, reference, lateral=None):
         """The best fit of one more image than ``start`` (k, 5) on the trial views, each
         image in turn replaced by a pair on its line of sight, when it explains the
         pixels better than the ``reference`` model (k, 5) with model error ``error`` on
@@ -1570,7 +1584,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         more images, when they explain the pixels better than that pair (or the
         reference, without one): ``(fit refitted on every view, its model error on the
         trial views)``; else None."""
-        best = best_replacement(m, held, held_rc, start, error, reference, 2)
+        best = best_replacement(m, held, held_rc, start, error, reference, 2, lateral)
         # Three particles whose images all merge: a pair cannot explain them, and the
         # pair's fit can settle between them with one faint image. Each image replaced
         # by three on its line of sight (itself and the pair's starts) finds them.
@@ -1612,7 +1626,9 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 continue                   # one image explains it: left as it is
             single_error[m] = one.model_error
             reference = one.params
-        found = split(m, held, held_rc, start, single_error[m], reference)
+        lateral = (_lateral_pair(ctx.dlfc, pos[m], axes[m]) if os.environ.get("LAT", "1") == "1"
+                   else None)
+        found = split(m, held, held_rc, start, single_error[m], reference, lateral)
         # Three or more particles on one line of sight: split an image of the group
         # again while the group leaves the pixels unexplained.
         while (found is not None and len(found[0].params) < settings.split_max_images
@@ -1825,6 +1841,50 @@ def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray,
             st, j = dlfc.predict_with_jacobian(q[0], q[1], q[2], 0.0, 0.0)
             q[:2] += np.linalg.solve(j[:, :2], [s0 - st[0], t0 - st[1]])
         out[i] = q
+    return out
+
+
+def _member_axes(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
+    """(n, 3) median major and minor axis (view pixels) of each particle's whole regions
+    and their mean orientation (radians from ``s`` toward ``t``, averaged as doubled
+    angles); NaN for particles without whole regions."""
+    mine = (owner >= 0) & detections["whole"].to_numpy(bool)
+    theta = 2.0 * detections["orientation"].to_numpy(float)[mine]
+    d = pd.DataFrame({"owner": owner[mine],
+                      "major": detections["major_axis_px"].to_numpy(float)[mine],
+                      "minor": detections["minor_axis_px"].to_numpy(float)[mine],
+                      "cos": np.cos(theta), "sin": np.sin(theta)})
+    g = d.groupby("owner")
+    med, mean = g[["major", "minor"]].median(), g[["cos", "sin"]].mean()
+    out = np.full((n, 3), np.nan)
+    rows = med.index.to_numpy()
+    out[rows, 0], out[rows, 1] = med["major"].to_numpy(), med["minor"].to_numpy()
+    out[rows, 2] = 0.5 * np.arctan2(mean["sin"].to_numpy(), mean["cos"].to_numpy())
+    return out
+
+
+def _lateral_pair(dlfc, xyz: np.ndarray, axes: np.ndarray) -> np.ndarray | None:
+    """(2, 5) starting images ``(x, y, z, r, c)`` of a split of an image elongated by two
+    discs side by side: two discs of the regions' minor radius whose union has the
+    regions' second moments (equal discs of radius ``r`` whose centres lie ``d`` apart
+    have major and minor axes ``2 sqrt(r^2 + d^2)`` and ``2 r``), along the major axis
+    in the central view, at the merged depth; None for a round image (``d`` below one
+    view pixel) or one without regions."""
+    major, minor, angle = axes
+    if not np.all(np.isfinite(axes)) or major <= minor:
+        return None
+    half = 0.5 * math.sqrt(major ** 2 - minor ** 2) / 2.0
+    if 2.0 * half < 1.0:
+        return None
+    s0, t0 = dlfc.predict(xyz[0], xyz[1], xyz[2], 0.0, 0.0)
+    out = np.empty((2, 5))
+    for i, sign in enumerate((-1.0, 1.0)):
+        target = np.array([s0, t0]) + sign * half * np.array([math.cos(angle), math.sin(angle)])
+        q = np.array(xyz, dtype=float)
+        for _ in range(4):   # Newton: that central-view image at the merged depth
+            st, j = dlfc.predict_with_jacobian(q[0], q[1], q[2], 0.0, 0.0)
+            q[:2] += np.linalg.solve(j[:, :2], target - np.asarray(st, dtype=float))
+        out[i] = [*q, 0.5 * minor, 0.9]
     return out
 
 
