@@ -5,9 +5,11 @@ import pandas as pd
 import pytest
 
 from plenoptrack.evaluate import match_particles
-from plenoptrack.locate.perspective import (PerspectiveLocator, _line_of_sight_pair,
+from plenoptrack.locate.bodies import parallax_px
+from plenoptrack.locate.perspective import (SIDE_BY_SIDE_PARALLAX_PX, PerspectiveLocator,
+                                           _lateral_pair, _line_of_sight_pair, _two_images,
                                            _view_subgrid, _without_vanished, locate_frame,
-                                           split_start_travel)
+                                           split_start_travel, waist_depth_px)
 from plenoptrack.locate.refine import ImageFit
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.simulate import make_scene, render_frame
@@ -203,6 +205,28 @@ def test_two_large_particles_that_overlap_in_every_view_are_split(small_calibrat
         pairs = match_particles(found, truth, tolerance_mm=0.3)
         assert len(found) == 4 and len(pairs) == 4
         assert ((found["flags"].to_numpy() & SPLIT) > 0).sum() == 2
+
+
+def test_particles_side_by_side_whose_images_touch_in_every_view_are_split(small_calibrated):
+    """Three pairs of 1 mm particles side by side, 0.9 mm apart laterally and 0.9-1.2 mm
+    in depth, and one particle alone: each pair's images touch in every view, one
+    elongated region with a waist and little parallax (about 0.7-0.9 view pixel). Most
+    regions are pairs, so the frame's typical region is a pair and the segmentation
+    takes none apart; the split starts two discs along each pair's major axis and keeps
+    them (apart in space, side by side in every view, half a view pixel of parallax)."""
+    optics, calib = small_calibrated
+    truth = _truth([(-3.0, 1.0, -3.0), (-2.1, 1.03, -2.0), (2.0, -1.2, 2.0), (2.9, -1.25, 3.2),
+                    (0.0, 0.0, -6.0), (0.92, 0.05, -5.1), (3.0, 1.5, 6.0)], 1.0)
+    raw = render_frame(optics, truth, seed=np.random.default_rng([0, 3, 0]))
+    plain = locate_frame(raw, calib, locator=OFF).particles
+    assert len(plain) == 4 and len(match_particles(plain, truth, tolerance_mm=0.3)) == 1
+    found = locate_frame(raw, calib).particles
+    pairs = match_particles(found, truth, tolerance_mm=0.3)
+    assert len(found) == 7 and len(pairs) == 7
+    m, t = _paired(found, truth, pairs)
+    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.2)
+    assert ((found["flags"].to_numpy() & SPLIT) > 0).sum() == 6
 
 
 def test_three_large_particles_in_line_are_all_found(small_calibrated):
@@ -499,6 +523,82 @@ def test_a_split_tried_again_starts_its_images_a_third_of_the_radius_apart(small
             assert moved == pytest.approx(travel, rel=0.05)
 
 
+def _disc_views(radius=5.0):
+    u, v = np.meshgrid(np.arange(-5.0, 6.0), np.arange(-5.0, 6.0))    # sensor pixels
+    inside = np.hypot(u, v) <= radius
+    return np.c_[u[inside], v[inside]]
+
+
+def test_images_side_by_side_are_two_particles_from_half_a_view_pixel_of_parallax(
+        small_calibrated):
+    """Two 1 mm images side by side in every view (0.9 mm apart laterally) whose fit
+    explains the pixels are two particles when their depths differ enough for half a
+    view pixel of parallax; at one depth, or nearly (the two halves of one elongated
+    body), they are one; merged images (closer than the larger radius in some view), or
+    a fit that leaves the pixels unexplained, still need a whole view pixel."""
+    _, calib = small_calibrated
+    dlfc = calib.dlfc
+    views_uv = _disc_views()
+    radius_px = 0.5 * dlfc.local_magnification(0.0, 0.0, 0.0)          # 1 mm diameter
+
+    def verdict(second, explained=True):
+        params = np.array([[0.0, 0.0, 0.0, radius_px, 0.9], [*second, radius_px, 0.9]])
+        pred = np.stack([np.stack(dlfc.predict(*q[:3], views_uv[:, 0], views_uv[:, 1]),
+                                  axis=-1) for q in params])
+        return (_two_images(dlfc, params, pred, explained=explained),
+                float(parallax_px(pred[0] - pred[1])))
+
+    two, parallax = verdict((0.9, 0.0, 1.0))
+    assert two and SIDE_BY_SIDE_PARALLAX_PX <= parallax < 1.0
+    assert not verdict((0.9, 0.0, 1.0), explained=False)[0]
+    assert verdict((0.9, 0.0, 2.0), explained=False)[0]             # a whole view pixel
+    two, parallax = verdict((0.9, 0.0, 0.2))
+    assert not two and parallax < SIDE_BY_SIDE_PARALLAX_PX
+    # as far apart in depth, but merged: the centres 0.4 mm apart laterally
+    two, parallax = verdict((0.4, 0.0, 1.0))
+    assert not two and SIDE_BY_SIDE_PARALLAX_PX <= parallax < 1.0
+
+
+def test_the_waist_between_two_discs_is_the_smaller_radius_less_the_half_chord():
+    """Equal discs of radius 2 with centres 2 apart cross on a chord of half length
+    sqrt(3); the waist between discs that do not overlap is the smaller radius, and a
+    disc inside the other (or a bump on its rim, whose neck is its own width) shows none.
+    Checked against the union's narrowest width, measured on a fine raster."""
+    np.testing.assert_allclose(waist_depth_px([2.0], 2.0, 2.0), [2.0 - np.sqrt(3.0)])
+    np.testing.assert_allclose(waist_depth_px([5.0, 0.5], 1.0, 3.0), [1.0, 0.0])
+    assert waist_depth_px([3.0], 1.0, 3.0)[0] < 0.02                # centred on the rim
+    np.testing.assert_allclose(waist_depth_px([3.0], 1.5, 2.5), waist_depth_px([3.0], 2.5, 1.5))
+    # raster: the union's height along x between the centres, its least value
+    r1, r2, d = 2.0, 3.0, 4.0
+    x = np.linspace(0.0, d, 4001)[:, None]
+    y = np.linspace(-3.5, 3.5, 7001)[None, :]
+    inside = (x ** 2 + y ** 2 <= r1 ** 2) | ((x - d) ** 2 + y ** 2 <= r2 ** 2)
+    height = inside.sum(axis=1) * (y[0, 1] - y[0, 0])
+    assert r1 - height.min() / 2 == pytest.approx(waist_depth_px([d], r1, r2)[0], abs=2e-3)
+
+
+def test_a_lateral_split_starts_two_discs_with_the_regions_second_moments(small_calibrated):
+    """Two equal discs of radius r whose centres lie d apart have major and minor axes
+    2 sqrt(r^2 + d^2) and 2 r: the starts lie d apart along the major axis in the
+    central view, on either side of the merged image, at its depth; a round image gives
+    none."""
+    _, calib = small_calibrated
+    dlfc = calib.dlfc
+    xyz = np.array([0.5, -0.4, 2.0])
+    r, d, angle = 3.5, 6.0, 0.6
+    pair = _lateral_pair(dlfc, xyz, np.array([2 * np.hypot(r, d), 2 * r, angle]))
+    np.testing.assert_allclose(pair[:, 2], xyz[2])
+    np.testing.assert_allclose(pair[:, 3], r)
+    st = np.array([dlfc.predict(*q[:3], 0.0, 0.0) for q in pair])
+    centre = np.array(dlfc.predict(*xyz, 0.0, 0.0))
+    np.testing.assert_allclose(st.mean(axis=0), centre, atol=1e-3)
+    offset = st[1] - st[0]
+    np.testing.assert_allclose(np.hypot(*offset), d, rtol=1e-3)
+    np.testing.assert_allclose(offset / d, [np.cos(angle), np.sin(angle)], atol=1e-3)
+    assert _lateral_pair(dlfc, xyz, np.array([7.2, 7.0, 0.0])) is None
+    assert _lateral_pair(dlfc, xyz, np.array([np.nan, np.nan, np.nan])) is None
+
+
 def _image_fit(params, model_error, noise=0.01, n_pixels=1000):
     """An ImageFit of ``params`` (k, 5) whose model error is ``model_error``."""
     params = np.asarray(params, dtype=float)
@@ -562,8 +662,11 @@ def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_
     find one particle and the refinement fits nothing (no two particles overlap). The
     split stage's one-image fit leaves the pixels unexplained and two images find both;
     the frame's typical fit error, unknown, is the one the fixed bar stands for. Asked
-    for the whole bar squared (the typical error taken as 0) the pair was turned away and
-    only the large particle reported. The small one's depth is 0.4 mm off (3 sigma)."""
+    for the whole bar squared (the typical error taken as 0) the pair started on the
+    line of sight was turned away and only the large particle reported; the pair
+    started side by side along the merged regions' major axis explains the pixels well
+    enough to pass even that bar, and is the same pair. The small one's depth is 0.4 mm
+    off (3 sigma)."""
     from plenoptrack.locate import perspective
 
     optics, calib = small_calibrated
@@ -586,6 +689,6 @@ def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_
         return perspective.split_bar(fit_error, settings) ** 2
 
     monkeypatch.setattr(perspective, "split_gain_bar", typical_zero)
-    found = locate_frame(raw, calib).particles
-    assert len(found) == 1
-    assert match_particles(found, truth, tolerance_mm=0.3)["truth_index"].tolist() == [1]
+    strict = locate_frame(raw, calib).particles
+    np.testing.assert_allclose(strict[["x", "y", "z"]].to_numpy(),
+                               found[["x", "y", "z"]].to_numpy())

@@ -55,7 +55,6 @@ import contextlib
 import dataclasses
 import itertools
 import math
-import os
 import time
 import warnings
 from dataclasses import dataclass, field
@@ -1367,7 +1366,11 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     line of sight of its central-view image one view pixel of image travel in front of
     it and behind it (:func:`_line_of_sight_pair`); a fit that runs off from there is
     tried once more from a third of the image radius of travel
-    (:func:`split_start_travel`). The two are kept when both images are opaque enough
+    (:func:`split_start_travel`). A particle whose whole regions are elongated is also
+    tried as two images side by side, started along the regions' major axis as two
+    discs with the regions' second moments (:func:`_lateral_pair`): particles whose
+    images touch in every view, which the segmentation takes apart only when the frame's
+    typical region is a single image. The two are kept when both images are opaque enough
     (``settings.split_min_contrast``), the fit explains the pixels better (model error
     at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
     pair's own pixels, a mean-square residual lower than the single image's by at least
@@ -1376,7 +1379,8 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     images move apart across the views by at least one view pixel and either stand apart
     by the smaller radius in some view or are two bodies apart in space
     (:func:`_apart_in_space`; only parallax tells two particles from one elongated
-    image), and neither is a particle already located whose pixels are explained (an
+    image), or by half a view pixel where they stand side by side in every view and are
+    two bodies apart in space (:func:`_two_images`), and neither is a particle already located whose pixels are explained (an
     unexplained one at most twice the size of the split's images can be the merged image
     of a particle of the group and another). When no pair passes, or the best pair still
     leaves the pixels unexplained (model error above
@@ -1517,9 +1521,11 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         if (fit is None or not np.all(np.isfinite(fit.params))
                 or fit.params[:, 4].min() < settings.split_min_contrast):
             return False
+        explained = bool(fit.model_error <= split_max)
         group_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)     # (k, V, 2)
         for a, b in itertools.combinations(range(len(fit.params)), 2):
-            if not _two_images(ctx.dlfc, fit.params[[a, b]], group_pred[[a, b]]):
+            if not _two_images(ctx.dlfc, fit.params[[a, b]], group_pred[[a, b]],
+                               explained=explained):
                 return False
         # An unexplained particle can be a merged image the split is taking apart, one
         # at most twice the size of the split's images; a larger one is a particle
@@ -1559,16 +1565,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                     break
             fits = [_without_vanished(fit, start, j, ctx.dlfc, split_max, trial_fit)]
             if lateral is not None and n == 2 and len(start) == 1:
+                # two images side by side, merged in every view: their regions are
+                # elongated, and a pair on the line of sight does not reach them
                 fits.append(_without_vanished(trial_fit(lateral), start, j, ctx.dlfc,
                                               split_max, trial_fit))
-            if os.environ.get("DBG"):
-                print("lateral", lateral, "error", error, "gain_bar", gain_bar)
-                for f_ in fits:
-                    if f_ is not None:
-                        gp = _predict_all(ctx.dlfc, f_.params[:, :3], views_uv)
-                        print("parallax", parallax_px(gp[0] - gp[1]), "maxoff", np.nanmax(np.hypot(*(gp[0]-gp[1]).T)), "apart", _apart_in_space(ctx.dlfc, f_.params), "two", _two_images(ctx.dlfc, f_.params, gp))
-                    print(None if f_ is None else (f_.params.round(3), f_.model_error,
-                          _explains_more(f_, error, settings, gain_bar), distinct(f_, m)))
             for fit in fits:
                 if (fit is not None and _explains_more(fit, error, settings, gain_bar)
                         and (best is None or fit.model_error < best.model_error)
@@ -1626,8 +1626,7 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 continue                   # one image explains it: left as it is
             single_error[m] = one.model_error
             reference = one.params
-        lateral = (_lateral_pair(ctx.dlfc, pos[m], axes[m]) if os.environ.get("LAT", "1") == "1"
-                   else None)
+        lateral = _lateral_pair(ctx.dlfc, pos[m], axes[m])
         found = split(m, held, held_rc, start, single_error[m], reference, lateral)
         # Three or more particles on one line of sight: split an image of the group
         # again while the group leaves the pixels unexplained.
@@ -2006,17 +2005,55 @@ def _explains_more(fit, error: float, settings: CheckSettings, gain_bar: float) 
     return bool(fit.reference_error ** 2 - fit.model_error ** 2 >= gain_bar)
 
 
-def _two_images(dlfc, params: np.ndarray, pred: np.ndarray) -> bool:
+SIDE_BY_SIDE_PARALLAX_PX = 0.5
+"""Least parallax (view pixels, :func:`~plenoptrack.locate.bodies.parallax_px`) of two
+fitted images with a waist between them in every view for :func:`_two_images` to take
+them for two particles: half the view pixel asked of images that merge. Two discs
+fitted to one elongated body lie at nearly one depth (0.01-0.24 px on the `small`
+camera's 0.4 mm ellipsoids of aspect up to 3, development seeds; the 1 mm ellipsoids'
+halves, 0.5-0.9 px, overlap too much for a waist); two particles side by side lie at
+depths of their own (0.72-0.96 px for the pairs of the 1 mm and 0.2-2 mm development
+cells that only this takes apart, 0.9-1.1 mm apart in depth)."""
+
+
+def _two_images(dlfc, params: np.ndarray, pred: np.ndarray, *,
+                explained: bool = False) -> bool:
     """Whether two fitted images ``params`` (2, 5), seen at ``pred`` (2, V, 2), are two
     particles. Only parallax tells two particles from one elongated image: the images
-    must move apart across the views (by a view pixel) and either stand apart (by the
-    smaller radius) in some view or be two bodies apart in space (one body fitted with
-    two discs puts them inside itself, overlapping; two large particles far apart in
-    depth can overlap in every view)."""
+    must move apart across the views by a view pixel and either stand apart (by the
+    smaller radius) in some view or be two bodies apart in space. One convex body fitted
+    with two discs puts them inside itself, overlapping in space; two large particles far
+    apart in depth can overlap in every view. Where the fit ``explained`` the pixels and
+    the images stand side by side in every view (a waist at least a view pixel deep
+    between them, :func:`waist_depth_px`) as two bodies apart in space,
+    :data:`SIDE_BY_SIDE_PARALLAX_PX` of parallax is enough."""
     offset = pred[0] - pred[1]                                                # (V, 2)
-    return bool(parallax_px(offset) >= 1.0
-                and (np.nanmax(np.hypot(*offset.T)) >= params[:, 3].min()
+    distance = np.hypot(*offset.T)
+    if not np.all(np.isfinite(distance)):
+        distance = distance[np.isfinite(distance)]
+    side_by_side = len(distance) > 0 and bool(
+        waist_depth_px(distance, *params[:, 3]).min() >= 1.0)
+    parallax = parallax_px(offset)
+    if (explained and side_by_side and parallax >= SIDE_BY_SIDE_PARALLAX_PX
+            and _apart_in_space(dlfc, params)):
+        return True
+    return bool(parallax >= 1.0
+                and (np.nanmax(distance, initial=0.0) >= params[:, 3].min()
                      or _apart_in_space(dlfc, params)))
+
+
+def waist_depth_px(distance, r1: float, r2: float) -> np.ndarray:
+    """Depth of the waist between two overlapping discs of radii ``r1`` and ``r2`` whose
+    centres lie ``distance`` apart (all view pixels): the smaller radius less the half
+    length of the chord where the two circles cross (the whole smaller radius for discs
+    that do not overlap, 0 for one inside the other)."""
+    d = np.asarray(distance, dtype=float)
+    small, large = min(r1, r2), max(r1, r2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = (d ** 2 + small ** 2 - large ** 2) / (2.0 * d)     # small centre to chord
+        half_chord = np.sqrt(np.clip(small ** 2 - a ** 2, 0.0, None))
+    return np.where(d >= small + large, small,
+                    np.where(d + small <= large, 0.0, small - half_chord))
 
 
 def _apart_in_space(dlfc, params: np.ndarray) -> bool:
