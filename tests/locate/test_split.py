@@ -662,11 +662,9 @@ def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_
     find one particle and the refinement fits nothing (no two particles overlap). The
     split stage's one-image fit leaves the pixels unexplained and two images find both;
     the frame's typical fit error, unknown, is the one the fixed bar stands for. Asked
-    for the whole bar squared (the typical error taken as 0) the pair started on the
-    line of sight was turned away and only the large particle reported; the pair
-    started side by side along the merged regions' major axis explains the pixels well
-    enough to pass even that bar, and is the same pair. The small one's depth is 0.4 mm
-    off (3 sigma)."""
+    for the whole bar squared (the typical error taken as 0) the pair was turned away and
+    only the large particle reported (the merged regions are too round for a start side
+    by side). The small one's depth is 0.4 mm off (3 sigma)."""
     from plenoptrack.locate import perspective
 
     optics, calib = small_calibrated
@@ -689,6 +687,6 @@ def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_
         return perspective.split_bar(fit_error, settings) ** 2
 
     monkeypatch.setattr(perspective, "split_gain_bar", typical_zero)
-    strict = locate_frame(raw, calib).particles
-    np.testing.assert_allclose(strict[["x", "y", "z"]].to_numpy(),
-                               found[["x", "y", "z"]].to_numpy())
+    found = locate_frame(raw, calib).particles
+    assert len(found) == 1
+    assert match_particles(found, truth, tolerance_mm=0.3)["truth_index"].tolist() == [1]

@@ -1542,13 +1542,22 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
         by ``n`` (2: the line-of-sight pair of :func:`_line_of_sight_pair`; 3: the pair
         and the image itself) that explains the pixels better than the ``reference``
         model with model error ``error`` (:func:`_explains_more`) and passes
-        :func:`distinct`; None if no replacement does."""
+        :func:`distinct`; None if no replacement does. A single image whose
+        line-of-sight pair fails is tried as the ``lateral`` pair (2, 5) too, when
+        given."""
         def trial_fit(params):
             """Images ``params`` (k, 5) fitted on the trial views beside ``held``."""
             return fit_images(ctx.dlfc, trial_uv, trial_rc, ctx.lf.data, params[:, :3],
                               params[:, 3:], pos[held], held_rc,
                               max_depth_shift=ctx.volume_depth_mm, reference=reference,
                               edge=ctx.image_edge)
+
+        def better(fit, best) -> bool:
+            """Whether ``fit`` explains the pixels better than the reference, has a lower
+            model error than ``best`` and passes :func:`distinct`."""
+            return bool(fit is not None and _explains_more(fit, error, settings, gain_bar)
+                        and (best is None or fit.model_error < best.model_error)
+                        and distinct(fit, m))
 
         best = None
         for j in range(len(start)):
@@ -1563,17 +1572,16 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
                 fit = trial_fit(np.c_[xyz, rc])
                 if fit is not None:
                     break
-            fits = [_without_vanished(fit, start, j, ctx.dlfc, split_max, trial_fit)]
-            if lateral is not None and n == 2 and len(start) == 1:
+            fit = _without_vanished(fit, start, j, ctx.dlfc, split_max, trial_fit)
+            kept = better(fit, best)
+            if not kept and lateral is not None and n == 2 and len(start) == 1:
                 # two images side by side, merged in every view: their regions are
                 # elongated, and a pair on the line of sight does not reach them
-                fits.append(_without_vanished(trial_fit(lateral), start, j, ctx.dlfc,
-                                              split_max, trial_fit))
-            for fit in fits:
-                if (fit is not None and _explains_more(fit, error, settings, gain_bar)
-                        and (best is None or fit.model_error < best.model_error)
-                        and distinct(fit, m)):
-                    best = fit
+                fit = _without_vanished(trial_fit(lateral), start, j, ctx.dlfc, split_max,
+                                        trial_fit)
+                kept = better(fit, best)
+            if kept:
+                best = fit
         return best
 
     def split(m, held, held_rc, start, error, reference, lateral=None):
@@ -1867,13 +1875,14 @@ def _lateral_pair(dlfc, xyz: np.ndarray, axes: np.ndarray) -> np.ndarray | None:
     discs side by side: two discs of the regions' minor radius whose union has the
     regions' second moments (equal discs of radius ``r`` whose centres lie ``d`` apart
     have major and minor axes ``2 sqrt(r^2 + d^2)`` and ``2 r``), along the major axis
-    in the central view, at the merged depth; None for a round image (``d`` below one
-    view pixel) or one without regions."""
+    in the central view, at the merged depth; None for a particle without regions or
+    one whose two such discs would have no waist a view pixel deep between them
+    (:func:`waist_depth_px`; the split keeps side by side only images with one)."""
     major, minor, angle = axes
     if not np.all(np.isfinite(axes)) or major <= minor:
         return None
     half = 0.5 * math.sqrt(major ** 2 - minor ** 2) / 2.0
-    if 2.0 * half < 1.0:
+    if waist_depth_px(2.0 * half, 0.5 * minor, 0.5 * minor) < 1.0:
         return None
     s0, t0 = dlfc.predict(xyz[0], xyz[1], xyz[2], 0.0, 0.0)
     out = np.empty((2, 5))
