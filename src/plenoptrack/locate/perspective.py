@@ -1366,11 +1366,12 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     line of sight of its central-view image one view pixel of image travel in front of
     it and behind it (:func:`_line_of_sight_pair`); a fit that runs off from there is
     tried once more from a third of the image radius of travel
-    (:func:`split_start_travel`). A particle whose whole regions are elongated is also
-    tried as two images side by side, started along the regions' major axis as two
-    discs with the regions' second moments (:func:`_lateral_pair`): particles whose
-    images touch in every view, which the segmentation takes apart only when the frame's
-    typical region is a single image. The two are kept when both images are opaque enough
+    (:func:`split_start_travel`). A single image whose line-of-sight pair fails is also
+    tried as two images side by side, started along its whole regions' major axis as two
+    discs with the regions' second moments, when those would have a waist a view pixel
+    deep between them (:func:`_lateral_pair`): particles whose images touch in every
+    view, which the segmentation takes apart only when the frame's typical region is a
+    single image. The two are kept when both images are opaque enough
     (``settings.split_min_contrast``), the fit explains the pixels better (model error
     at most ``1 / settings.split_min_gain`` of the single fit's, or, on the
     pair's own pixels, a mean-square residual lower than the single image's by at least
@@ -1379,10 +1380,11 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     images move apart across the views by at least one view pixel and either stand apart
     by the smaller radius in some view or are two bodies apart in space
     (:func:`_apart_in_space`; only parallax tells two particles from one elongated
-    image), or by half a view pixel where they stand side by side in every view and are
-    two bodies apart in space (:func:`_two_images`), and neither is a particle already located whose pixels are explained (an
-    unexplained one at most twice the size of the split's images can be the merged image
-    of a particle of the group and another). When no pair passes, or the best pair still
+    image), or by half a view pixel where they explain the pixels, stand side by side in
+    every view and are two bodies apart in space (:func:`_two_images`), and neither is a
+    particle already located whose pixels are explained (an unexplained one at most
+    twice the size of the split's images can be the merged image of a particle of the
+    group and another). When no pair passes, or the best pair still
     leaves the pixels unexplained (model error above
     ``settings.split_max_model_error``), three images are tried under the same tests,
     started at the pair's starts and the image itself: a pair cannot explain three
@@ -1854,7 +1856,9 @@ def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray,
 def _member_axes(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
     """(n, 3) median major and minor axis (view pixels) of each particle's whole regions
     and their mean orientation (radians from ``s`` toward ``t``, averaged as doubled
-    angles); NaN for particles without whole regions."""
+    angles); NaN for particles without whole regions. The thresholded regions' own
+    moments, as the segmentation's pair split reads them (not the shadow-scaled axes of
+    ``_region_shape``)."""
     mine = (owner >= 0) & detections["whole"].to_numpy(bool)
     theta = 2.0 * detections["orientation"].to_numpy(float)[mine]
     d = pd.DataFrame({"owner": owner[mine],
