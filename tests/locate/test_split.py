@@ -7,9 +7,9 @@ import pytest
 from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.bodies import parallax_px
 from plenoptrack.locate.perspective import (SIDE_BY_SIDE_PARALLAX_PX, PerspectiveLocator,
-                                           _lateral_pair, _line_of_sight_pair, _two_images,
-                                           _view_subgrid, _without_vanished, locate_frame,
-                                           split_start_travel, waist_depth_px)
+                                           _lateral_pair, _line_of_sight_pair, _member_axes,
+                                           _two_images, _view_subgrid, _without_vanished,
+                                           locate_frame, split_start_travel, waist_depth_px)
 from plenoptrack.locate.refine import ImageFit
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.simulate import make_scene, render_frame
@@ -575,6 +575,22 @@ def test_the_waist_between_two_discs_is_the_smaller_radius_less_the_half_chord()
     inside = (x ** 2 + y ** 2 <= r1 ** 2) | ((x - d) ** 2 + y ** 2 <= r2 ** 2)
     height = inside.sum(axis=1) * (y[0, 1] - y[0, 0])
     assert r1 - height.min() / 2 == pytest.approx(waist_depth_px([d], r1, r2)[0], abs=2e-3)
+
+
+def test_member_axes_are_the_whole_regions_median_axes_and_axial_mean_orientation():
+    """Per particle: the median major and minor axes of its whole regions and their mean
+    orientation taken as an axial angle (near +-pi/2 they average to pi/2, not 0); cut
+    pieces and unassigned regions are left out, a particle with no whole region is NaN."""
+    detections = pd.DataFrame({
+        "major_axis_px": [10.0, 12.0, 11.0, 30.0, 8.0, 9.0],
+        "minor_axis_px": [5.0, 6.0, 7.0, 1.0, 4.0, 3.0],
+        "orientation": [np.pi / 2 - 0.1, -np.pi / 2 + 0.1, np.pi / 2, 0.0, 0.2, 0.3],
+        "whole": [True, True, True, False, False, True]})
+    owner = np.array([0, 0, 0, 0, 1, -1])
+    axes = _member_axes(detections, owner, 3)
+    np.testing.assert_allclose(axes[0, :2], [11.0, 6.0])
+    assert abs(abs(axes[0, 2]) - np.pi / 2) < 1e-9
+    assert np.isnan(axes[1]).all() and np.isnan(axes[2]).all()
 
 
 def test_a_lateral_split_starts_two_discs_with_the_regions_second_moments(small_calibrated):
