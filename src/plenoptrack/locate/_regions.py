@@ -28,6 +28,16 @@ def _single_image_area(detections: pd.DataFrame) -> float:
     return float(np.median(area[whole] if whole.any() else area))
 
 
+def pair_half_separation(major, minor):
+    """Half the distance between the centres of two equal discs whose union has second
+    moment axes ``major`` and ``minor`` (view pixels): two discs of radius ``r`` with
+    centres ``c +- a e`` have second moments ``r^2 / 4 + a^2`` along ``e`` and ``r^2 / 4``
+    across it, so ``a = sqrt(l1 - l2)`` with ``l = (axis / 4)^2``; their radius is
+    ``minor / 2``. 0 for a round region."""
+    major, minor = np.asarray(major, dtype=float), np.asarray(minor, dtype=float)
+    return np.sqrt(np.maximum((major / 4) ** 2 - (minor / 4) ** 2, 0.0))
+
+
 def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
                  elongation: float) -> pd.DataFrame:
     """Replace large elongated regions by the two particle images they are made of.
@@ -35,11 +45,9 @@ def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
     A region larger than ``max_area_ratio`` times the median area of the whole regions
     (not shares of merged images, which would raise it in a crowd) and more elongated
     than ``elongation`` (major over minor axis) is taken for the merged image of two
-    equal particles. Two discs of radius ``r`` with centres ``c +- a e`` have second
-    moments ``r^2 / 4 + a^2`` along ``e`` and ``r^2 / 4`` across it, so
-    ``a = sqrt(l1 - l2)`` from the region's moments (``l = (axis / 4)^2``), ``e`` is its
-    major axis and ``2 r`` its minor axis. Each half gets half the area and a round
-    shape of the minor-axis diameter.
+    equal particles, whose centres lie :func:`pair_half_separation` to either side along
+    its major axis. Each half gets half the area and a round shape of the minor-axis
+    diameter.
     """
     if "whole" not in detections.columns:
         detections = detections.assign(whole=True)
@@ -50,7 +58,7 @@ def _split_pairs(detections: pd.DataFrame, max_area_ratio: float,
     if not pair.any():
         return detections.assign(split_pair=False)
     src = detections[pair]
-    half = np.sqrt(np.maximum((major[pair] / 4) ** 2 - (minor[pair] / 4) ** 2, 0.0))
+    half = pair_half_separation(major[pair], minor[pair])
     theta = src["orientation"].to_numpy(float)
     ds, dt = half * np.cos(theta), half * np.sin(theta)
     halves = []

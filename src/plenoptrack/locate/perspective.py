@@ -70,7 +70,7 @@ from ._assign import (_MERGED, _add_centroids, _explained_away, _merge_duplicate
                       _predict_all, _release_unclaimed, _trim_refit)
 from ._nearby import ImageSpans, pairs_within
 from ._order import unique_rows
-from ._regions import _region_shape, _single_image_area, _split_pairs
+from ._regions import _region_shape, _single_image_area, _split_pairs, pair_half_separation
 from .bodies import merge_bodies, one_body_pairs, parallax_px
 from .crowding import CROWDED_COVERAGE, image_coverage
 from .opacity import blur_at, opacity
@@ -1877,15 +1877,15 @@ def _member_axes(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndar
 def _lateral_pair(dlfc, xyz: np.ndarray, axes: np.ndarray) -> np.ndarray | None:
     """(2, 5) starting images ``(x, y, z, r, c)`` of a split of an image elongated by two
     discs side by side: two discs of the regions' minor radius whose union has the
-    regions' second moments (equal discs of radius ``r`` whose centres lie ``d`` apart
-    have major and minor axes ``2 sqrt(r^2 + d^2)`` and ``2 r``), along the major axis
+    regions' second moments (:func:`~plenoptrack.locate._regions.pair_half_separation`,
+    as the segmentation's pair split places them), along the major axis
     in the central view, at the merged depth; None for a particle without regions or
     one whose two such discs would have no waist a view pixel deep between them
     (:func:`waist_depth_px`; the split keeps side by side only images with one)."""
     major, minor, angle = axes
     if not np.all(np.isfinite(axes)) or major <= minor:
         return None
-    half = 0.5 * math.sqrt(major ** 2 - minor ** 2) / 2.0
+    half = float(pair_half_separation(major, minor))
     if waist_depth_px(2.0 * half, 0.5 * minor, 0.5 * minor) < 1.0:
         return None
     s0, t0 = dlfc.predict(xyz[0], xyz[1], xyz[2], 0.0, 0.0)
