@@ -34,6 +34,11 @@ def _paired(found, truth, pairs):
             truth.loc[pairs["truth_index"]].reset_index(drop=True))
 
 
+def _abs_errors(m, t):
+    """(n, 3) |measured - true| x, y, z (mm) of paired rows (:func:`_paired`)."""
+    return np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+
+
 @pytest.mark.parametrize("seed, stride", [(0, 2), (1, 2), (0, 1)])
 def test_a_pair_on_one_line_of_sight_is_split(small_calibrated, seed, stride):
     """Two 0.8 mm particles 0.1 mm apart laterally and 8 mm in depth overlap in every
@@ -57,7 +62,7 @@ def test_a_pair_on_one_line_of_sight_is_split(small_calibrated, seed, stride):
     split = (found["flags"].to_numpy() & SPLIT) > 0
     assert split.sum() == 2
     m, t = _paired(found, truth, pairs)
-    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    err = _abs_errors(m, t)
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.3)
     halves = m[(m["flags"].to_numpy() & SPLIT) > 0]
     assert set(t.loc[halves.index, "particle"]) == {4, 5}
@@ -224,7 +229,7 @@ def test_particles_side_by_side_whose_images_touch_in_every_view_are_split(small
     pairs = match_particles(found, truth, tolerance_mm=0.3)
     assert len(found) == 7 and len(pairs) == 7
     m, t = _paired(found, truth, pairs)
-    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    err = _abs_errors(m, t)
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.2)
     assert ((found["flags"].to_numpy() & SPLIT) > 0).sum() == 6
 
@@ -249,7 +254,7 @@ def test_three_large_particles_in_line_are_all_found(small_calibrated):
     line = t["particle"].isin([2, 3, 4]).to_numpy()
     assert np.all((m["flags"].to_numpy()[line] & SPLIT) > 0)
     assert np.all(np.abs(m["diameter"].to_numpy()[line] / 1.6 - 1) < 0.1)
-    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())[line]
+    err = _abs_errors(m, t)[line]
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.2)
     pairs_only = PerspectiveLocator.from_dict({"check": {"split_max_images": 2}})
     found = locate_frame(raw, calib, locator=pairs_only).particles
@@ -272,7 +277,7 @@ def test_three_large_particles_whose_images_all_merge_are_found(small_calibrated
     assert len(found) == 3 and len(pairs) == 3
     assert np.all((found["flags"].to_numpy() & SPLIT) > 0)
     m, t = _paired(found, truth, pairs)
-    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    err = _abs_errors(m, t)
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.2)
     assert np.all(np.abs(m["diameter"] / 2.0 - 1) < 0.1)
 
@@ -346,7 +351,7 @@ def test_a_particle_behind_a_close_pair_is_split_from_their_merged_image(small_c
     pairs = match_particles(found, truth, tolerance_mm=0.3)
     assert len(found) == len(truth) and len(pairs) == len(truth)
     m, t = _paired(found, truth, pairs)
-    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    err = _abs_errors(m, t)
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.15)
     assert ((found["flags"].to_numpy() & SPLIT) > 0).sum() == 2
     assert not (found["flags"].to_numpy() & UNEXPLAINED).any()
@@ -464,7 +469,7 @@ def test_a_large_particle_pulled_away_by_merged_regions_is_put_back_by_its_image
     pairs = match_particles(found, truth, tolerance_mm=0.5)
     assert len(found) == 2 and len(pairs) == 2
     m, t = _paired(found, truth, pairs)
-    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    err = _abs_errors(m, t)
     assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.3)
     # the one put back is refined and keeps the centroids on its image only (about
     # half), so that its scatter and the frame's typical one are those of true images:
@@ -690,7 +695,7 @@ def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_
     pairs = match_particles(found, truth, tolerance_mm=0.6)
     assert len(found) == 2 and len(pairs) == 2
     m, t = _paired(found, truth, pairs)
-    err = np.abs(m[["x", "y", "z"]].to_numpy() - t[["x", "y", "z"]].to_numpy())
+    err = _abs_errors(m, t)
     assert np.all(err[:, :2] < 0.02) and err[t["particle"] == 1, 2].item() < 0.1
     small = (t["particle"] == 0).to_numpy()
     assert err[small, 2].item() < 0.5
