@@ -87,8 +87,8 @@ def locate_all(sim, truth: pd.DataFrame, calib, white, magnification: float,
     from plenoptrack.evaluate import match_particles
     from plenoptrack.io import read_raw
     from plenoptrack.locate import PerspectiveLocator, locate_frame
-    from plenoptrack.locate.perspective import (FrameContext, _decoded, _fit_views,
-                                                segment_frame)
+    from plenoptrack.locate._frame import FrameContext, _fit_views
+    from plenoptrack.locate.perspective import _decoded, segment_frame
     from plenoptrack.locate.refine import fit_images
 
     locator = PerspectiveLocator().updated(

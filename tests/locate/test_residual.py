@@ -9,7 +9,7 @@ import pytest
 
 from plenoptrack.evaluate import match_particles
 from plenoptrack.lightfield import LightField
-from plenoptrack.locate import perspective
+from plenoptrack.locate import perspective, split
 from plenoptrack.locate.perspective import ParticleState, PerspectiveLocator, locate_frame
 from plenoptrack.locate.refine import ImageEdge, disc_image
 from plenoptrack.locate.residual import (divide_out_particles, residual_light_field,
@@ -251,7 +251,7 @@ def test_coinciding_names_the_particles_whose_images_are_one_with_the_image():
         other_r = rng.uniform(0.5, 3.0, 15)
         image = rng.uniform(0, 12, (1, 1, 2)) + rng.normal(0, 1.5, (1, 1, 2)) * u
         r = rng.uniform(0.5, 3.0, 1)
-        rows = perspective._coinciding(image, r, others, other_r, ImageSpans(others))
+        rows = split._coinciding(image, r, others, other_r, ImageSpans(others))
         expected = []
         for k in range(15):
             offset = image[0] - others[k]                                  # (V, 2)
@@ -260,7 +260,7 @@ def test_coinciding_names_the_particles_whose_images_are_one_with_the_image():
             if dist < max(r[0], other_r[k]) or (dist < r[0] + other_r[k] and parallax < 1.0):
                 expected.append(k)
         assert sorted(rows.tolist()) == expected
-        assert perspective._coincides(image, r, others, other_r) == bool(expected)
+        assert split._coincides(image, r, others, other_r) == bool(expected)
         hits += bool(expected)
     assert 10 < hits < 50                   # both answers occur
 

@@ -6,10 +6,11 @@ import pytest
 
 from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.bodies import parallax_px
-from plenoptrack.locate.perspective import (SIDE_BY_SIDE_PARALLAX_PX, PerspectiveLocator,
-                                           _lateral_pair, _line_of_sight_pair, _member_axes,
-                                           _two_images, _view_subgrid, _without_vanished,
-                                           locate_frame, split_start_travel, waist_depth_px)
+from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
+from plenoptrack.locate.split import (SIDE_BY_SIDE_PARALLAX_PX, _lateral_pair,
+                                      _line_of_sight_pair, _member_axes, _two_images,
+                                      _view_subgrid, _without_vanished, split_start_travel,
+                                      waist_depth_px)
 from plenoptrack.locate.refine import ImageFit
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.simulate import make_scene, render_frame
@@ -361,7 +362,7 @@ def test_the_split_bar_stands_above_the_frames_typical_misfit():
     """The bar is the fixed split_max_model_error, or 1.2 times the frame's median fit
     error where that is larger, never above the refinement's bar; particles not fitted
     (NaN) do not count."""
-    from plenoptrack.locate.perspective import split_bar
+    from plenoptrack.locate.split import split_bar
     from plenoptrack.locate.settings import CheckSettings
 
     settings = CheckSettings()
@@ -382,7 +383,7 @@ def test_the_split_gain_bar_is_what_sets_a_candidate_apart_from_a_typical_image(
     bar 0.06) asks 0.06**2 - 0.05**2; with the fixed bar alone the full bar squared; a
     frame with no image fitted takes the typical error the fixed bar stands for.
     Checked against values computed by hand, and never negative, whatever the ratio."""
-    from plenoptrack.locate.perspective import split_bar, split_gain_bar
+    from plenoptrack.locate.split import split_bar, split_gain_bar
     from plenoptrack.locate.settings import CheckSettings
 
     settings = CheckSettings()
@@ -426,7 +427,7 @@ def _coincides_every_pair(pred, radius, other_pred, other_radius):
 @pytest.mark.parametrize("seed", range(4))
 def test_coinciding_images_are_found_as_by_comparing_every_pair(seed):
     from plenoptrack.locate._nearby import ImageSpans
-    from plenoptrack.locate.perspective import _coincides
+    from plenoptrack.locate.split import _coincides
 
     rng = np.random.default_rng(seed)
     n_views = 25
@@ -483,7 +484,8 @@ def test_a_large_particle_pulled_away_by_merged_regions_is_put_back_by_its_image
 
 
 def test_a_split_half_without_centroids_takes_its_pairs_views():
-    from plenoptrack.locate.perspective import _SPLIT_OF, _with_pair_centroids
+    from plenoptrack.locate._frame import _SPLIT_OF
+    from plenoptrack.locate.perspective import _with_pair_centroids
 
     table = pd.DataFrame({_SPLIT_OF: [np.nan, np.nan, 0.0, 1.0, 0.0]})
     owner = np.array([0, 0, 0, 1, 1, -1, 4])
@@ -686,7 +688,7 @@ def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_
     for the whole bar squared (the typical error taken as 0) the pair was turned away and
     only the large particle reported (the merged regions are too round for a start side
     by side). The small one's depth is 0.4 mm off (3 sigma)."""
-    from plenoptrack.locate import perspective
+    from plenoptrack.locate import perspective, split
 
     optics, calib = small_calibrated
     truth = _truth([(-0.641, 0.428, 0.204), (-1.081, 0.081, -2.902)], np.array([0.392, 1.434]))
@@ -700,13 +702,15 @@ def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_
     small = (t["particle"] == 0).to_numpy()
     assert err[small, 2].item() < 0.5
     assert abs(m.loc[small, "diameter"].item() / 0.392 - 1) < 0.1
-    whole_bar = perspective.split_gain_bar
+    whole_bar = split.split_gain_bar
 
     def typical_zero(fit_error, settings):
         if np.isfinite(np.asarray(fit_error, dtype=float)).any():
             return whole_bar(fit_error, settings)
-        return perspective.split_bar(fit_error, settings) ** 2
+        return split.split_bar(fit_error, settings) ** 2
 
+    # the split stage's bar, and the hidden-particle search's (the same function)
+    monkeypatch.setattr(split, "split_gain_bar", typical_zero)
     monkeypatch.setattr(perspective, "split_gain_bar", typical_zero)
     found = locate_frame(raw, calib).particles
     assert len(found) == 1

@@ -447,7 +447,7 @@ class CheckSettings:
     split_merged : bool
         Try to separate each particle whose refit could not explain the pixels into two
         particles on nearly one line of sight, which the centroids had taken for one
-        (:func:`~plenoptrack.locate.perspective.split_merged_particles`): a joint fit of
+        (:func:`~plenoptrack.locate.split.split_merged_particles`): a joint fit of
         two images started one view pixel of image travel either side of it in depth
         (once more a third of its image radius apart when that fit runs off).
         Needs ``refine_images``.
@@ -467,7 +467,7 @@ class CheckSettings:
         +0.03 and +0.08, plain depth standard deviation lower in most cells.
     split_floor_ratio : float
         ... or, when larger, this multiple of the frame's median image-fit model error
-        (:func:`~plenoptrack.locate.perspective.split_bar`): one disc never explains an
+        (:func:`~plenoptrack.locate.split.split_bar`): one disc never explains an
         image exactly, and how far from exact the explained images of a frame typically
         are differs between cameras (about 0.04 on the ``small`` camera, realistic
         optics; 0.05 on hall2019, where 386 of 1000 particles of 0.5 mm fitted in
