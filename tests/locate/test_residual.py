@@ -9,7 +9,7 @@ import pytest
 
 from plenoptrack.evaluate import match_particles
 from plenoptrack.lightfield import LightField
-from plenoptrack.locate import perspective, split
+from plenoptrack.locate import hidden, perspective, split
 from plenoptrack.locate.perspective import ParticleState, PerspectiveLocator, locate_frame
 from plenoptrack.locate.refine import ImageEdge, disc_image
 from plenoptrack.locate.residual import (divide_out_particles, residual_light_field,
@@ -333,8 +333,8 @@ def test_an_unexplained_hidden_particle_is_kept_only_if_it_still_explains_its_pi
         case, kept):
     ctx, state = _three_particle_frame(**case)
     locator = PerspectiveLocator()
-    assert perspective._still_explains_more(ctx, state, np.array([2]), locator).tolist() == [kept]
-    after = perspective._drop_unexplained_hidden(ctx, state, 2, 1, locator)
+    assert hidden._still_explains_more(ctx, state, np.array([2]), locator).tolist() == [kept]
+    after = hidden._drop_unexplained_hidden(ctx, state, 2, 1, locator)
     assert np.isfinite(after.positions[2]).all() == kept
     assert (after.table.loc[2, "n_views"] > 0) == kept
     np.testing.assert_array_equal(after.positions[:2], state.positions[:2])
@@ -372,10 +372,10 @@ def test_uncovered_views_count_the_free_regions_no_located_image_covers():
             d = np.hypot(*(pred[:, fit_index[view[k]]] - st[k]).T)
             if not np.any(d <= radius + 1.0):
                 expected.add(view[k])
-        got = perspective._n_uncovered_views(ctx, owner, pred, radius)
+        got = hidden._n_uncovered_views(ctx, owner, pred, radius)
         assert got == len(expected)
         counts.append(got)
-        assert perspective._n_uncovered_views(ctx, owner, pred[:0], radius[:0]) == len(
+        assert hidden._n_uncovered_views(ctx, owner, pred[:0], radius[:0]) == len(
             np.unique(view[(owner < 0) & usable[view]]))
     assert 0 < min(counts) < max(counts) < n_fit           # neither none nor all covered
 
@@ -434,20 +434,20 @@ def test_a_companion_offset_is_kept_per_particle_the_farthest_laterally():
     table = pd.DataFrame({"n_views": [20, 20, 20]})
     state = ParticleState(owner=np.zeros(0, dtype=np.int64), initial=np.zeros((3, 3)),
                           positions=np.zeros((3, 3)), table=table)
-    assert perspective._with_companions(state, {}) is state
+    assert hidden._with_companions(state, {}) is state
     found = {}
-    perspective._note_companion(found, 0, [0.1, 0.0, 2.0])
-    perspective._note_companion(found, 0, [0.0, 0.05, -3.0])      # nearer: not kept
-    perspective._note_companion(found, 2, [np.nan, 0.0, 0.0])     # not a position
-    perspective._note_companion(found, 1, [0.0, -0.2, 0.5])
+    hidden._note_companion(found, 0, [0.1, 0.0, 2.0])
+    hidden._note_companion(found, 0, [0.0, 0.05, -3.0])      # nearer: not kept
+    hidden._note_companion(found, 2, [np.nan, 0.0, 0.0])     # not a position
+    hidden._note_companion(found, 1, [0.0, -0.2, 0.5])
     assert sorted(found) == [0, 1]
-    first = perspective._with_companions(state, found)
-    columns = list(perspective._COMPANION)
+    first = hidden._with_companions(state, found)
+    columns = list(hidden._COMPANION)
     np.testing.assert_array_equal(first.table.loc[0, columns], [0.1, 0.0, 2.0])
     np.testing.assert_array_equal(first.table.loc[1, columns], [0.0, -0.2, 0.5])
     assert first.table.loc[2, columns].isna().all()
     # a later round: a farther one replaces, a nearer one does not
-    later = perspective._with_companions(first, {0: np.array([0.0, 0.3, 0.0]),
+    later = hidden._with_companions(first, {0: np.array([0.0, 0.3, 0.0]),
                                                  1: np.array([0.1, 0.0, 0.0])})
     np.testing.assert_array_equal(later.table.loc[0, columns], [0.0, 0.3, 0.0])
     np.testing.assert_array_equal(later.table.loc[1, columns], [0.0, -0.2, 0.5])
@@ -532,7 +532,7 @@ def _duplicate_frame(render_candidate: bool, candidate=(0.05, 0.0, 2.5),
 ])
 def test_a_weak_particle_that_duplicates_one_neighbour_is_dropped(case, kept):
     ctx, state = _duplicate_frame(**case)
-    after = perspective.drop_duplicate_particles(ctx, state, PerspectiveLocator())
+    after = hidden.drop_duplicate_particles(ctx, state, PerspectiveLocator())
     assert np.isfinite(after.positions[1]).all() == kept
     assert (after.table.loc[1, "n_views"] > 0) == kept
     others = np.r_[0, 2:len(state.positions)]

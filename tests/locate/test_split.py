@@ -688,7 +688,7 @@ def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_
     for the whole bar squared (the typical error taken as 0) the pair was turned away and
     only the large particle reported (the merged regions are too round for a start side
     by side). The small one's depth is 0.4 mm off (3 sigma)."""
-    from plenoptrack.locate import perspective, split
+    from plenoptrack.locate import hidden, split
 
     optics, calib = small_calibrated
     truth = _truth([(-0.641, 0.428, 0.204), (-1.081, 0.081, -2.902)], np.array([0.392, 1.434]))
@@ -711,7 +711,7 @@ def test_a_small_particle_partly_hidden_by_a_large_one_is_split_in_a_frame_with_
 
     # the split stage's bar, and the hidden-particle search's (the same function)
     monkeypatch.setattr(split, "split_gain_bar", typical_zero)
-    monkeypatch.setattr(perspective, "split_gain_bar", typical_zero)
+    monkeypatch.setattr(hidden, "split_gain_bar", typical_zero)
     found = locate_frame(raw, calib).particles
     assert len(found) == 1
     assert match_particles(found, truth, tolerance_mm=0.3)["truth_index"].tolist() == [1]

@@ -240,7 +240,7 @@ _FIT_CONTRAST = "_fit_contrast"
 _COMPANION = ("_companion_dx", "_companion_dy", "_companion_dz")
 """State-table columns: the offset (mm) from a particle to the darkness beside it that the
 hidden-particle search found and could not take apart from it
-(:func:`~plenoptrack.locate.perspective._note_companion`)."""
+(:func:`~plenoptrack.locate.hidden._note_companion`)."""
 
 
 def _fit_views(ctx: FrameContext) -> tuple[np.ndarray, np.ndarray]:

@@ -541,7 +541,7 @@ class CheckSettings:
         leaves its pixels unexplained, whose images meet only one other particle's, a
         strongly seen one, and nearly coincide with them, unless it still explains its
         pixels when fitted beside the others
-        (:func:`~plenoptrack.locate.perspective.drop_duplicate_particles`): pieces of a
+        (:func:`~plenoptrack.locate.hidden.drop_duplicate_particles`): pieces of a
         particle's image that the segmentation cut off in a few views, clustered into a
         particle of their own. On the accuracy matrix's development seeds (`small`,
         realistic optics) precision 0.990 -> 0.997 with mixed sizes 0.2-2 mm (recall
