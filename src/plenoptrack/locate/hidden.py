@@ -69,83 +69,140 @@ def search_residual(ctx: FrameContext, state: ParticleState, locator: Perspectiv
     image covers (:func:`_may_hide_particles`). Returns the frame context over both sets
     of regions, the joined state and the number of particles added.
     """
-    from .refine import fit_images
-    from .residual import divide_out_particles
-
-    table = state.table
-    n = state.n_particles
-    live = state.live(locator.solve.min_views)
-    if not live.any():
+    search = _ResidualSearch(ctx, state, locator)
+    if not search.may_hide_particles():
         return ctx, state, 0
-    fit_radius = (table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in table.columns
-                  else np.full(n, np.nan))
-    shadow = 0.5 * _member_diameter(ctx.detections, state.owner, n, shadow=True)
-    radius = np.where(np.isfinite(fit_radius), fit_radius, shadow)
-    contrast = (np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
-                if _FIT_CONTRAST in table.columns else np.full(n, 0.9))
-    live &= np.isfinite(radius) & (radius > 0)
-    fit_error = (table[_FIT_ERROR].to_numpy(float) if _FIT_ERROR in table.columns
-                 else np.full(n, np.nan))
-    views_uv, view_rc = _fit_views(ctx)
-    pred = _predict_all(ctx.dlfc, np.where(live[:, None], state.positions, np.nan), views_uv)
-    if not _may_hide_particles(ctx, state, live, fit_error, pred, radius, locator):
-        return ctx, state, 0
-    lf = ctx.lf
-    residual = divide_out_particles(lf, view_rc, pred[live], radius[live], contrast[live],
-                                    floor=locator.check.hidden_floor,
-                                    edge=ctx.image_edge.widths(state.positions[live, 2]))
-    located = locate_residual(residual)
+    located = locate_residual(search.residual())
     if located is None:
         return ctx, state, 0
     found, _, state2 = located
-    new = state2.live(locator.solve.min_views)
-    radius2 = 0.5 * _member_diameter(found, state2.owner, state2.n_particles)
-    pred2 = _predict_all(ctx.dlfc, state2.positions, views_uv)
-    live_spans = ImageSpans(pred[live])
-    live_rows = np.flatnonzero(live)
-    shared = {}       # candidate -> the one located particle (live index) it coincides with
-    for q in np.flatnonzero(new):
-        if not np.isfinite(radius2[q]) or _coincides(pred2[[q]], radius2[[q]], pred[live],
-                                                     radius[live], live_spans):
-            new[q] = False
-            if np.isfinite(radius2[q]) and locator.check.hidden_joint:
-                one = _coinciding(pred2[[q]], radius2[[q]], pred[live], radius[live],
-                                  live_spans)
-                if len(one) == 1:
-                    shared[q] = int(one[0])
-    # A particle found in the residual must explain the frame's own pixels: fitted to
-    # them beside the located particles, it must be opaque enough and explain them
-    # better than those particles alone by the split's gain
-    # (check.refine_max_model_error**2 in mean square).
-    positions2 = state2.positions.copy()
-    fits = {}                                     # the fit that admitted each one
-    companions = {}            # located row -> offset to darkness not taken apart from it
-    held_pos, held_rc = state.positions[live], np.c_[radius[live], contrast[live]]
-    held_pred, settings = pred[live], locator.check
-    held_spans = live_spans
-    # best-seen first: a hidden particle cut into two regions by a located one's image
+    search.take_candidates(found, state2)
+    # best seen first: a hidden particle cut into two regions by a located one's image
     # can be found twice, and the second is then held beside the first
-    order = np.flatnonzero(new)[np.argsort(-state2.table["n_views"].to_numpy(float)[new],
-                                           kind="stable")]
-    for q in order:
-        near = held_spans.meet(held_pred, pred2[q], held_rc[:, 0] + radius2[q] + 4.0)
-        start = np.array([[radius2[q], 0.9]])
-        fit = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, positions2[[q]], start,
-                         held_pos[near], held_rc[near],
+    for q in search.best_seen_first(np.flatnonzero(search.new)):
+        search.admit(q)
+    for q in search.best_seen_first(list(search.shared)):
+        search.fit_jointly(q)
+    return search.joined(calibration)
+
+
+class _ResidualSearch:
+    """The located particles as the hidden-particle search draws them, the candidates
+    found in the residual, and the steps of :func:`search_residual`.
+
+    ``held_*`` are the images every fit is made beside: the live located particles
+    (rows ``0..L-1``, ``live_rows`` their state rows) and then each candidate admitted.
+    """
+
+    def __init__(self, ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator):
+        self.ctx, self.state, self.locator = ctx, state, locator
+        self.settings = locator.check
+        table, n = state.table, state.n_particles
+        fit_radius = (table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in table.columns
+                      else np.full(n, np.nan))
+        self.shadow = 0.5 * _member_diameter(ctx.detections, state.owner, n, shadow=True)
+        self.radius = np.where(np.isfinite(fit_radius), fit_radius, self.shadow)
+        self.contrast = (np.nan_to_num(table[_FIT_CONTRAST].to_numpy(float), nan=0.9)
+                         if _FIT_CONTRAST in table.columns else np.full(n, 0.9))
+        self.live = (state.live(locator.solve.min_views)
+                     & np.isfinite(self.radius) & (self.radius > 0))
+        self.fit_error = (table[_FIT_ERROR].to_numpy(float) if _FIT_ERROR in table.columns
+                          else np.full(n, np.nan))
+        self.views_uv, self.view_rc = _fit_views(ctx)
+        self.pred = _predict_all(ctx.dlfc, np.where(self.live[:, None], state.positions, np.nan),
+                                 self.views_uv)
+
+    def may_hide_particles(self) -> bool:
+        """Whether the frame is worth a search (:func:`_may_hide_particles`)."""
+        return _may_hide_particles(self.ctx, self.state, self.live, self.fit_error, self.pred,
+                                   self.radius, self.locator)
+
+    def residual(self):
+        """The light field with the live particles' images divided out
+        (:func:`~plenoptrack.locate.residual.divide_out_particles`)."""
+        from .residual import divide_out_particles
+
+        live = self.live
+        return divide_out_particles(self.ctx.lf, self.view_rc, self.pred[live],
+                                    self.radius[live], self.contrast[live],
+                                    floor=self.settings.hidden_floor,
+                                    edge=self.ctx.image_edge.widths(
+                                        self.state.positions[live, 2]))
+
+    def take_candidates(self, found: pd.DataFrame, state2: ParticleState) -> None:
+        """The residual's particles seen in enough views (``new``), less those whose images
+        coincide with a located particle's; those that coincide with one alone are
+        ``shared`` (candidate -> live index) for a joint fit, with ``check.hidden_joint``."""
+        live = self.live
+        self.found, self.state2 = found, state2
+        self.new = state2.live(self.locator.solve.min_views)
+        self.radius2 = 0.5 * _member_diameter(found, state2.owner, state2.n_particles)
+        self.pred2 = _predict_all(self.ctx.dlfc, state2.positions, self.views_uv)
+        live_spans = ImageSpans(self.pred[live])
+        self.live_rows = np.flatnonzero(live)
+        self.shared = {}
+        radius2, pred2 = self.radius2, self.pred2
+        for q in np.flatnonzero(self.new):
+            if not np.isfinite(radius2[q]) or _coincides(pred2[[q]], radius2[[q]],
+                                                         self.pred[live], self.radius[live],
+                                                         live_spans):
+                self.new[q] = False
+                if np.isfinite(radius2[q]) and self.settings.hidden_joint:
+                    one = _coinciding(pred2[[q]], radius2[[q]], self.pred[live],
+                                      self.radius[live], live_spans)
+                    if len(one) == 1:
+                        self.shared[q] = int(one[0])
+        self.positions2 = state2.positions.copy()
+        self.fits = {}                 # the fit that admitted each candidate
+        self.companions = {}           # located row -> offset to darkness not taken apart
+        self.joint = {}                # located row -> its fit with a candidate it swallowed
+        self.held_pos = self.state.positions[live]
+        self.held_rc = np.c_[self.radius[live], self.contrast[live]]
+        self.held_pred, self.held_spans = self.pred[live], live_spans
+
+    def best_seen_first(self, candidates) -> list:
+        """``candidates`` ordered by the number of views they were seen in, most first."""
+        n_views = self.state2.table["n_views"].to_numpy(float)
+        wanted = set(int(q) for q in candidates)
+        return [q for q in np.argsort(-n_views, kind="stable") if q in wanted]
+
+    def hold(self, params: np.ndarray, fitted_pred: np.ndarray) -> None:
+        """Hold the images ``params`` (k, 5), seen at ``fitted_pred`` (k, V, 2), beside
+        every later fit."""
+        self.held_pos = np.vstack([self.held_pos, params[:, :3]])
+        self.held_rc = np.vstack([self.held_rc, params[:, 3:]])
+        self.held_pred = np.concatenate([self.held_pred, fitted_pred])
+        self.held_spans = self.held_spans.extended(fitted_pred)
+
+    def admit(self, q) -> None:
+        """Fit candidate ``q`` to the frame's own pixels beside the images held: it must be
+        opaque enough and explain them better than those images alone by the split's gain
+        (``check.refine_max_model_error**2`` in mean square), and be neither inside a
+        located body nor one with a held image (then its darkness is that particle's
+        companion); else it leaves ``new``."""
+        from .refine import fit_images
+
+        ctx, dlfc = self.ctx, self.ctx.dlfc
+        held_pos, held_rc, held_pred = self.held_pos, self.held_rc, self.held_pred
+        near = self.held_spans.meet(held_pred, self.pred2[q],
+                                    held_rc[:, 0] + self.radius2[q] + 4.0)
+        start = np.array([[self.radius2[q], 0.9]])
+        fit = fit_images(dlfc, self.views_uv, self.view_rc, ctx.lf.data, self.positions2[[q]],
+                         start, held_pos[near], held_rc[near],
                          max_depth_shift=0.1 * ctx.volume_depth_mm,
-                         reference=np.array([[*positions2[q], radius2[q], 0.0]]),
+                         reference=np.array([[*self.positions2[q], self.radius2[q], 0.0]]),
                          edge=ctx.image_edge)
-        if not _one_image_explains(fit, settings):
-            new[q] = False
-            continue
+        if not _one_image_explains(fit, self.settings):
+            self.new[q] = False
+            return
         # Where the fit took it into a particle already located (their bodies overlap in
         # space), or beside one with images that keep their offset across the views
         # (nothing tells those two from one elongated image), it was that particle's
         # image the model had not quite explained.
-        fitted_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)
-        inside = _inside_bodies(ctx.dlfc, fit.params[0, :4], held_pos, held_rc[:, 0])
+        fitted_pred = _predict_all(dlfc, fit.params[:, :3], self.views_uv)
+        inside = _inside_bodies(dlfc, fit.params[0, :4], held_pos, held_rc[:, 0])
         # merged images need their centres within the sum of the radii in some view
-        close = held_spans.near(fitted_pred, fit.params[0, 3] + held_rc[:, 0])
+        close = self.held_spans.near(fitted_pred, fit.params[0, 3] + held_rc[:, 0])
         offset = fitted_pred - held_pred[close]                                # (l, V, 2)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", RuntimeWarning)                   # all-NaN rows
@@ -156,41 +213,42 @@ def search_residual(ctx: FrameContext, state: ParticleState, locator: Perspectiv
             # beside a particle, not inside its body (that was its own image), and not
             # taken apart from it: darkness its fit may have taken in
             for jl in np.flatnonzero(close)[merged]:
-                if jl < len(live_rows) and not inside[jl]:
-                    _note_companion(companions, live_rows[jl],
+                if jl < len(self.live_rows) and not inside[jl]:
+                    _note_companion(self.companions, self.live_rows[jl],
                                     fit.params[0, :3] - held_pos[jl])
-            new[q] = False
-            continue
-        positions2[q] = fit.params[0, :3]
-        fits[q] = _OneImage(fit, 0)
-        held_pos = np.vstack([held_pos, fit.params[:, :3]])
-        held_rc = np.vstack([held_rc, fit.params[:, 3:]])
-        held_pred = np.concatenate([held_pred, fitted_pred])
-        held_spans = held_spans.extended(fitted_pred)
-    # A candidate that coincides with one located particle can be a particle that one's
-    # image fit swallowed (its disc grown over both images): the two are fitted together,
-    # the located one started from its own shadow's radius, and the pair is kept when it
-    # passes the tests of a split (opaque, explains the pixels better than the located
-    # particle alone, two images apart by their parallax).
-    joint = {}                                    # located row -> the pair's fit
-    gain_bar = split_gain_bar(fit_error, settings)
-    order = [q for q in np.argsort(-state2.table["n_views"].to_numpy(float), kind="stable")
-             if q in shared]
-    for q in order:
-        jl = shared[q]
-        j = int(live_rows[jl])
-        if j in joint:
-            continue
-        own = (shadow[j] if np.isfinite(shadow[j]) and shadow[j] < held_rc[jl, 0]
-               else held_rc[jl, 0])
-        others = np.flatnonzero(held_spans.meet(held_pred, pred2[q],
-                                                held_rc[:, 0] + radius2[q] + 4.0)
-                                | held_spans.meet(held_pred, held_pred[jl],
-                                                  held_rc[:, 0] + held_rc[jl, 0] + 4.0))
+            self.new[q] = False
+            return
+        self.positions2[q] = fit.params[0, :3]
+        self.fits[q] = _OneImage(fit, 0)
+        self.hold(fit.params, fitted_pred)
+
+    def fit_jointly(self, q) -> None:
+        """A candidate that coincides with one located particle can be a particle that
+        one's image fit swallowed (its disc grown over both images): the two are fitted
+        together, the located one started from its own shadow's radius, and the pair is
+        kept (the located particle takes the pair's first image, ``q`` joins ``new``)
+        when it passes the tests of a split (opaque, explains the pixels better than the
+        located particle alone, two images apart by their parallax, neither one with
+        another held image); else the candidate is that particle's companion, unless it
+        lies inside its body."""
+        from .refine import fit_images
+
+        ctx, dlfc, settings = self.ctx, self.ctx.dlfc, self.settings
+        jl = self.shared[q]
+        j = int(self.live_rows[jl])
+        if j in self.joint:
+            return
+        held_pos, held_rc, held_pred = self.held_pos, self.held_rc, self.held_pred
+        shadow = self.shadow[j]
+        own = shadow if np.isfinite(shadow) and shadow < held_rc[jl, 0] else held_rc[jl, 0]
+        others = np.flatnonzero(self.held_spans.meet(held_pred, self.pred2[q],
+                                                     held_rc[:, 0] + self.radius2[q] + 4.0)
+                                | self.held_spans.meet(held_pred, held_pred[jl],
+                                                       held_rc[:, 0] + held_rc[jl, 0] + 4.0))
         others = others[others != jl]
-        fit = fit_images(ctx.dlfc, views_uv, view_rc, lf.data,
-                         np.vstack([held_pos[jl], positions2[q]]),
-                         np.array([[own, held_rc[jl, 1]], [radius2[q], 0.9]]),
+        fit = fit_images(dlfc, self.views_uv, self.view_rc, ctx.lf.data,
+                         np.vstack([held_pos[jl], self.positions2[q]]),
+                         np.array([[own, held_rc[jl, 1]], [self.radius2[q], 0.9]]),
                          held_pos[others], held_rc[others],
                          max_depth_shift=ctx.volume_depth_mm,
                          reference=np.array([[*held_pos[jl], *held_rc[jl]]]),
@@ -198,77 +256,82 @@ def search_residual(ctx: FrameContext, state: ParticleState, locator: Perspectiv
         apart = (fit is not None and np.all(np.isfinite(fit.params))
                  and np.all(np.isfinite(fit.sigma))
                  and fit.params[:, 4].min() >= settings.split_min_contrast
-                 and _explains_more(fit, fit.reference_error, settings, gain_bar))
+                 and _explains_more(fit, fit.reference_error, settings,
+                                    split_gain_bar(self.fit_error, settings)))
         if apart:
-            fitted_pred = _predict_all(ctx.dlfc, fit.params[:, :3], views_uv)
+            fitted_pred = _predict_all(dlfc, fit.params[:, :3], self.views_uv)
             rest = np.setdiff1d(np.arange(len(held_pos)), [jl])
-            apart = (_two_images(ctx.dlfc, fit.params, fitted_pred)
+            apart = (_two_images(dlfc, fit.params, fitted_pred)
                      and not _coincides(fitted_pred, fit.params[:, 3], held_pred[rest],
-                                        held_rc[rest, 0], held_spans.subset(rest)))
+                                        held_rc[rest, 0], self.held_spans.subset(rest)))
         if not apart:
-            if not _inside_bodies(ctx.dlfc, np.r_[positions2[q], radius2[q]],
+            if not _inside_bodies(dlfc, np.r_[self.positions2[q], self.radius2[q]],
                                   held_pos[[jl]], held_rc[[jl], 0])[0]:
-                _note_companion(companions, j, positions2[q] - held_pos[jl])
-            continue
-        joint[j] = fit
+                _note_companion(self.companions, j, self.positions2[q] - held_pos[jl])
+            return
+        self.joint[j] = fit
         held_pos[jl], held_rc[jl] = fit.params[0, :3], fit.params[0, 3:]
         held_pred[jl] = fitted_pred[0]
-        held_spans.set_rows([jl], fitted_pred[[0]])
-        positions2[q] = fit.params[1, :3]
-        fits[q] = _OneImage(fit, 1)
-        new[q] = True
-        held_pos = np.vstack([held_pos, fit.params[1:, :3]])
-        held_rc = np.vstack([held_rc, fit.params[1:, 3:]])
-        held_pred = np.concatenate([held_pred, fitted_pred[1:]])
-        held_spans = held_spans.extended(fitted_pred[1:])
-    state = _with_companions(state, companions)
-    table = state.table
-    if not new.any():
-        return ctx, state, 0
-    if joint:
-        # the located particles refitted with a particle they had swallowed
-        table = table.copy()
-        positions = state.positions.copy()
-        rows = np.array(sorted(joint))
-        positions[rows] = [joint[j].params[0, :3] for j in rows]
-        table.loc[rows, list(POS_COLUMNS)] = positions[rows]
-        table.loc[rows, list(SIGMA_COLUMNS)] = np.array([joint[j].sigma[0] for j in rows])
-        table.loc[rows, _FIT_ERROR] = [joint[j].model_error for j in rows]
-        table.loc[rows, _FIT_RADIUS] = [joint[j].params[0, 3] for j in rows]
-        table.loc[rows, _FIT_CONTRAST] = [joint[j].params[0, 4] for j in rows]
-        flags = table.loc[rows, "flags"].fillna(0).to_numpy(np.int64)
-        table.loc[rows, "flags"] = ((flags & ~int(TriangulationFlag.UNEXPLAINED))
-                                    | int(TriangulationFlag.REFINED))
-        state = dataclasses.replace(state, positions=positions, table=table)
-    # their position, sigma and image are the fit's (REFINED), as a refined particle's
-    added = state2.table.copy()
-    rows = np.flatnonzero(new)
-    added.loc[rows, list(POS_COLUMNS)] = positions2[rows]
-    added.loc[rows, list(SIGMA_COLUMNS)] = np.array([fits[q].sigma for q in rows])
-    added.loc[rows, _FIT_ERROR] = [fits[q].model_error for q in rows]
-    added.loc[rows, _FIT_RADIUS] = [fits[q].radius for q in rows]
-    added.loc[rows, _FIT_CONTRAST] = [fits[q].contrast for q in rows]
-    added.loc[rows, "flags"] = (added.loc[rows, "flags"].fillna(0).to_numpy(np.int64)
-                                | int(TriangulationFlag.REFINED))
-    added[_HIDDEN] = True
-    state2 = dataclasses.replace(state2, positions=positions2, table=added)
-    # the new particles and their regions join the frame
-    index = np.full(state2.n_particles, -1, dtype=np.int64)
-    index[new] = n + np.arange(int(new.sum()))
-    # The residual's other regions belong to no one. Not even held as merged images:
-    # a located particle's image cut by the model divided out would otherwise count
-    # toward its size (_size_members).
-    owner2 = np.where(state2.owner >= 0, index[np.maximum(state2.owner, 0)], -1)
-    detections = pd.concat([ctx.detections, found], ignore_index=True)
-    joined = ParticleState(
-        owner=np.concatenate([state.owner, owner2]),
-        initial=np.vstack([state.initial, state2.initial[new]]),
-        positions=np.vstack([state.positions, state2.positions[new]]),
-        table=pd.concat([table.assign(**{_HIDDEN: False}), state2.table.loc[new]],
-                        ignore_index=True))
-    return (FrameContext.build(lf, calibration, detections, locator), joined,
-            int(new.sum()))
+        self.held_spans.set_rows([jl], fitted_pred[[0]])
+        self.positions2[q] = fit.params[1, :3]
+        self.fits[q] = _OneImage(fit, 1)
+        self.new[q] = True
+        self.hold(fit.params[1:], fitted_pred[1:])
 
+    def joined(self, calibration) -> tuple[FrameContext, ParticleState, int]:
+        """The frame context over both sets of regions, the state with the located
+        particles' companions and joint fits and the admitted candidates appended (their
+        position, sigma and image the fit's, ``REFINED``), and the number added."""
+        ctx, new, n = self.ctx, self.new, self.state.n_particles
+        state = _with_companions(self.state, self.companions)
+        table = state.table
+        if not new.any():
+            return ctx, state, 0
+        if self.joint:
+            # the located particles refitted with a particle they had swallowed
+            joint = self.joint
+            table = table.copy()
+            positions = state.positions.copy()
+            rows = np.array(sorted(joint))
+            positions[rows] = [joint[j].params[0, :3] for j in rows]
+            table.loc[rows, list(POS_COLUMNS)] = positions[rows]
+            table.loc[rows, list(SIGMA_COLUMNS)] = np.array([joint[j].sigma[0] for j in rows])
+            table.loc[rows, _FIT_ERROR] = [joint[j].model_error for j in rows]
+            table.loc[rows, _FIT_RADIUS] = [joint[j].params[0, 3] for j in rows]
+            table.loc[rows, _FIT_CONTRAST] = [joint[j].params[0, 4] for j in rows]
+            flags = table.loc[rows, "flags"].fillna(0).to_numpy(np.int64)
+            table.loc[rows, "flags"] = ((flags & ~int(TriangulationFlag.UNEXPLAINED))
+                                        | int(TriangulationFlag.REFINED))
+            state = dataclasses.replace(state, positions=positions, table=table)
+        # their position, sigma and image are the fit's (REFINED), as a refined particle's
+        fits, positions2 = self.fits, self.positions2
+        added = self.state2.table.copy()
+        rows = np.flatnonzero(new)
+        added.loc[rows, list(POS_COLUMNS)] = positions2[rows]
+        added.loc[rows, list(SIGMA_COLUMNS)] = np.array([fits[q].sigma for q in rows])
+        added.loc[rows, _FIT_ERROR] = [fits[q].model_error for q in rows]
+        added.loc[rows, _FIT_RADIUS] = [fits[q].radius for q in rows]
+        added.loc[rows, _FIT_CONTRAST] = [fits[q].contrast for q in rows]
+        added.loc[rows, "flags"] = (added.loc[rows, "flags"].fillna(0).to_numpy(np.int64)
+                                    | int(TriangulationFlag.REFINED))
+        added[_HIDDEN] = True
+        state2 = dataclasses.replace(self.state2, positions=positions2, table=added)
+        # the new particles and their regions join the frame
+        index = np.full(state2.n_particles, -1, dtype=np.int64)
+        index[new] = n + np.arange(int(new.sum()))
+        # The residual's other regions belong to no one. Not even held as merged images:
+        # a located particle's image cut by the model divided out would otherwise count
+        # toward its size (_size_members).
+        owner2 = np.where(state2.owner >= 0, index[np.maximum(state2.owner, 0)], -1)
+        detections = pd.concat([ctx.detections, self.found], ignore_index=True)
+        joined = ParticleState(
+            owner=np.concatenate([state.owner, owner2]),
+            initial=np.vstack([state.initial, state2.initial[new]]),
+            positions=np.vstack([state.positions, state2.positions[new]]),
+            table=pd.concat([table.assign(**{_HIDDEN: False}), state2.table.loc[new]],
+                            ignore_index=True))
+        return (FrameContext.build(ctx.lf, calibration, detections, self.locator), joined,
+                int(new.sum()))
 
 def _note_companion(companions: dict, row: int, offset: np.ndarray) -> None:
     """Record in ``companions`` (row -> (3,) offset, mm) darkness at ``offset`` from the
