@@ -380,14 +380,12 @@ def test_uncovered_views_count_the_free_regions_no_located_image_covers():
     assert 0 < min(counts) < max(counts) < n_fit           # neither none nor all covered
 
 
-def test_a_particle_whose_regions_were_freed_is_found_when_every_fit_explains(
-        small_calibrated, clustered_and_solved):
+def _frame_with_freed_regions(small_calibrated, clustered_and_solved):
     """A sparse frame (12 particles of 0.6 mm), located up to the image fits; one
     particle is then dropped and its regions freed, as when a particle built from
     merged images is dropped and the real ones it took regions from are left
-    unclustered. Every fit left explains its pixels, so the fit test alone would not
-    search; the regions no located image covers (in more than ``min_views`` views)
-    start the search, which finds the particle again within 0.1 mm."""
+    unclustered: ``(ctx, freed state, locator, calibration, dropped particle's true
+    xyz, state before)``."""
     import warnings
 
     optics, calib = small_calibrated
@@ -416,6 +414,19 @@ def test_a_particle_whose_regions_were_freed_is_found_when_every_fit_explains(
     positions[~keep] = np.nan
     table = state.table.assign(n_views=np.where(keep, n_views, 0))
     freed = dataclasses.replace(state, owner=owner, positions=positions, table=table)
+    return ctx, freed, locator, calib, true_xyz, state
+
+
+def test_a_particle_whose_regions_were_freed_is_found_when_every_fit_explains(
+        small_calibrated, clustered_and_solved):
+    """Every fit left explains its pixels (:func:`_frame_with_freed_regions`), so the
+    fit test alone would not search; the regions no located image covers (in more than
+    ``min_views`` views) start the search, which finds the particle again within 0.1 mm."""
+    import warnings
+
+    ctx, freed, locator, calib, true_xyz, state = _frame_with_freed_regions(
+        small_calibrated, clustered_and_solved)
+    fit_error = state.table[perspective._FIT_ERROR].to_numpy(float)
     # the fit test alone would not search
     assert not np.any(freed.live(locator.solve.min_views)
                       & (fit_error > locator.check.refine_max_model_error))
@@ -427,6 +438,42 @@ def test_a_particle_whose_regions_were_freed_is_found_when_every_fit_explains(
     err = np.abs(new_xyz - true_xyz)
     assert np.any(np.all(err <= [0.05, 0.05, 0.1], axis=1)), new_xyz
 
+
+def test_the_residual_search_locates_the_frame_with_the_located_images_divided_out(
+        small_calibrated, clustered_and_solved):
+    """``search_residual`` hands the stages it re-runs one light field: the frame with
+    the located particles' images divided out (darker than the frame nowhere, lighter
+    where a located image was, the freed particle's image still dark). When those stages
+    find nothing, the state comes back as it was."""
+    import warnings
+
+    ctx, freed, locator, calib, true_xyz, _ = _frame_with_freed_regions(
+        small_calibrated, clustered_and_solved)
+    seen = []
+
+    def nothing_found(residual):
+        seen.append(residual)
+        return None
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        out_ctx, out_state, n_new = hidden.search_residual(ctx, freed, locator, calib,
+                                                           nothing_found)
+    assert (out_ctx, out_state, n_new) == (ctx, freed, 0)
+    assert len(seen) == 1
+    before, after = ctx.lf.data, seen[0].data
+    assert after.shape == before.shape and after is not before
+    finite = np.isfinite(before) & np.isfinite(after)
+    assert np.all(after[finite] >= before[finite] - 1e-6)
+    changed = finite & (after > before + 1e-3)
+    assert changed.mean() > 1e-4                     # the located images, lifted
+    # the freed particle's image is not divided out: in the central view its centre
+    # stays as dark in the residual as in the frame
+    v0, u0 = (np.argmin(np.abs(ctx.lf.v)), np.argmin(np.abs(ctx.lf.u)))
+    s, t = calib.dlfc.predict(*true_xyz, 0.0, 0.0)
+    i, j = int(round(float(t))), int(round(float(s)))
+    assert before[v0, u0, i, j] < 0.5 * np.nanmedian(before[v0, u0])      # its shadow
+    assert after[v0, u0, i, j] == pytest.approx(before[v0, u0, i, j], abs=1e-6)
 
 def test_a_companion_offset_is_kept_per_particle_the_farthest_laterally():
     """Offsets to darkness the search could not take apart: each particle keeps the one
