@@ -13,6 +13,7 @@ images are shared with the hidden-particle search
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import math
 import warnings
@@ -305,9 +306,7 @@ class _SplitRun:
         line-of-sight pair fails is tried as the ``lateral`` pair (2, 5) too, when
         given."""
         dlfc = self.ctx.dlfc
-
-        def trial_fit(params):
-            return self.trial_fit(params, held, reference)
+        fit_trial = functools.partial(self.trial_fit, held=held, reference=reference)
 
         best = None
         for j in range(len(start)):
@@ -319,16 +318,16 @@ class _SplitRun:
                 pair = _line_of_sight_pair(dlfc, start[j, :3], self.views_uv, travel)
                 xyz = np.vstack([np.delete(start[:, :3], j, axis=0),
                                  pair if n == 2 else [pair[0], start[j, :3], pair[1]]])
-                fit = trial_fit(np.c_[xyz, rc])
+                fit = fit_trial(np.c_[xyz, rc])
                 if fit is not None:
                     break
-            fit = _without_vanished(fit, start, j, dlfc, self.split_max, trial_fit)
+            fit = _without_vanished(fit, start, j, dlfc, self.split_max, fit_trial)
             kept = self.better(fit, best, m, error)
             if not kept and lateral is not None and n == 2 and len(start) == 1:
                 # two images side by side, merged in every view: their regions are
                 # elongated, and a pair on the line of sight does not reach them
-                fit = _without_vanished(trial_fit(lateral), start, j, dlfc, self.split_max,
-                                        trial_fit)
+                fit = _without_vanished(fit_trial(lateral), start, j, dlfc, self.split_max,
+                                        fit_trial)
                 kept = self.better(fit, best, m, error)
             if kept:
                 best = fit
