@@ -43,7 +43,7 @@ def measure_size(runner, size: float, optics: str, seed: int, depths: int,
     from plenoptrack.io import read_raw
     from plenoptrack.locate import PerspectiveLocator, locate_frame
     from plenoptrack.locate import refine
-    from plenoptrack.locate._frame import FrameContext, _fit_views
+    from plenoptrack.locate.frame import FrameContext, _fit_views
     from plenoptrack.locate.perspective import _decoded, segment_frame
     from plenoptrack.simulate import random_particles, simulate_dataset
     from plenoptrack.simulate.scene import Scene

@@ -87,7 +87,7 @@ def locate_all(sim, truth: pd.DataFrame, calib, white, magnification: float,
     from plenoptrack.evaluate import match_particles
     from plenoptrack.io import read_raw
     from plenoptrack.locate import PerspectiveLocator, locate_frame
-    from plenoptrack.locate._frame import FrameContext, _fit_views
+    from plenoptrack.locate.frame import FrameContext, _fit_views
     from plenoptrack.locate.perspective import _decoded, segment_frame
     from plenoptrack.locate.refine import fit_images
 

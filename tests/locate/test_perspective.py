@@ -253,7 +253,7 @@ def test_member_diameter_of_regions_and_of_their_shadows():
     pi)``, smaller than the thresholded regions by their blurred edge."""
     import math
 
-    from plenoptrack.locate._frame import _member_diameter
+    from plenoptrack.locate.frame import _member_diameter
 
     detections = pd.DataFrame({
         "diameter_px": [4.0, 5.0, 6.0, 9.0, 3.0, 3.5, 9.0],

@@ -484,7 +484,7 @@ def test_a_large_particle_pulled_away_by_merged_regions_is_put_back_by_its_image
 
 
 def test_a_split_half_without_centroids_takes_its_pairs_views():
-    from plenoptrack.locate._frame import _SPLIT_OF
+    from plenoptrack.locate.frame import _SPLIT_OF
     from plenoptrack.locate.perspective import _with_pair_centroids
 
     table = pd.DataFrame({_SPLIT_OF: [np.nan, np.nan, 0.0, 1.0, 0.0]})

@@ -20,7 +20,7 @@ import pandas as pd
 
 from .._columns import POS_COLUMNS, SIGMA_COLUMNS
 from ._assign import _predict_all
-from ._frame import (_COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN,
+from .frame import (_COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN,
                      FrameContext, ParticleState, _fit_views, _member_diameter,
                      _usable_views)
 from ._nearby import ImageSpans, pairs_within
@@ -347,7 +347,7 @@ def _note_companion(companions: dict, row: int, offset: np.ndarray) -> None:
 
 def _with_companions(state: ParticleState, companions: dict) -> ParticleState:
     """``state`` with each particle's companion offset
-    (:data:`~plenoptrack.locate._frame._COMPANION` columns) set to the one ``companions`` holds for
+    (:data:`~plenoptrack.locate.frame._COMPANION` columns) set to the one ``companions`` holds for
     it where that is farther (laterally) than the one an earlier round of the search recorded."""
     if not companions:
         return state

@@ -40,7 +40,7 @@
 
 The frame's fixed data (detections, views, geometry) is a :class:`FrameContext`; what the
 stages change is a :class:`ParticleState`: which detection belongs to which particle and
-each particle's solution (both defined in :mod:`plenoptrack.locate._frame`). Every
+each particle's solution (both defined in :mod:`plenoptrack.locate.frame`). Every
 stage takes its own settings section of
 :class:`~plenoptrack.locate.settings.PerspectiveLocator`.
 
@@ -71,7 +71,7 @@ from ._assign import (_MERGED, _add_centroids, _explained_away, _merge_duplicate
                       _predict_all, _release_unclaimed, _trim_refit)
 from ._nearby import ImageSpans, pairs_within
 from ._order import unique_rows
-from ._frame import (_COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN, _SPLIT_OF,
+from .frame import (_COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN, _SPLIT_OF,
                      MIN_VIEW_FRACTION, FrameContext, ParticleState, SolveMemo,
                      _fit_views, _member_diameter, _split)
 from ._regions import _region_shape, _split_pairs
@@ -343,7 +343,7 @@ def solve_particles(ctx: FrameContext, state: ParticleState,
 
     Centroids rejected as outliers are released (owner -1); particles without centroids
     get NaN positions and ``n_views`` 0. A particle whose centroids are those of the
-    previous solve keeps that solve's result (:class:`~plenoptrack.locate._frame.SolveMemo`).
+    previous solve keeps that solve's result (:class:`~plenoptrack.locate.frame.SolveMemo`).
     """
     owner = state.owner
     n = state.n_particles

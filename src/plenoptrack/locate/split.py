@@ -23,7 +23,7 @@ import pandas as pd
 
 from .._columns import POS_COLUMNS, SIGMA_COLUMNS
 from ._assign import _predict_all
-from ._frame import (_FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN, _SPLIT_OF,
+from .frame import (_FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN, _SPLIT_OF,
                      FrameContext, ParticleState, _fit_views, _member_diameter)
 from ._nearby import ImageSpans
 from ._regions import pair_half_separation

@@ -24,6 +24,8 @@ from .cluster import ProjectionGeometry, plane_alphas
 from .refine import ImageEdge
 from .settings import PerspectiveLocator, SegmentSettings, SolveSettings
 
+__all__ = ["FrameContext", "ParticleState", "SolveMemo", "MIN_VIEW_FRACTION"]
+
 
 @dataclass(frozen=True)
 class FrameContext:
