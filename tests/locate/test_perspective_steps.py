@@ -387,7 +387,8 @@ def test_each_refine_sweep_refits_the_overlapped_particles_again(small_calibrate
     fit = refine.fit_images
 
     def counted(*args, **kwargs):
-        if _sys._getframe(1).f_code.co_name == "refine_particles":
+        # called by FrameContext.fit_images, on behalf of refine_particles
+        if _sys._getframe(2).f_code.co_name == "refine_particles":
             calls[sweeps] = calls.get(sweeps, 0) + 1
         return fit(*args, **kwargs)
 

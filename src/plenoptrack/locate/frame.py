@@ -101,6 +101,33 @@ class FrameContext:
         ``edge_blur``."""
         return ImageEdge.of_frame(self.lf.grid_type, self.edge_blur)
 
+    def fit_images(self, views, free_xyz, free_rc, held_xyz, held_rc, **options):
+        """Fit free particles to this frame's view pixels, neighbours held
+        (:func:`~plenoptrack.locate.refine.fit_images` with the frame's calibration, light
+        field and :attr:`image_edge`).
+
+        Parameters
+        ----------
+        views : ((V, 2) float ndarray, (V, 2) int ndarray)
+            ``(u, v)`` of the views to fit in and their ``(v, u)`` index into the light
+            field (:func:`_fit_views`, or a subset of them).
+        free_xyz, free_rc, held_xyz, held_rc
+            Starting positions (mm) and ``(radius px, contrast)`` of the particles to fit,
+            and those of the neighbours drawn at fixed places.
+        **options
+            The other keywords of :func:`~plenoptrack.locate.refine.fit_images`
+            (``max_depth_shift``, ``reference``, ``view_basis``, ...).
+
+        Returns
+        -------
+        ImageFit or None
+        """
+        from . import refine
+
+        views_uv, view_rc = views
+        return refine.fit_images(self.dlfc, views_uv, view_rc, self.lf.data, free_xyz,
+                                 free_rc, held_xyz, held_rc, edge=self.image_edge, **options)
+
     @classmethod
     def build(cls, lf: LightField, calibration, detections: pd.DataFrame,
               locator: PerspectiveLocator) -> "FrameContext":

@@ -180,18 +180,15 @@ class _ResidualSearch:
         (``check.refine_max_model_error**2`` in mean square), and be neither inside a
         located body nor one with a held image (then its darkness is that particle's
         companion); else it leaves ``new``."""
-        from .refine import fit_images
-
         ctx, dlfc = self.ctx, self.ctx.dlfc
         held_pos, held_rc, held_pred = self.held_pos, self.held_rc, self.held_pred
         near = self.held_spans.meet(held_pred, self.pred2[q],
                                     held_rc[:, 0] + self.radius2[q] + 4.0)
         start = np.array([[self.radius2[q], 0.9]])
-        fit = fit_images(dlfc, self.views_uv, self.view_rc, ctx.lf.data, self.positions2[[q]],
-                         start, held_pos[near], held_rc[near],
-                         max_depth_shift=0.1 * ctx.volume_depth_mm,
-                         reference=np.array([[*self.positions2[q], self.radius2[q], 0.0]]),
-                         edge=ctx.image_edge)
+        fit = ctx.fit_images((self.views_uv, self.view_rc), self.positions2[[q]], start,
+                             held_pos[near], held_rc[near],
+                             max_depth_shift=0.1 * ctx.volume_depth_mm,
+                             reference=np.array([[*self.positions2[q], self.radius2[q], 0.0]]))
         if not _one_image_explains(fit, self.settings):
             self.new[q] = False
             return
@@ -231,8 +228,6 @@ class _ResidualSearch:
         located particle alone, two images apart by their parallax, neither one with
         another held image); else the candidate is that particle's companion, unless it
         lies inside its body."""
-        from .refine import fit_images
-
         ctx, dlfc, settings = self.ctx, self.ctx.dlfc, self.settings
         jl = self.shared[q]
         j = int(self.live_rows[jl])
@@ -246,13 +241,12 @@ class _ResidualSearch:
                                 | self.held_spans.meet(held_pred, held_pred[jl],
                                                        held_rc[:, 0] + held_rc[jl, 0] + 4.0))
         others = others[others != jl]
-        fit = fit_images(dlfc, self.views_uv, self.view_rc, ctx.lf.data,
-                         np.vstack([held_pos[jl], self.positions2[q]]),
-                         np.array([[own, held_rc[jl, 1]], [self.radius2[q], 0.9]]),
-                         held_pos[others], held_rc[others],
-                         max_depth_shift=ctx.volume_depth_mm,
-                         reference=np.array([[*held_pos[jl], *held_rc[jl]]]),
-                         edge=ctx.image_edge)
+        fit = ctx.fit_images((self.views_uv, self.view_rc),
+                             np.vstack([held_pos[jl], self.positions2[q]]),
+                             np.array([[own, held_rc[jl, 1]], [self.radius2[q], 0.9]]),
+                             held_pos[others], held_rc[others],
+                             max_depth_shift=ctx.volume_depth_mm,
+                             reference=np.array([[*held_pos[jl], *held_rc[jl]]]))
         apart = (fit is not None and np.all(np.isfinite(fit.params))
                  and np.all(np.isfinite(fit.sigma))
                  and fit.params[:, 4].min() >= settings.split_min_contrast
@@ -510,8 +504,6 @@ def _still_explains_more(ctx: FrameContext, state: ParticleState, rows: np.ndarr
     the mean-square model error of its pixels by ``check.refine_max_model_error**2``
     against the same model without it and stays out of every other particle's body (the
     admission tests of :func:`~plenoptrack.locate.perspective.find_hidden_particles`)."""
-    from .refine import fit_images
-
     out = np.zeros(len(rows), dtype=bool)
     if len(rows) == 0:
         return out
@@ -530,11 +522,10 @@ def _still_explains_more(ctx: FrameContext, state: ParticleState, rows: np.ndarr
             continue
         held = drawn & spans.meet(pred, pred[q], np.nan_to_num(radius) + r + 4.0)
         held[q] = False
-        fit = fit_images(ctx.dlfc, views_uv, view_rc, ctx.lf.data, xyz[None],
-                         np.array([[r, contrast[q]]]), state.positions[held],
-                         np.c_[radius[held], contrast[held]],
-                         max_depth_shift=0.1 * ctx.volume_depth_mm,
-                         reference=np.array([[*xyz, r, 0.0]]), edge=ctx.image_edge)
+        fit = ctx.fit_images((views_uv, view_rc), xyz[None], np.array([[r, contrast[q]]]),
+                             state.positions[held], np.c_[radius[held], contrast[held]],
+                             max_depth_shift=0.1 * ctx.volume_depth_mm,
+                             reference=np.array([[*xyz, r, 0.0]]))
         # a fit that moved into a neighbour's body explains that neighbour's pixels
         out[i] = (_one_image_explains(fit, settings)
                   and not _inside_bodies(ctx.dlfc, fit.params[0, :4], state.positions[held],

@@ -519,7 +519,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     solve.
     """
     from ._assign import _predict_all
-    from .refine import fit_images, overlap_fraction
+    from .refine import overlap_fraction
 
     settings = locator.check
     table = state.table.copy()
@@ -531,7 +531,6 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     # the particles that may be refitted (all by default); the others are drawn as held
     # neighbours at their current solution
     may_fit = keep if only is None else keep & np.asarray(only, dtype=bool)
-    lf = ctx.lf
     views_uv, view_rc = _fit_views(ctx)
     basis = ctx.dlfc.view_basis(views_uv[:, 0], views_uv[:, 1])
     # The image model's disc starts at (and a neighbour never fitted is drawn with) the
@@ -559,9 +558,8 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
                     continue
                 fitted_pairs.add((a, b))
             held = np.setdiff1d(np.flatnonzero(nearby[free].any(axis=0) & keep), free)
-            fitted = fit_images(ctx.dlfc, views_uv, view_rc, lf.data, pos[free], rc[free],
-                                pos[held], rc[held], max_depth_shift=max_shift,
-                                view_basis=basis, edge=ctx.image_edge)
+            fitted = ctx.fit_images((views_uv, view_rc), pos[free], rc[free], pos[held],
+                                    rc[held], max_depth_shift=max_shift, view_basis=basis)
             if fitted is None or not np.all(np.isfinite(fitted.params)):
                 continue
             theta = fitted.params

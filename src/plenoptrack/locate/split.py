@@ -195,12 +195,9 @@ class _SplitRun:
     def fit(self, views_uv, view_rc, xyz, rc, held, **kw):
         """Images at ``xyz`` (k, 3) with radius and contrast ``rc`` (k, 2) fitted to the
         pixels of the given views beside the ``held`` particles as they now stand
-        (:func:`~plenoptrack.locate.refine.fit_images`)."""
-        from .refine import fit_images
-
-        return fit_images(self.ctx.dlfc, views_uv, view_rc, self.ctx.lf.data, xyz, rc,
-                          self.pos[held], np.c_[self.radius[held], self.contrast[held]],
-                          edge=self.ctx.image_edge, **kw)
+        (:meth:`~plenoptrack.locate.frame.FrameContext.fit_images`)."""
+        return self.ctx.fit_images((views_uv, view_rc), xyz, rc, self.pos[held],
+                                   np.c_[self.radius[held], self.contrast[held]], **kw)
 
     def neighbours(self, i, pred) -> np.ndarray:
         """Particles whose images come within 4 view pixels of particle i's in a view."""
