@@ -24,10 +24,12 @@ from plenoptrack.simulate import (default_dotcard, default_dotcard_depths, make_
                                   make_scene, render_dotcard, render_frame, render_white)
 
 
-def _calibrated(camera_name: str, depths=None):
-    """Optics (seed 0) and a calibration with a DLFC fitted on simulated dot cards."""
+def _calibrated(camera_name: str, depths=None, realism=None):
+    """Optics (seed 0) and a calibration with a DLFC fitted on simulated dot cards; with
+    ``realism`` (e.g. ``"realistic"``) the optics have those effects and the dot cards
+    are flat-fielded with the white image, as ``plenoptrack calibrate`` does."""
     camera = preset(camera_name)
-    optics = make_optics(camera, seed=0)
+    optics = make_optics(camera, seed=0, realism=realism)
     white = render_white(optics, seed=np.random.default_rng([0, 2]))
     calib, _ = calibrate_from_white(white, camera)
     card = default_dotcard(camera)
@@ -35,8 +37,9 @@ def _calibrated(camera_name: str, depths=None):
     points = []
     for k, z in enumerate(depths):
         image = render_dotcard(optics, float(z), card=card, seed=np.random.default_rng([0, 4, k]))
-        points.append(dotcard_points(decode(image, calib.grid), spacing_mm=card.spacing_mm,
-                                     z_mm=float(z), camera=camera))
+        points.append(dotcard_points(decode(image, calib.grid,
+                                            white=white if realism is not None else None),
+                                     spacing_mm=card.spacing_mm, z_mm=float(z), camera=camera))
     points = pd.concat(points, ignore_index=True)
     dlfc = fit_dlfc(points, order=4, group_by="z", reject_k=5)
     # as plenoptrack.calibrate does: the views' edge blur from the dots

@@ -284,6 +284,19 @@ def test_a_particle_a_located_fit_swallowed_is_fitted_with_it(small_calibrated):
     assert counts[True][1] <= counts[False][1]
 
 
+def _stand_in_context(**fields):
+    """A stand-in for a FrameContext with just ``fields``, and its ``fit_images`` method
+    (which reads ``dlfc``, ``lf.data`` and ``image_edge``)."""
+    from functools import partial
+    from types import SimpleNamespace
+
+    from plenoptrack.locate.frame import FrameContext
+
+    ctx = SimpleNamespace(**fields)
+    ctx.fit_images = partial(FrameContext.fit_images, ctx)
+    return ctx
+
+
 def _three_particle_frame(render_hidden: bool, b_offset_mm: float = 0.0,
                           hidden_start=(0.25, 0.0, -2.0), a_contrast: float = 0.95):
     """A frame context and particle state for a hidden particle (row 2, started at
@@ -308,8 +321,8 @@ def _three_particle_frame(render_hidden: bool, b_offset_mm: float = 0.0,
                          valid_fraction=np.ones((9, 9)))
     detections = pd.DataFrame({"dark_area": [10.0], "diameter_px": [4.0], "whole": [True]})
     # the images are drawn with the round edge of EDGE_PX: the fits model them so
-    ctx = SimpleNamespace(lf=lf, views=views_uv, dlfc=dlfc, detections=detections,
-                          volume_depth_mm=20.0, image_edge=ImageEdge())
+    ctx = _stand_in_context(lf=lf, views=views_uv, dlfc=dlfc, detections=detections,
+                            volume_depth_mm=20.0, image_edge=ImageEdge())
     positions = np.vstack([truth[:2] + [[0, 0, 0], [0, 0, b_offset_mm]], hidden_start])
     table = pd.DataFrame({"n_views": [81, 81, 81], "_fit_radius_px": rc[:, 0],
                           "_fit_contrast": [a_contrast, 0.95, 0.95],
@@ -553,8 +566,8 @@ def _duplicate_frame(render_candidate: bool, candidate=(0.05, 0.0, 2.5),
     lf = SimpleNamespace(data=data, u=np.arange(9) - 4.0, v=np.arange(9) - 4.0,
                          valid_fraction=np.ones((9, 9)), view_mask=np.ones((9, 9), bool))
     detections = pd.DataFrame({"dark_area": [10.0], "diameter_px": [4.0], "whole": [True]})
-    ctx = SimpleNamespace(lf=lf, views=views_uv, dlfc=dlfc, detections=detections,
-                          volume_depth_mm=20.0, image_edge=ImageEdge())
+    ctx = _stand_in_context(lf=lf, views=views_uv, dlfc=dlfc, detections=detections,
+                            volume_depth_mm=20.0, image_edge=ImageEdge())
     positions = np.array(xyz, dtype=float)
     n_views = [81, candidate_views] + ([81] if third is not None else [])
     flags = [33, 1 | 64] + ([33] if third is not None else [])
