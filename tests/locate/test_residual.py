@@ -2,6 +2,7 @@
 (check.find_hidden)."""
 
 import dataclasses
+import math
 
 import numpy as np
 import pandas as pd
@@ -286,13 +287,14 @@ def test_a_particle_a_located_fit_swallowed_is_fitted_with_it(small_calibrated):
 
 def _stand_in_context(**fields):
     """A stand-in for a FrameContext with just ``fields``, and its ``fit_images`` method
-    (which reads ``dlfc``, ``lf.data`` and ``image_edge``)."""
+    (which reads ``dlfc``, ``lf.data``, ``image_edge`` and ``large_image_px``: no image
+    is large unless given)."""
     from functools import partial
     from types import SimpleNamespace
 
     from plenoptrack.locate.frame import FrameContext
 
-    ctx = SimpleNamespace(**fields)
+    ctx = SimpleNamespace(**{"large_image_px": math.inf, **fields})
     ctx.fit_images = partial(FrameContext.fit_images, ctx)
     return ctx
 

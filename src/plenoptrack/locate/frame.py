@@ -74,6 +74,14 @@ class FrameContext:
     max_area_ratio : float
         A region larger than this times one particle's image is a merged image
         (``segment.max_area_ratio``).
+    large_image_px : float
+        Equivalent shadow diameter (view pixels) above which an image is left out of
+        position solves and image fits in the views the aperture rim cuts: twice the
+        calibration's dot images (``solve.rim_min_valid``); inf when the calibration did
+        not record its dots' size.
+    rim_min_valid : float
+        ``solve.rim_min_valid``: views with a smaller share of valid samples are cut by
+        the aperture rim.
     """
 
     lf: LightField
@@ -93,6 +101,20 @@ class FrameContext:
     tolerance_px: float
     edge_blur: np.ndarray | None = None
     max_area_ratio: float = math.inf
+    large_image_px: float = math.inf
+    rim_min_valid: float = 0.0
+
+    def rim_cut(self, view_rc: np.ndarray) -> np.ndarray:
+        """(V,) bool: the views (``(v, u)`` indices into the light field) that the
+        aperture rim cuts (valid share below :attr:`rim_min_valid`)."""
+        view_rc = np.asarray(view_rc, dtype=np.int64).reshape(-1, 2)
+        return self.lf.valid_fraction[view_rc[:, 0], view_rc[:, 1]] < self.rim_min_valid
+
+    def rim_detections(self) -> np.ndarray:
+        """(M,) bool: the detections in views the aperture rim cuts."""
+        rc = np.c_[np.searchsorted(self.lf.v, self.views[:, 1]),
+                   np.searchsorted(self.lf.u, self.views[:, 0])]
+        return self.rim_cut(rc)[self.view]
 
     @property
     def image_edge(self) -> ImageEdge:
@@ -125,6 +147,15 @@ class FrameContext:
         from . import refine
 
         views_uv, view_rc = views
+        free_rc = np.asarray(free_rc, dtype=float)
+        if len(free_rc) and np.any(2.0 * free_rc[:, 0] > self.large_image_px):
+            # a large image's centroid in a view the rim cuts does not follow the DLFC
+            # (FrameContext.large_image_px): fit it without those views
+            whole = ~self.rim_cut(view_rc)
+            if 6 <= whole.sum() < len(whole):
+                views_uv, view_rc = views_uv[whole], view_rc[whole]
+                if options.get("view_basis") is not None:
+                    options["view_basis"] = options["view_basis"][whole]
         return refine.fit_images(self.dlfc, views_uv, view_rc, self.lf.data, free_xyz,
                                  free_rc, held_xyz, held_rc, edge=self.image_edge, **options)
 
@@ -152,7 +183,9 @@ class FrameContext:
                    n_possible=int(lf.view_mask.sum()), volume_depth_mm=z_hi - z_lo,
                    merge_px=merge_px, tolerance_px=locator.grow.add_tolerance_px,
                    edge_blur=getattr(calibration, "edge_blur_by_depth", None),
-                   max_area_ratio=locator.segment.max_area_ratio)
+                   max_area_ratio=locator.segment.max_area_ratio,
+                   large_image_px=_large_image_px(calibration),
+                   rim_min_valid=locator.solve.rim_min_valid)
 
 
 @dataclass(frozen=True, eq=False)
@@ -270,6 +303,16 @@ _COMPANION = ("_companion_dx", "_companion_dy", "_companion_dz")
 """State-table columns: the offset (mm) from a particle to the darkness beside it that the
 hidden-particle search found and could not take apart from it
 (:func:`~plenoptrack.locate.hidden._note_companion`)."""
+
+
+def _large_image_px(calibration) -> float:
+    """Twice the equivalent diameter of the calibration's dot images, view pixels
+    (:attr:`FrameContext.large_image_px`); inf when the calibration has no record of it."""
+    from .pixel_locking import SIZE_FACTOR
+
+    pattern = getattr(calibration, "locking_pattern", None)
+    diameter = float(getattr(pattern, "image_diameter_px", math.nan))
+    return SIZE_FACTOR * diameter if math.isfinite(diameter) else math.inf
 
 
 def _fit_views(ctx: FrameContext) -> tuple[np.ndarray, np.ndarray]:

@@ -33,6 +33,8 @@
    (:func:`search_hidden_rounds`, :mod:`~plenoptrack.locate.hidden`); last
    (``check.drop_duplicates``), drop weakly seen particles that are one neighbour's
    image found again (:func:`~plenoptrack.locate.hidden.drop_duplicate_particles`);
+   finally solve the particles whose images are much larger than the calibration's dots
+   again without the views the aperture rim cuts (:func:`solve_large_images`);
 6. :func:`measure_particles` -- uncertainties (least-squares errors scaled for
    view-correlated centroid errors, plus the DLFC's model error;
    :mod:`~plenoptrack.locate.uncertainty`), in-plane size and shape from the member
@@ -93,7 +95,7 @@ from .uncertainty import (centroid_geometry, image_travel_px, reduced_chi2, tota
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
            "solve_particles", "grow_particles", "check_particles", "refine_particles",
-           "measure_particles"]
+           "solve_large_images", "measure_particles"]
 
 PARTICLE_COLUMNS = (T_COLUMN, *POS_COLUMNS, "sigma_x", "sigma_y", "sigma_z", "n_views",
                     "confidence", "residual_px", "chi2", "travel_px", "diameter", "major_axis",
@@ -203,6 +205,7 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
             if locator.check.drop_duplicates:
                 state = drop_duplicate_particles(ctx, state, locator)
     with clock("checks"):
+        state = solve_large_images(ctx, state, locator.solve)
         particles, detections = measure_particles(
             ctx, state, locator.solve, frame=frame,
             max_model_error=locator.check.refine_max_model_error,
@@ -377,6 +380,70 @@ def solve_particles(ctx: FrameContext, state: ParticleState,
                        owner_out=new_owner.copy(), table=table)
     return dataclasses.replace(state, owner=new_owner, positions=positions, table=table,
                                solved=solved)
+
+
+_SOLVE_FLAGS = int(TriangulationFlag.CONVERGED | TriangulationFlag.TOO_FEW_VIEWS
+                   | TriangulationFlag.OUTLIERS_REMOVED | TriangulationFlag.AT_VOLUME_EDGE
+                   | TriangulationFlag.SINGULAR)
+"""The flags a centroid solve sets (the others come from later stages and are kept)."""
+
+
+def solve_large_images(ctx: FrameContext, state: ParticleState,
+                       settings: SolveSettings) -> ParticleState:
+    """Stage 5e: solve again, without the views the aperture rim cuts, the particles
+    solved from centroids whose images are more than twice the calibration's dots.
+
+    The DLFC relates the centroids of its dot images to positions. In a view that the
+    rim of the aperture cuts (valid share below ``settings.rim_min_valid``) each sample
+    sees an off-centre part of its sub-aperture, and an image much larger than a dot is
+    cut from that lopsided blur by the segmentation differently from a dot: its
+    centroid leaves the DLFC's relation by up to about 0.1 view pixel, away from the
+    centre of the aperture on one side of focus and towards it on the other, so the
+    depth comes out nearer the focal plane (docs: uncertainty). Particles refitted to
+    the view pixels leave those views out in their image fits
+    (:meth:`FrameContext.fit_images`); this stage does the same for the others. Their
+    centroids in those views stay theirs (for size and shape); a particle left with
+    fewer than ``settings.min_views`` centroids in the other views keeps its solution.
+    """
+    n = state.n_particles
+    if n == 0 or not math.isfinite(ctx.large_image_px) or settings.rim_min_valid <= 0:
+        return state
+    table, owner = state.table, state.owner
+    flags = table["flags"].fillna(0).to_numpy(np.int64)
+    from_fit = (flags & int(TriangulationFlag.REFINED | TriangulationFlag.SPLIT)) > 0
+    if _HIDDEN in table.columns:
+        from_fit |= table[_HIDDEN].fillna(False).to_numpy(bool)
+    diameter = _member_diameter(ctx.detections, owner, n, shadow=True)
+    pick = ((diameter > ctx.large_image_px) & ~from_fit
+            & np.all(np.isfinite(state.positions), axis=1))
+    mine = owner >= 0
+    solving = np.where(mine & pick[np.maximum(owner, 0)] & ~ctx.rim_detections(), owner, -1)
+    pick &= np.bincount(solving[solving >= 0], minlength=n) >= settings.min_views
+    solving = np.where((solving >= 0) & pick[np.maximum(solving, 0)], solving, -1)
+    if not pick.any():
+        return state
+    used = np.flatnonzero(pick)
+    initial = pd.DataFrame(state.positions[used], index=used, columns=list(POS_COLUMNS))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NoParticlesWarning)
+        tri = triangulate_clusters(ctx.dlfc, ctx.detections.assign(_owner=solving), initial,
+                                   cluster_column="_owner", n_possible_views=ctx.n_possible,
+                                   volume_depth_mm=ctx.volume_depth_mm,
+                                   reject_k=settings.reject_k,
+                                   min_views=min(4, settings.min_views), solver=settings.solver)
+    rows = tri.to_frame().set_index("cluster").reindex(used)
+    rows = rows[np.all(np.isfinite(rows[list(POS_COLUMNS)].to_numpy(float)), axis=1)]
+    used = rows.index.to_numpy()
+    table = table.copy()
+    columns = [c for c in rows.columns if c in table.columns and c != "flags"]
+    table.loc[used, columns] = rows[columns].to_numpy()
+    table.loc[used, "flags"] = ((flags[used] & ~_SOLVE_FLAGS)
+                                | rows["flags"].to_numpy(np.int64))
+    # the rejected centroids are released as a solve releases them
+    new_owner = np.where((solving >= 0) & ~tri.inliers, -1, owner)
+    return dataclasses.replace(state, owner=new_owner,
+                               positions=table[list(POS_COLUMNS)].to_numpy(float), table=table,
+                               solved=None)
 
 
 def grow_particles(ctx: FrameContext, state: ParticleState,

@@ -318,6 +318,20 @@ class SolveSettings:
         the aperture (view pixels) see too few phases to show the bias.
     locking_harmonics : int
         See ``locking_correction``.
+    rim_min_valid : float
+        Views whose share of valid samples is below this are cut by the rim of the
+        aperture (:attr:`~plenoptrack.lightfield.decode.LightField.valid_fraction`). In
+        them the centroid of an image much larger than the calibration's dots does not
+        follow the relation the DLFC learned from the dots, and its depth comes out too
+        near the focal plane. The position of a particle whose images are more than
+        twice the dots' equivalent diameter
+        (:attr:`~plenoptrack.locate.pixel_locking.LockingPattern.image_diameter_px`) is
+        therefore solved, and its images fitted, without those views
+        (:func:`~plenoptrack.locate.perspective.solve_large_images`,
+        :meth:`~plenoptrack.locate.frame.FrameContext.fit_images`). 0 keeps every view;
+        no effect with a calibration that did not record its dots' size. Chosen on the
+        development seeds of the validation matrix (0.8, 0.9 and 0.97 tried; docs:
+        uncertainty).
     """
 
     reject_k: float = 3.0
@@ -336,9 +350,13 @@ class SolveSettings:
     locking_min_travel_px: float = 2.0
     locking_harmonics: int = 1
     locking_from_calibration: bool = False
+    rim_min_valid: float = 0.9
 
     def __post_init__(self) -> None:
         _require_switches(self)
+        _require(isinstance(self.rim_min_valid, numbers.Real)
+                 and not isinstance(self.rim_min_valid, bool) and 0 <= self.rim_min_valid <= 1,
+                 "rim_min_valid", "a fraction from 0 to 1", self.rim_min_valid)
         _require(self.reject_k > 0, "reject_k", "positive", self.reject_k)
         _require(isinstance(self.locking_min_travel_px, numbers.Real)
                  and not isinstance(self.locking_min_travel_px, bool)
