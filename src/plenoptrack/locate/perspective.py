@@ -395,11 +395,12 @@ def solve_large_images(ctx: FrameContext, state: ParticleState,
 
     The DLFC relates the centroids of its dot images to positions. In a view that the
     rim of the aperture cuts (valid share below ``settings.rim_min_valid``) each sample
-    sees an off-centre part of its sub-aperture, and an image much larger than a dot is
-    cut from that lopsided blur by the segmentation differently from a dot: its
-    centroid leaves the DLFC's relation by up to about 0.1 view pixel, away from the
-    centre of the aperture on one side of focus and towards it on the other, so the
-    depth comes out nearer the focal plane (docs: uncertainty). Particles refitted to
+    sees an off-centre part of its sub-aperture, and there the centroid of an image much
+    larger than a dot leaves the DLFC's relation by up to about 0.1 view pixel, away from
+    the centre of the aperture on one side of focus and towards it on the other, so the
+    depth comes out nearer the focal plane (measured on simulated spheres; how the cut
+    moves a large image differently from a dot is not pinned down; docs: uncertainty).
+    Particles refitted to
     the view pixels leave those views out in their image fits
     (:meth:`FrameContext.fit_images`); this stage does the same for the others. Their
     centroids in those views stay theirs (for size and shape); a particle left with
