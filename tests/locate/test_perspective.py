@@ -24,10 +24,12 @@ from plenoptrack.simulate import (default_dotcard, default_dotcard_depths, make_
                                   make_scene, render_dotcard, render_frame, render_white)
 
 
-def _calibrated(camera_name: str, depths=None, realism=None):
+def _calibrated(camera_name: str, depths=None, realism=None, locking: bool = False):
     """Optics (seed 0) and a calibration with a DLFC fitted on simulated dot cards; with
     ``realism`` (e.g. ``"realistic"``) the optics have those effects and the dot cards
-    are flat-fielded with the white image, as ``plenoptrack calibrate`` does."""
+    are flat-fielded with the white image, as ``plenoptrack calibrate`` does; with
+    ``locking`` the calibration records the dots' pixel-locking pattern (and so their
+    image size), as ``plenoptrack calibrate`` does too."""
     camera = preset(camera_name)
     optics = make_optics(camera, seed=0, realism=realism)
     white = render_white(optics, seed=np.random.default_rng([0, 2]))
@@ -43,7 +45,12 @@ def _calibrated(camera_name: str, depths=None, realism=None):
     points = pd.concat(points, ignore_index=True)
     dlfc = fit_dlfc(points, order=4, group_by="z", reject_k=5)
     # as plenoptrack.calibrate does: the views' edge blur from the dots
-    return optics, calib.with_dlfc(dlfc).with_edge_blur(edge_blur_by_depth(points))
+    calib = calib.with_dlfc(dlfc).with_edge_blur(edge_blur_by_depth(points))
+    if locking:
+        from plenoptrack.locate.pixel_locking import pattern_from_dots
+
+        calib = calib.with_locking_pattern(pattern_from_dots(points, dlfc, calib.grid))
+    return optics, calib
 
 
 def _frame(optics, truth, seed: int) -> np.ndarray:

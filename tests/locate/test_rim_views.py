@@ -11,7 +11,7 @@ from plenoptrack.locate import refine
 from plenoptrack.locate.frame import FrameContext, _fit_views, _large_image_px
 from plenoptrack.locate.perspective import (PerspectiveLocator, _decoded, locate_frame,
                                             segment_frame)
-from plenoptrack.locate.pixel_locking import SIZE_FACTOR, pattern_from_dots
+from plenoptrack.locate.pixel_locking import SIZE_FACTOR
 from plenoptrack.locate.settings import SolveSettings
 from plenoptrack.simulate import render_frame
 
@@ -28,29 +28,15 @@ def realistic_with_dots():
     """The 'small' camera with realistic optics (seed 0), calibrated on its flat-fielded
     dot cards with the dots' pixel-locking pattern (and so their image size) recorded,
     as ``plenoptrack calibrate`` does; and its decoded white image."""
-    from plenoptrack import preset
-    from plenoptrack.calibration import calibrate_from_white
     from plenoptrack.lightfield import decode
-    from plenoptrack.locate.dlfc import fit_dlfc
-    from plenoptrack.locate.dotcards import dotcard_points
-    from plenoptrack.locate.opacity import edge_blur_by_depth
-    from plenoptrack.simulate import (default_dotcard, default_dotcard_depths, make_optics,
-                                      render_dotcard, render_white)
+    from plenoptrack.simulate import render_white
 
-    camera = preset("small")
-    optics = make_optics(camera, seed=0, realism="realistic")
-    white = render_white(optics, seed=np.random.default_rng([0, 2]))
-    calib, _ = calibrate_from_white(white, camera)
-    card = default_dotcard(camera)
-    points = pd.concat(
-        [dotcard_points(decode(render_dotcard(optics, float(z), card=card,
-                                              seed=np.random.default_rng([0, 4, k])),
-                               calib.grid, white=white),
-                        spacing_mm=card.spacing_mm, z_mm=float(z), camera=camera)
-         for k, z in enumerate(default_dotcard_depths(camera))], ignore_index=True)
-    dlfc = fit_dlfc(points, order=4, group_by="z", reject_k=5)
-    calib = calib.with_dlfc(dlfc).with_edge_blur(edge_blur_by_depth(points))
-    calib = calib.with_locking_pattern(pattern_from_dots(points, dlfc, calib.grid))
+    try:
+        from .test_perspective import _calibrated
+    except ImportError:  # tests/locate is not a package
+        from test_perspective import _calibrated
+    optics, calib = _calibrated("small", realism="realistic", locking=True)
+    white = render_white(optics, seed=np.random.default_rng([0, 2]))   # the same white
     return optics, calib, decode(white, calib.grid)
 
 
