@@ -340,6 +340,21 @@ def cluster_unassigned(ctx: FrameContext, state: ParticleState, settings: Cluste
                          solved=state.solved), n - start
 
 
+def _triangulate_owned(ctx: FrameContext, solving: np.ndarray, start: np.ndarray,
+                       used: np.ndarray, settings: SolveSettings):
+    """Triangulate the particles ``used`` from the detections ``solving`` assigns them
+    (particle row per detection, -1 none), starting from ``start`` (len(used), 3) mm,
+    with the solve settings' outlier rejection."""
+    initial = pd.DataFrame(start, index=used, columns=list(POS_COLUMNS))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", NoParticlesWarning)
+        return triangulate_clusters(ctx.dlfc, ctx.detections.assign(_owner=solving), initial,
+                                    cluster_column="_owner", n_possible_views=ctx.n_possible,
+                                    volume_depth_mm=ctx.volume_depth_mm,
+                                    reject_k=settings.reject_k,
+                                    min_views=min(4, settings.min_views), solver=settings.solver)
+
+
 def solve_particles(ctx: FrameContext, state: ParticleState,
                     settings: SolveSettings) -> ParticleState:
     """Stage 3: solve every particle that owns centroids, with outlier rejection.
@@ -356,14 +371,7 @@ def solve_particles(ctx: FrameContext, state: ParticleState,
     mine = owner >= 0
     solving = np.where(mine & redo[np.maximum(owner, 0)], owner, -1)
     used = np.unique(solving[solving >= 0])
-    initial = pd.DataFrame(state.initial[used], index=used, columns=list(POS_COLUMNS))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NoParticlesWarning)
-        tri = triangulate_clusters(ctx.dlfc, ctx.detections.assign(_owner=solving), initial,
-                                   cluster_column="_owner", n_possible_views=ctx.n_possible,
-                                   volume_depth_mm=ctx.volume_depth_mm,
-                                   reject_k=settings.reject_k,
-                                   min_views=min(4, settings.min_views), solver=settings.solver)
+    tri = _triangulate_owned(ctx, solving, state.initial[used], used, settings)
     rows = tri.to_frame().set_index("cluster")
     new_owner = np.where(tri.inliers | (owner == _MERGED), owner, -1)
     if not redo.all():
@@ -424,14 +432,7 @@ def solve_large_images(ctx: FrameContext, state: ParticleState,
     if not pick.any():
         return state
     used = np.flatnonzero(pick)
-    initial = pd.DataFrame(state.positions[used], index=used, columns=list(POS_COLUMNS))
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", NoParticlesWarning)
-        tri = triangulate_clusters(ctx.dlfc, ctx.detections.assign(_owner=solving), initial,
-                                   cluster_column="_owner", n_possible_views=ctx.n_possible,
-                                   volume_depth_mm=ctx.volume_depth_mm,
-                                   reject_k=settings.reject_k,
-                                   min_views=min(4, settings.min_views), solver=settings.solver)
+    tri = _triangulate_owned(ctx, solving, state.positions[used], used, settings)
     rows = tri.to_frame().set_index("cluster").reindex(used)
     rows = rows[np.all(np.isfinite(rows[list(POS_COLUMNS)].to_numpy(float)), axis=1)]
     used = rows.index.to_numpy()
