@@ -84,7 +84,7 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
                      (_F2, _i8, _F3, _F2, _F3, _F1, _f8, _F2)),
     "refine_lm": ("plenoptrack.locate.refine", "_levenberg_marquardt",
                   (_F2, _F3, _F3, _a(_b1, 3), _F2, _I2r, _F3r, _F1r, _F1r, _F2, _F2, _F2, _F2,
-                   _f8, _i8, _f8, _F2, _F2)),
+                   _f8, _i8, _f8, _F2, _F2, _b1)),
 }
 """Every kernel signature that calibrating and locating a frame compile, by short name.
 Pinned by ``tests/test_precompile.py`` against the signatures a real run compiles."""
@@ -122,6 +122,9 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate.triangulate._normal_one", "plenoptrack.locate.triangulate._solve3",
     "plenoptrack.locate.refine._half_erfc", "plenoptrack.locate.refine._box",
     "plenoptrack.locate.refine._edge_argument",
+    "plenoptrack.locate.refine._normal_cdf",
+    "plenoptrack.locate.refine._bivariate_normal_cdf",
+    "plenoptrack.locate.refine._overlapping_edges",
     "plenoptrack.locate.refine._model_normal_equations",
     "plenoptrack.locate.refine._normal_equations",
     "plenoptrack.locate.refine._step_tolerance",

@@ -14,7 +14,7 @@ from plenoptrack.locate.refine import (EDGE_PX, HEX_RESAMPLING_PX2, ImageEdge,
                                        _patch_masks, _patches, _robust_sd, disc_image,
                                        fit_images, overlap_fraction)
 from plenoptrack.simulate import make_scene, render_frame
-from scipy.special import erfc
+from scipy.special import erfc, ndtr, ndtri, owens_t
 
 EDGE_WIDTHS = np.array([[0.75, 0.45], [0.5, 0.62], [0.6, 0.6]])
 """Edge widths ``(w_s, w_t)`` of the images in the kernel tests: wider along s, wider
@@ -27,6 +27,43 @@ def anisotropic_disc(ds, dt, radius, contrast, w_s, w_t):
     rho = np.hypot(ds, dt)
     width = np.sqrt((w_s ** 2 * ds ** 2 + w_t ** 2 * dt ** 2) / np.maximum(rho, 1e-12) ** 2)
     return 1.0 - contrast * 0.5 * erfc((rho - radius) / (math.sqrt(2.0) * width))
+
+
+def bivariate_normal_cdf(h, k, r):
+    """``P(Z1 < h, Z2 < k)`` for standard normals of correlation ``r``, elementwise, by
+    Owen's T function (Owen 1956): ``Phi2 = (Phi(h) + Phi(k)) / 2 - T(h, a_h) - T(k, a_k)
+    - beta``, ``beta = 1/2`` where ``h k < 0`` (or one is 0 and their sum negative)."""
+    h, k, r = np.broadcast_arrays(*map(np.asarray, (h, k, r)))
+    s = np.sqrt(1.0 - r ** 2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a_h = np.where(h != 0, (k - r * h) / (h * s), np.inf * np.sign(k - r * h))
+        a_k = np.where(k != 0, (h - r * k) / (k * s), np.inf * np.sign(h - r * k))
+    beta = np.where((h * k < 0) | ((h * k == 0) & (h + k < 0)), 0.5, 0.0)
+    return 0.5 * (ndtr(h) + ndtr(k)) - owens_t(h, a_h) - owens_t(k, a_k) - beta
+
+
+def blurred_union(offsets, rc, edge):
+    """Transmission of two overlapping images as the blurred union of their shadows, in
+    plain numpy: ``1 - c0 D0 - c1 D1 + c0 c1 B``, ``D = Phi(h)`` each image's blurred
+    disc, ``B = Phi2(h0, h1; r)`` the chance of lying inside both, ``r`` the correlation
+    of the two edges' normal offsets under the blur (edge widths ``edge`` (2, 2));
+    ``B = D0 D1`` (the product) wherever either ``D`` is within 1e-9 of 0 or 1."""
+    (ds0, dt0), (ds1, dt1) = offsets
+    darkness, h = [], []
+    for (ds, dt), (r_, c), (w_s, w_t) in zip(offsets, rc, edge):
+        d = 1.0 - anisotropic_disc(ds, dt, r_, 1.0, w_s, w_t)
+        darkness.append(d)
+        h.append(ndtri(d))
+    q0 = np.hypot(edge[0, 0] * ds0, edge[0, 1] * dt0)
+    q1 = np.hypot(edge[1, 0] * ds1, edge[1, 1] * dt1)
+    r = (edge[0, 0] * edge[1, 0] * ds0 * ds1 + edge[0, 1] * edge[1, 1] * dt0 * dt1) / (q0 * q1)
+    r = np.clip(r, -0.999999, 0.999999)
+    band = np.all([(d > 1e-9) & (d < 1 - 1e-9) for d in darkness], axis=0)
+    both = np.where(band, bivariate_normal_cdf(np.where(band, h[0], 0.0),
+                                               np.where(band, h[1], 0.0), r),
+                    darkness[0] * darkness[1])
+    (c0, c1) = rc[:, 1]
+    return 1.0 - c0 * darkness[0] - c1 * darkness[1] + c0 * c1 * both
 
 
 class LinearCalibration:
@@ -93,11 +130,12 @@ def test_disc_image_derivatives_match_finite_differences():
     assert f[0] < 0.11 and f[-1] > 0.999   # dark inside, background outside
 
 
-@pytest.mark.parametrize("k", [1, 2])
-def test_normal_equations_match_a_finite_difference_jacobian(k):
+@pytest.mark.parametrize("k, union", [(1, True), (2, False), (2, True)])
+def test_normal_equations_match_a_finite_difference_jacobian(k, union):
     """The compiled cost, J^T J and J^T r against the model built from anisotropic_disc (a
-    different edge width along s and t for each image) and differentiated numerically
-    with respect to (x, y, z, r, c) through a linear DLFC."""
+    different edge width along s and t for each image; two images as their product, or
+    with ``union`` as their blurred union) and differentiated numerically with respect
+    to (x, y, z, r, c) through a linear DLFC."""
     dlfc = LinearCalibration()
     views_uv, _ = _views()
     rng = np.random.default_rng(k)
@@ -113,11 +151,15 @@ def test_normal_equations_match_a_finite_difference_jacobian(k):
     tt = origin[:, 1, None, None] + tt
 
     def model(th):
-        out = held.copy()
-        for (x, yy, z, r, c), (w_s, w_t) in zip(th, EDGE_WIDTHS):
+        offsets = []
+        for x, yy, z, *_ in th:
             s, t = dlfc.predict(x, yy, z, views_uv[:, 0], views_uv[:, 1])
-            out *= anisotropic_disc(ss - s[:, None, None], tt - t[:, None, None], r, c,
-                                    w_s, w_t)
+            offsets.append((ss - s[:, None, None], tt - t[:, None, None]))
+        if k == 2 and union:
+            return (held * blurred_union(offsets, th[:, 3:], EDGE_WIDTHS[:2]))[fit] - y[fit]
+        out = held.copy()
+        for (ds, dt), (_, _, _, r, c), (w_s, w_t) in zip(offsets, th, EDGE_WIDTHS):
+            out *= anisotropic_disc(ds, dt, r, c, w_s, w_t)
         return out[fit] - y[fit]
 
     h = 1e-6
@@ -128,7 +170,7 @@ def test_normal_equations_match_a_finite_difference_jacobian(k):
                                          views_uv[None, :, 1])
     cost, jtj, jtr, meat = _normal_equations(origin, y, held, fit, np.ascontiguousarray(st),
                                              np.ascontiguousarray(dst), theta[:, 3:].copy(),
-                                             EDGE_WIDTHS[:k])
+                                             EDGE_WIDTHS[:k], union)
     res = model(theta)
     assert cost == pytest.approx(res @ res, rel=1e-6)
     view_of = np.broadcast_to(np.arange(len(views_uv))[:, None, None], y.shape)[fit]
@@ -136,6 +178,58 @@ def test_normal_equations_match_a_finite_difference_jacobian(k):
     assert np.allclose(meat, scores.T @ scores, rtol=1e-3, atol=1e-3 * np.abs(meat).max())
     assert np.allclose(jtr, jac.T @ res, rtol=1e-3, atol=1e-3 * np.abs(jtr).max())
     assert np.allclose(jtj, jac.T @ jac, rtol=1e-3, atol=1e-3 * np.abs(jtj).max())
+
+
+def test_the_bivariate_normal_matches_owens_t():
+    from plenoptrack.locate.refine import _bivariate_normal_cdf
+
+    rng = np.random.default_rng(3)
+    h, k = rng.normal(0, 2, (2, 400))
+    r = np.r_[rng.uniform(-0.99, 0.99, 200), rng.uniform(0.99, 0.999999, 100),
+              -rng.uniform(0.99, 0.999999, 100)]
+    ours = np.array([_bivariate_normal_cdf(*args) for args in zip(h, k, r)])
+    assert np.allclose(ours, bivariate_normal_cdf(h, k, r), atol=3e-5, rtol=0)
+    # the limits the locator relies on: independent edges, and edges running together
+    assert _bivariate_normal_cdf(0.3, -0.4, 0.0) == pytest.approx(ndtr(0.3) * ndtr(-0.4),
+                                                                 abs=1e-7)
+    assert _bivariate_normal_cdf(0.3, -0.4, 0.999999) == pytest.approx(ndtr(-0.4), abs=1e-3)
+
+
+@pytest.mark.parametrize("contrast", [1.0, 0.8])
+def test_two_images_on_one_spot_darken_the_pixels_as_one_opaque_shadow(contrast):
+    """Two identical images at one place: the blurred union of two opaque shadows is the
+    shadow of one. (The product of two blurred discs squares the edge's transmission and
+    widens the dark disc by about half an edge width; a pair fitted with it was pushed
+    apart in depth.) Where partly transparent images overlap, their transmissions
+    multiply."""
+    views_uv, _ = _views()
+    n = 15
+    origin = np.zeros((len(views_uv), 2))
+    st = np.tile([7.2, 6.9], (1, len(views_uv), 1))
+    jac = np.zeros((1, len(views_uv), 2, 3))
+    held = np.ones((len(views_uv), n, n))
+    fit = np.ones(held.shape, dtype=bool)
+    rc = np.array([[3.5, contrast]])
+    tt, ss = np.mgrid[0:n, 0:n].astype(float)
+    single = anisotropic_disc(ss - 7.2, tt - 6.9, 3.5, contrast, *EDGE_WIDTHS[0])
+
+    def cost(y, k):
+        return _normal_equations(origin, y, held, fit, np.concatenate([st] * k),
+                                 np.concatenate([jac] * k), np.repeat(rc, k, axis=0),
+                                 np.repeat(EDGE_WIDTHS[:1], k, axis=0), True)[0]
+
+    data = np.broadcast_to(single, held.shape).copy()
+    assert cost(data, 1) < 1e-9                  # the kernel's one image is anisotropic_disc
+    if contrast == 1.0:
+        product_misfit = len(views_uv) * np.sum((single ** 2 - single) ** 2)
+        assert product_misfit > 1.0
+        assert cost(data, 2) < 1e-4 * product_misfit
+    else:
+        # partly transparent: inside both discs (1 - c)^2, at their common edge between
+        # (1 - c D)^2 and 1 - c D
+        zeros = np.zeros(held.shape)             # cost = sum of the model's squares
+        assert cost(zeros, 1) * (1 - contrast) ** 2 < cost(zeros, 2) < cost(zeros, 1)
+        assert cost(zeros, 2) > len(views_uv) * np.sum(single ** 4)
 
 
 def test_patch_masks_against_disc_image():

@@ -213,6 +213,29 @@ def test_two_large_particles_that_overlap_in_every_view_are_split(small_calibrat
         assert ((found["flags"].to_numpy() & SPLIT) > 0).sum() == 2
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_depths_of_a_pair_whose_images_run_together_are_not_pushed_apart(
+        small_calibrated, seed):
+    """Two 1.6 mm particles 0.2 mm apart laterally and 8 mm in depth: one image lies
+    nearly inside the other in every view. Fitted as the product of two blurred discs,
+    whose darkness at their common edge is too deep, the split pair came out further
+    apart in depth than it is (by 0.48 mm on both frames); measured with the blurred
+    union of the two shadows, within 0.1 mm of the truth."""
+    optics, calib = small_calibrated
+    truth = _truth([(-2.2, 0.9, -3.0), (2.2, -0.9, 4.0), (0.0, 0.0, -4.0), (0.15, 0.12, 4.0)],
+                   1.6)
+    raw = render_frame(optics, truth, seed=np.random.default_rng([seed, 3, 0]))
+    found = locate_frame(raw, calib).particles
+    pairs = match_particles(found, truth, tolerance_mm=0.3)
+    m, t = _paired(found, truth, pairs)
+    halves = (m["flags"].to_numpy() & SPLIT) > 0
+    assert set(t.loc[halves, "particle"]) == {2, 3}
+    dz = (m["z"] - t["z"]).to_numpy()[halves]
+    near, far = dz[np.argsort(t.loc[halves, "z"].to_numpy())]
+    assert abs(far - near) < 0.1
+    assert np.all(np.abs(dz) < 0.1)
+
+
 def test_particles_side_by_side_whose_images_touch_in_every_view_are_split(small_calibrated):
     """Three pairs of 1 mm particles side by side, 0.9 mm apart laterally and 0.9-1.2 mm
     in depth, and one particle alone: each pair's images touch in every view, one
@@ -333,8 +356,10 @@ def test_unexplained_pixels_widen_sigma_and_split_halves_carry_their_group_error
     wider = np.nan_to_num(error, nan=0.0) > threshold
     assert wider.any() and not wider.all()
     ratio = on["sigma_z"].to_numpy() / plain["sigma_z"].to_numpy()
-    # sigma_z is almost all statistical: it scales by e / threshold
-    np.testing.assert_allclose(ratio[wider], error[wider] / threshold, rtol=0.02)
+    # sigma_z is mostly statistical: it scales by nearly e / threshold (never more: the
+    # DLFC's model error in it is not scaled)
+    scale = error[wider] / threshold
+    assert np.all(ratio[wider] <= scale * (1 + 1e-9)) and np.all(ratio[wider] > 0.95 * scale)
     np.testing.assert_array_equal(on.loc[~wider, ["sigma_x", "sigma_y", "sigma_z"]].to_numpy(),
                                   plain.loc[~wider, ["sigma_x", "sigma_y", "sigma_z"]].to_numpy())
 

@@ -13,7 +13,28 @@ with the edge width ``w`` of the pixel's direction from the centre,
 ``w^2 = (w_s^2 ds^2 + w_t^2 dt^2) / rho^2`` (:class:`ImageEdge`: wider along ``s`` on a
 hexagonal grid; :data:`EDGE_PX` in every direction by default), and each patch divided
 by its local background (the 60th percentile of its pixels more than 2 pixels outside
-every predicted image). The particle's ``(x, y, z, r, c)`` are fitted by
+every predicted image).
+
+Two images that run together. The product of two blurred discs is the blurred union of
+their shadows only where their edges cross at right angles: where the edges run together
+(one image nearly inside the other, as for two particles on nearly one line of sight) it
+squares the edge's transmission, which widens the dark disc by about half an edge width,
+and a fit of the two pushes them apart across the views to undo it. Two 2 mm spheres
+0.1-0.3 mm apart laterally and about 6 mm in depth on the ``small`` camera came out
+0.35-1.0 mm too far apart in depth (``benchmarks/line_of_sight_pairs.py``). With each
+edge taken as straight across the blur, the chance that the blur places a point inside
+both discs is a bivariate normal, ``B = Phi2(h0, h1; r)`` (:func:`_overlapping_edges`),
+and the pixel's transmission ``1 - c0 D0 - c1 D1 + c0 c1 B``: the product where the
+edges cross at right angles (``r = 0``), the outer edge alone where they run together
+(``r = 1``). A fit with ``union`` (:func:`fit_images`) draws its two free images so,
+after a first pass with the product: at a split's start the two images coincide, where
+the union's derivatives turn on which edge lies outside and give the steps no direction.
+The split of merged images (:mod:`~plenoptrack.locate.split`) decides with the product,
+whose smooth misfit its thresholds were chosen on, and measures the pair it keeps with the
+union; held neighbours and fits of one or of three or more images are drawn as the
+product.
+
+The particle's ``(x, y, z, r, c)`` are fitted by
 Levenberg-Marquardt with analytic derivatives (the DLFC's view-factorised form,
 :attr:`~plenoptrack.locate.dlfc.DLFC.view_model`, in one compiled loop), its neighbours
 held at their current positions; a particle whose strongest neighbour
@@ -276,7 +297,7 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
                margin_px: float = 3.0, max_iter: int = 30, xyz_tol: float = 1e-4,
                step_sigma: float = 0.05, max_depth_shift: float = math.inf,
                view_basis: np.ndarray | None = None, reference: np.ndarray | None = None,
-               edge: ImageEdge | None = None):
+               edge: ImageEdge | None = None, union: bool = False):
     """Fit ``k`` free particles to the view pixels around them, neighbours held fixed.
 
     Parameters
@@ -321,6 +342,11 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     edge : ImageEdge, optional
         Edge blur of the images, each particle's at its starting depth (default:
         :data:`EDGE_PX` along both axes).
+    union : bool
+        Two free images (``k = 2``): fitted as the product of their blurred discs, then
+        from there as the blurred union of their shadows (module notes), which measures
+        two images that run together without pushing them apart. Off: the product only,
+        a smooth model that decides well whether two images are there.
 
     Returns
     -------
@@ -375,12 +401,22 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     xyz_e, tensor, centre_xyz, scale_xyz = dlfc.view_model
     ref = (np.zeros((0, 5)) if reference is None
            else np.ascontiguousarray(np.asarray(reference, dtype=float).reshape(-1, 5)))
-    theta, sigma, cost, within, n_evaluations, reference_cost = _levenberg_marquardt(
-        origin, np.ascontiguousarray(y), fixed, fit, np.ascontiguousarray(basis), xyz_e,
-        tensor, centre_xyz, scale_xyz, theta, lo, hi, absolute, float(step_sigma),
-        int(max_iter), float(max_depth_shift), edge.widths(theta[:, 2]), ref)
-    if not within:
-        return None
+    y, basis = np.ascontiguousarray(y), np.ascontiguousarray(basis)
+    widths = edge.widths(theta[:, 2])
+    n_evaluations = 0
+    # With union, two images are fitted with the product of their blurred discs first,
+    # then with their blurred union from there: at a split's start the two images nearly
+    # coincide, where the union's derivatives turn on which edge lies outside and the
+    # damped steps have no direction to take; the product's do.
+    stages = (False, True) if union and k == 2 else (False,)
+    for union in stages:
+        theta, sigma, cost, within, evaluations, reference_cost = _levenberg_marquardt(
+            origin, y, fixed, fit, basis, xyz_e, tensor, centre_xyz, scale_xyz, theta, lo,
+            hi, absolute, float(step_sigma), int(max_iter), float(max_depth_shift), widths,
+            ref if union == stages[-1] else ref[:0], union)
+        n_evaluations += evaluations
+        if not within:
+            return None
     return ImageFit(theta, sigma[:, :3], int(fit.sum()),
                     len(y), cost, noise, reference_cost, int(n_evaluations))
 
@@ -418,7 +454,7 @@ _NORMAL_MAD = 0.6744897501960817
 @numba.njit(cache=True, nogil=True)
 def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, theta,
                          lo, hi, absolute, step_sigma, max_iter, max_depth_shift, edge,
-                         reference):  # pragma: no cover - compiled
+                         reference, union):  # pragma: no cover - compiled
     """The damped Gauss-Newton iterations of :func:`fit_images`, compiled: from
     ``theta`` (k, 5), steps ``(J^T J + lam diag(J^T J)) d = -J^T r`` within the bounds
     ``lo, hi`` (k, 5); a step that lowers the cost is taken and the damping divided by 3,
@@ -430,13 +466,14 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
     errors at the final ``theta`` (:func:`_view_robust_sigma`); ``within`` is False once a
     taken step has moved a depth by more than ``max_depth_shift`` from the start;
     ``reference_cost`` is the cost of the ``reference`` parameters (j, 5) on the same
-    pixels (NaN if j = 0)."""
+    pixels (NaN if j = 0). ``union``: two free images as the blurred union of their
+    shadows (:func:`_normal_equations`)."""
     k = theta.shape[0]
     n_views = y.shape[0]
     z0 = theta[:, 2].copy()
     theta = theta.copy()
     cost, jtj, grad, meat = _model_normal_equations(origin, y, fixed, fit, basis, xyz_e,
-                                                    tensor, centre, scale, theta, edge)
+                                                    tensor, centre, scale, theta, edge, union)
     tol = _step_tolerance(absolute, step_sigma, jtj, meat, n_views)
     n_eval = 1
     lam = 1e-3
@@ -469,7 +506,7 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
             # are this small; stop there instead of paying for ever smaller trials.
             break
         cost_new, jtj_new, grad_new, meat_new = _model_normal_equations(
-            origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, trial, edge)
+            origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, trial, edge, union)
         n_eval += 1
         if cost_new < cost:
             converged = cost - cost_new < 1e-9 * cost
@@ -488,14 +525,14 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
     reference_cost = math.nan
     if reference.shape[0] > 0:
         reference_cost = _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor,
-                                                 centre, scale, reference, edge)[0]
+                                                 centre, scale, reference, edge, union)[0]
     return (theta, _view_robust_sigma(jtj, meat, n_views), cost, True, n_eval,
             reference_cost)
 
 
 @numba.njit(cache=True, nogil=True)
 def _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale,
-                            theta, edge):  # pragma: no cover - compiled
+                            theta, edge, union):  # pragma: no cover - compiled
     """:func:`_normal_equations` at parameters ``theta`` (k, 5), the image centres and
     their derivatives from the DLFC's view model."""
     # the flag computed, not the literal True: a literal argument would make numba compile
@@ -504,7 +541,7 @@ def _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor, centre,
     st, jac = _views_kernel(np.ascontiguousarray(theta[:, :3]), basis, xyz_e, tensor,
                             centre, scale, with_jac)
     return _normal_equations(origin, y, fixed, fit, st, jac,
-                             np.ascontiguousarray(theta[:, 3:]), edge)
+                             np.ascontiguousarray(theta[:, 3:]), edge, union)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -650,8 +687,118 @@ def _box(ci, cj, reach, n):  # pragma: no cover - compiled
     return i0, max(i1, i0), j0, max(j1, j0)
 
 
+_EDGE_BAND = 1e-9
+"""Where both of two images' darkness ``D`` lies within this of 0 or 1 the product of
+the blurred shadows equals their blurred union to within it: the bivariate normal of
+:func:`_overlapping_edges` is computed only where both edges cross a pixel's blur."""
+
+_MAX_EDGE_CORRELATION = 0.999999
+"""Bound on the correlation of :func:`_overlapping_edges`, which keeps
+``sqrt(1 - r^2)`` away from 0 (two edges that run exactly together)."""
+
+# 12-point Gauss-Legendre nodes and weights on [-1, 1]
+_GL_NODES = np.array([-0.9815606342467192, -0.9041172563704749, -0.7699026741943047,
+                      -0.5873179542866175, -0.3678314989981802, -0.1252334085114689,
+                      0.1252334085114689, 0.3678314989981802, 0.5873179542866175,
+                      0.7699026741943047, 0.9041172563704749, 0.9815606342467192])
+_GL_WEIGHTS = np.array([0.0471753363865118, 0.1069393259953184, 0.1600783285433462,
+                        0.2031674267230659, 0.2334925365383548, 0.2491470458134028,
+                        0.2491470458134028, 0.2334925365383548, 0.2031674267230659,
+                        0.1600783285433462, 0.1069393259953184, 0.0471753363865118])
+
+
+@numba.njit(cache=True, nogil=True, inline="always")
+def _normal_cdf(h):  # pragma: no cover - compiled
+    """Standard normal ``Phi(h)`` (absolute error below 1e-7, :func:`_half_erfc`)."""
+    x = -h / math.sqrt(2.0)
+    return _half_erfc(x, math.exp(-x * x))
+
+
+@numba.njit(cache=True, nogil=True)
+def _bivariate_normal_cdf(h, k, r):  # pragma: no cover - compiled
+    """``P(Z1 < h, Z2 < k)`` for standard normals of correlation ``r`` (|r| < 1).
+
+    Plackett's integral over the correlation in the angle form, ``dP / dr = phi2`` and
+    ``r = sin(theta)``: from ``r = 0`` (``Phi(h) Phi(k)``) for ``|r| < 0.925``, else from the
+    nearer of ``r = 1`` (``Phi(min(h, k))``) and ``r = -1`` (``max(0, Phi(h) + Phi(k) -
+    1)``), whose integrands have no layer at the end of the interval; 12 Gauss-Legendre
+    points, absolute error below about 1e-6."""
+    if abs(r) < 0.925:
+        start, end = 0.0, math.asin(r)
+        base = _normal_cdf(h) * _normal_cdf(k)
+    elif r > 0.0:
+        start, end = 0.5 * math.pi, math.asin(r)
+        base = _normal_cdf(min(h, k))
+    else:
+        start, end = -0.5 * math.pi, math.asin(r)
+        base = max(0.0, _normal_cdf(h) + _normal_cdf(k) - 1.0)
+    half = 0.5 * (end - start)
+    mid = 0.5 * (end + start)
+    total = 0.0
+    hk = h * k
+    hh = h * h + k * k
+    for n in range(_GL_NODES.shape[0]):
+        theta = mid + half * _GL_NODES[n]
+        sin = math.sin(theta)
+        cos2 = 1.0 - sin * sin
+        if cos2 > 0.0:
+            total += _GL_WEIGHTS[n] * math.exp(-(hh - 2.0 * hk * sin) / (2.0 * cos2))
+    return base + total * half / (2.0 * math.pi)
+
+
+@numba.njit(cache=True, nogil=True)
+def _overlapping_edges(xs, delta, edge, r_grad):  # pragma: no cover - compiled
+    """The darkness two overlapping images share at a pixel both their edges cross.
+
+    A blurred edge is the chance that the pixel's blur places a point inside the image's
+    disc, ``D = Phi(h)`` with ``h = -sqrt 2 x`` (``x`` of :func:`_edge_argument`), the
+    edge taken as straight across the blur. The blurred union of two opaque shadows
+    needs the chance that the point lies inside both, ``B = Phi2(h0, h1; r)``, with ``r``
+    the correlation of the two edges' normal offsets under the blur, the cosine of the
+    angle between the normals weighted by the edge widths ``edge`` (2, 2) ``(w_s, w_t)``:
+    ``r = 1`` for two edges that run together (one image inside the other: the inner
+    edge is hidden, ``B = min(D0, D1)``), ``r = 0`` for edges at right angles (``B = D0
+    D1``, the product model), ``r = -1`` for edges facing each other. ``xs`` (2,) and
+    ``delta`` (2, 2) are the pixel's edge arguments and offsets ``(ds, dt)`` from the two
+    centres.
+
+    Returns ``(B, inside0, inside1, density)``: with contrasts ``c`` the pixel's
+    transmission is ``1 - c0 D0 - c1 D1 + c0 c1 B``; ``inside0`` is the chance that the
+    point lies inside image 1 given that it lies on image 0's edge, ``Phi((h1 - r h0) /
+    sqrt(1 - r^2))``, which takes the place of image 1's ``D`` in image 0's derivatives
+    (``inside1`` the other way round); ``density`` is ``dB / dr``, and ``r_grad`` (2, 2)
+    is filled with ``dr / d(ds, dt)`` of each image's offset."""
+    w = edge
+    q0 = math.sqrt((w[0, 0] * delta[0, 0]) ** 2 + (w[0, 1] * delta[0, 1]) ** 2)
+    q1 = math.sqrt((w[1, 0] * delta[1, 0]) ** 2 + (w[1, 1] * delta[1, 1]) ** 2)
+    r_grad[:] = 0.0
+    r = 0.0
+    if q0 > 0.0 and q1 > 0.0:
+        a, b = w[0, 0] * w[1, 0], w[0, 1] * w[1, 1]
+        r = (a * delta[0, 0] * delta[1, 0] + b * delta[0, 1] * delta[1, 1]) / (q0 * q1)
+        if abs(r) < _MAX_EDGE_CORRELATION:
+            for q in range(2):
+                p = 1 - q
+                qq = q0 * q0 if q == 0 else q1 * q1
+                r_grad[q, 0] = (a * delta[p, 0] / (q0 * q1)
+                                - r * w[q, 0] * w[q, 0] * delta[q, 0] / qq)
+                r_grad[q, 1] = (b * delta[p, 1] / (q0 * q1)
+                                - r * w[q, 1] * w[q, 1] * delta[q, 1] / qq)
+    r = min(max(r, -_MAX_EDGE_CORRELATION), _MAX_EDGE_CORRELATION)
+    h0 = -math.sqrt(2.0) * xs[0]
+    h1 = -math.sqrt(2.0) * xs[1]
+    s2 = 1.0 - r * r
+    s = math.sqrt(s2)
+    density = (math.exp(-(h0 * h0 - 2.0 * r * h0 * h1 + h1 * h1) / (2.0 * s2))
+               / (2.0 * math.pi * s))
+    return (_bivariate_normal_cdf(h0, h1, r), _normal_cdf((h1 - r * h0) / s),
+            _normal_cdf((h0 - r * h1) / s), density)
+
+
+
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no cover - compiled
+def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge,
+                      union):  # pragma: no cover - compiled
     """Cost ``sum r**2``, ``J^T J``, ``J^T r`` and ``sum_v J_v^T r_v r_v^T J_v`` (the sum
     over views of the outer products of each view's score) of the patch model,
     ``r = model - y``.
@@ -661,8 +808,11 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
     fitted; ``st`` (k, K, 2), ``jac`` (k, K, 2, 3) and ``rc`` (k, 2) are each free
     particle's predicted centres, their derivatives and its radius and contrast, ``edge``
     (k, 2) its edge widths ``(w_s, w_t)`` (:class:`ImageEdge`). The parameters are
-    ordered ``(x, y, z, r, c)`` per particle. The Jacobian rows of one view are collected
-    and then reduced as dot products, which the compiler vectorises.
+    ordered ``(x, y, z, r, c)`` per particle. With ``union`` two free images (``k = 2``)
+    are drawn as the blurred union of their shadows where both edges cross a pixel's blur
+    (:func:`_overlapping_edges`), else every image as a factor of the product. The
+    Jacobian rows of one view are collected and then reduced as dot products, which the
+    compiler vectorises.
     """
     k = st.shape[0]
     n_par = 5 * k
@@ -679,6 +829,10 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
     disc = np.empty(k)
     drho = np.empty((k, 3))
     dr = np.empty(k)
+    xs = np.empty(k)
+    delta = np.empty((k, 2))
+    inside = np.empty(2)
+    r_grad = np.empty((2, 2))
     norm = 1.0 / math.sqrt(math.pi)
     for view in range(y.shape[0]):
         m = 0
@@ -694,6 +848,9 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
                     rho = math.sqrt(ds * ds + dt * dt)
                     x, dx_ds, dx_dt, dx_dr = _edge_argument(ds, dt, rho, rc[q, 0], edge[q, 0],
                                                             edge[q, 1])
+                    xs[q] = x
+                    delta[q, 0] = ds
+                    delta[q, 1] = dt
                     gauss = math.exp(-x * x)
                     disc[q] = _half_erfc(x, gauss)
                     slope[q] = rc[q, 1] * gauss * norm   # df / dx
@@ -702,6 +859,28 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge):  # pragma: no c
                     for a in range(3):
                         drho[q, a] = -(dx_ds * jac[q, view, 0, a] + dx_dt * jac[q, view, 1, a])
                 model = fixed[view, i, j]
+                if (union and k == 2 and _EDGE_BAND < disc[0] < 1.0 - _EDGE_BAND
+                        and _EDGE_BAND < disc[1] < 1.0 - _EDGE_BAND):
+                    # both edges cross the pixel's blur: the blurred union of the two
+                    # shadows, not the product of the blurred shadows (module notes)
+                    both, inside[0], inside[1], density = _overlapping_edges(xs, delta, edge,
+                                                                             r_grad)
+                    model *= (1.0 - rc[0, 1] * disc[0] - rc[1, 1] * disc[1]
+                              + rc[0, 1] * rc[1, 1] * both)
+                    res[m] = model - y[view, i, j]
+                    for q in range(2):
+                        p = 1 - q
+                        others = fixed[view, i, j] * (1.0 - rc[p, 1] * inside[q])
+                        # the edges' correlation moves with the image centre too
+                        turn = fixed[view, i, j] * rc[0, 1] * rc[1, 1] * density
+                        for a in range(3):
+                            rows[5 * q + a, m] = (others * slope[q] * drho[q, a]
+                                                  - turn * (r_grad[q, 0] * jac[q, view, 0, a]
+                                                            + r_grad[q, 1] * jac[q, view, 1, a]))
+                        rows[5 * q + 3, m] = others * slope[q] * dr[q]
+                        rows[5 * q + 4, m] = fixed[view, i, j] * (rc[p, 1] * both - disc[q])
+                    m += 1
+                    continue
                 for q in range(k):
                     model *= f[q]
                 res[m] = model - y[view, i, j]

@@ -348,11 +348,13 @@ class _SplitRun:
                                          *((error, reference) if best is None
                                            else (best.model_error, best.params)), 3)
             best = best if more is None else more
-        if best is None or self.all_views:
-            return None if best is None else (best, best.model_error)
+        if best is None:
+            return None
         trial_error = best.model_error     # the group on every view, from the trial's fit
+        # measured on every view, with the blurred union of two images that run together
+        # (the product decided that they are two: :mod:`~plenoptrack.locate.refine`)
         best = self.fit(self.views_uv, self.view_rc, best.params[:, :3], best.params[:, 3:],
-                        held, max_depth_shift=self.ctx.volume_depth_mm)
+                        held, max_depth_shift=self.ctx.volume_depth_mm, union=True)
         return (best, trial_error) if self.distinct(best, m) else None
 
     def try_particle(self, m) -> None:
@@ -483,7 +485,7 @@ class _SplitRun:
         near[free] = False
         joint = self.fit(self.views_uv, self.view_rc, self.pos[free],
                          np.c_[self.radius[free], self.contrast[free]], np.flatnonzero(near),
-                         max_depth_shift=self.ctx.volume_depth_mm)
+                         max_depth_shift=self.ctx.volume_depth_mm, union=True)
         if (joint is None or not np.all(np.isfinite(joint.params))
                 or joint.model_error > min(bar, self.settings.refine_max_model_error)):
             return
