@@ -409,11 +409,12 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     # coincide, where the union's derivatives turn on which edge lies outside and the
     # damped steps have no direction to take; the product's do.
     stages = (False, True) if union and k == 2 else (False,)
-    for union in stages:
+    for stage, as_union in enumerate(stages):
+        last = stage == len(stages) - 1            # the reference is scored on the last
         theta, sigma, cost, within, evaluations, reference_cost = _levenberg_marquardt(
             origin, y, fixed, fit, basis, xyz_e, tensor, centre_xyz, scale_xyz, theta, lo,
             hi, absolute, float(step_sigma), int(max_iter), float(max_depth_shift), widths,
-            ref if union == stages[-1] else ref[:0], union)
+            ref if last else np.zeros((0, 5)), as_union)
         n_evaluations += evaluations
         if not within:
             return None
