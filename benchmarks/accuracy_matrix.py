@@ -128,6 +128,7 @@ timings are not).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import json
 import math
@@ -609,6 +610,25 @@ class Runner:
                 "n_measured": n_measured, "frames": frames, "seconds": seconds,
                 "source_density": float(np.mean(ns)), "chance": chance,
                 "warnings": sorted(caught_all)}
+
+
+def add_one_camera_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--optics``, ``--seed``, ``--workdir`` and ``--out`` of a study on one calibrated
+    camera (the matrix's calibration of a development seed by default)."""
+    parser.add_argument("--optics", default="ideal", help="ideal, realistic or ideal+GROUP")
+    parser.add_argument("--seed", type=int, default=DEV_SEEDS[0])
+    parser.add_argument("--workdir", type=Path, default=None,
+                        help="where the simulated data go (default: a temporary folder)")
+    parser.add_argument("--out", type=Path, default=None, help="write the table here (markdown)")
+
+
+@contextlib.contextmanager
+def one_camera_runner(workdir: Path | None, t0: float):
+    """``(Runner, folder)`` for a study on one camera: in ``workdir``, or in a temporary
+    folder removed afterwards."""
+    with tempfile.TemporaryDirectory() as tmp:
+        folder = workdir or Path(tmp)
+        yield Runner(folder, 1, t0), folder
 
 
 def _read_views(white) -> np.ndarray:

@@ -122,18 +122,10 @@ def main(argv=None) -> None:
     parser.add_argument("--lateral", type=float, nargs="+",
                         default=[0.1, 0.2, 0.3, 0.4, 0.5, 0.7, 0.9, 1.2],
                         help="lateral offsets between a pair's centres, mm")
-    parser.add_argument("--optics", default="ideal", help="ideal, realistic or ideal+GROUP")
-    parser.add_argument("--seed", type=int, default=am.DEV_SEEDS[0])
-    parser.add_argument("--workdir", type=Path, default=None,
-                        help="where the simulated data go (default: a temporary folder)")
-    parser.add_argument("--out", type=Path, default=None, help="write the table here (markdown)")
+    am.add_one_camera_arguments(parser)
     args = parser.parse_args(argv)
-    import tempfile
-
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
-        runner = am.Runner(workdir, 1, t0)
+    with am.one_camera_runner(args.workdir, t0) as (runner, workdir):
         table = measure(runner, args.size, args.optics, args.seed, args.lateral, workdir)
     result = summary(table)
     lines = [f"# Depth separation of {args.size:g} mm spheres on nearly one line of sight, "

@@ -101,20 +101,12 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", type=float, nargs="+", default=[0.2, 1.0, 2.0])
     parser.add_argument("--depths", type=float, nargs="+", default=[-7.0, -3.5, 3.5, 7.0])
-    parser.add_argument("--optics", default="ideal", help="ideal, realistic or ideal+GROUP")
-    parser.add_argument("--seed", type=int, default=am.DEV_SEEDS[0])
     parser.add_argument("--cut", type=float, default=0.97,
                         help="views with a smaller valid share count as cut by the rim")
-    parser.add_argument("--workdir", type=Path, default=None,
-                        help="where the simulated data go (default: a temporary folder)")
-    parser.add_argument("--out", type=Path, default=None, help="write the table here (markdown)")
+    am.add_one_camera_arguments(parser)
     args = parser.parse_args(argv)
-    import tempfile
-
     t0 = time.perf_counter()
-    with tempfile.TemporaryDirectory() as tmp:
-        workdir = args.workdir or Path(tmp)
-        runner = am.Runner(workdir, 1, t0)
+    with am.one_camera_runner(args.workdir, t0) as (runner, workdir):
         table = pd.concat([residuals(runner, size, args.optics, args.seed, args.depths, workdir)
                            for size in args.sizes], ignore_index=True)
     result = summary(table, args.cut)
