@@ -13,6 +13,7 @@ from plenoptrack.lightfield import LightField
 from plenoptrack.locate import hidden, perspective, split
 from plenoptrack.locate.perspective import ParticleState, PerspectiveLocator, locate_frame
 from plenoptrack.locate.refine import ImageEdge, disc_image
+from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.locate.residual import (divide_out_particles, residual_light_field,
                                          transmission_model)
 from plenoptrack.simulate import make_scene, render_frame
@@ -544,12 +545,13 @@ def test_darkness_the_search_cannot_take_apart_widens_sigma(small_calibrated):
 
 
 def _duplicate_frame(render_candidate: bool, candidate=(0.05, 0.0, 2.5),
-                     candidate_views: int = 7, third=None):
+                     candidate_views: int = 7, third=None, neighbour_flags: int = 33):
     """A frame context and particle state for a weakly seen, unexplained particle (row
     1, at ``candidate``) whose images nearly coincide with a strongly seen particle's
-    (row 0, at (0, 0, 1), drawn in the image); the candidate is drawn in the image
-    only with ``render_candidate``; ``third``, a strongly seen particle drawn in the
-    image beside them (the linear stand-in DLFC of the image-fit tests)."""
+    (row 0, at (0, 0, 1), drawn in the image, with ``neighbour_flags``); the candidate
+    is drawn in the image only with ``render_candidate``; ``third``, a strongly seen
+    particle drawn in the image beside them (the linear stand-in DLFC of the image-fit
+    tests)."""
     from types import SimpleNamespace
 
     from test_refine import LinearCalibration, _render, _views
@@ -572,7 +574,7 @@ def _duplicate_frame(render_candidate: bool, candidate=(0.05, 0.0, 2.5),
                             volume_depth_mm=20.0, image_edge=ImageEdge())
     positions = np.array(xyz, dtype=float)
     n_views = [81, candidate_views] + ([81] if third is not None else [])
-    flags = [33, 1 | 64] + ([33] if third is not None else [])
+    flags = [neighbour_flags, 1 | 64] + ([33] if third is not None else [])
     table = pd.DataFrame({"n_views": n_views, "_fit_radius_px": rc[:, 0],
                           "_fit_contrast": rc[:, 1], "flags": flags})
     state = ParticleState(owner=np.array([0]), initial=positions.copy(),
@@ -591,6 +593,9 @@ def _duplicate_frame(render_candidate: bool, candidate=(0.05, 0.0, 2.5),
     ({"render_candidate": False, "third": (0.45, 0.0, 1.0)}, True),
     # its images lie apart from the neighbour's (median distance above the radius)
     ({"render_candidate": False, "candidate": (0.3, 0.0, 1.0)}, True),
+    # the neighbour's own fit leaves its pixels unexplained: it may be two images
+    # merged on nearly one line of sight, of which the weak particle is one
+    ({"render_candidate": False, "neighbour_flags": 1 | 64}, True),
 ])
 def test_a_weak_particle_that_duplicates_one_neighbour_is_dropped(case, kept):
     ctx, state = _duplicate_frame(**case)
@@ -600,3 +605,55 @@ def test_a_weak_particle_that_duplicates_one_neighbour_is_dropped(case, kept):
     others = np.r_[0, 2:len(state.positions)]
     np.testing.assert_array_equal(after.positions[others], state.positions[others])
     np.testing.assert_array_equal(after.owner, state.owner)
+
+
+def test_a_particle_between_two_images_on_one_line_of_sight_moves_to_its_own_depth():
+    """Two particles nearly on one line of sight, 6 mm apart in depth: their images
+    merge in the middle views, so the centroids put one particle between them (row 0,
+    at z = 0); the other is seen alone only in the outer views (row 1, at its own
+    depth). Fitted jointly with the other, row 0 has to move 3 mm, more than a tenth of
+    the volume depth: that fit is kept because it explains the pixels, and row 0 keeps
+    only the centroids on its new image."""
+    from types import SimpleNamespace
+
+    from test_refine import LinearCalibration, _render, _views
+
+    class Calibration(LinearCalibration):
+        def local_magnification(self, x, y, z):
+            return np.full(np.shape(x), 10.0)           # view pixels per mm
+
+    dlfc = Calibration()
+    views_uv, view_rc = _views()
+    truth = np.array([[0.0, 0.0, -3.0], [0.03, 0.0, 3.0]])
+    rc = np.array([[2.0, 0.95], [2.0, 0.95]])
+    data = _render(dlfc, truth, rc, views_uv, view_rc, noise=0.01, seed=4)
+    lf = SimpleNamespace(data=data, u=np.arange(9) - 4.0, v=np.arange(9) - 4.0,
+                         valid_fraction=np.ones((9, 9)), view_mask=np.ones((9, 9), bool))
+    positions = np.array([[0.0, 0.0, 0.0], truth[1]])
+    # row 0's centroids: one per view, on the image of its solution; row 1's: the 12
+    # outermost views, on its image
+    outer = np.argsort(-np.hypot(*views_uv.T), kind="stable")[:12]
+    view = np.r_[np.arange(len(views_uv)), outer]
+    owner = np.r_[np.zeros(len(views_uv), int), np.ones(12, int)]
+    st = np.array([dlfc.predict(*positions[o], *views_uv[k]) for o, k in zip(owner, view)])
+    detections = pd.DataFrame({"dark_area": 12.6, "diameter_px": 4.0, "whole": True},
+                              index=range(len(view)))
+    ctx = _stand_in_context(lf=lf, views=views_uv, dlfc=dlfc, detections=detections,
+                            volume_depth_mm=20.0, image_edge=ImageEdge(), st=st,
+                            view=view, tolerance_px=1.0)
+    table = pd.DataFrame({"x": positions[:, 0], "y": positions[:, 1], "z": positions[:, 2],
+                          "sigma_x": 0.01, "sigma_y": 0.01, "sigma_z": 0.1,
+                          "n_views": [81, 12], "residual_px": [1.5, 0.0], "flags": [1, 1]})
+    state = ParticleState(owner=owner, initial=positions.copy(), positions=positions,
+                          table=table)
+    after = perspective.refine_particles(ctx, state, PerspectiveLocator())
+    np.testing.assert_allclose(after.positions, truth, atol=0.05)
+    # row 0 keeps the centroids on its new image (the central view and its four
+    # neighbours: 0.9 view px of parallax per view step), row 1 all of its own
+    np.testing.assert_array_equal(np.flatnonzero(after.owner == 0),
+                                  np.flatnonzero(np.hypot(*views_uv.T) <= 1))
+    assert after.table["n_views"].tolist() == [5, 12]
+    np.testing.assert_array_equal(after.owner[81:], 1)
+    assert (after.table[perspective._FIT_ERROR].max()
+            <= PerspectiveLocator().check.refine_max_model_error)
+    assert np.all(after.table["flags"].to_numpy() & int(TriangulationFlag.REFINED))

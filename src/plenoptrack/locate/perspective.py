@@ -84,7 +84,7 @@ from .cluster import cluster_detections
 from .hidden import (STRONG_VIEW_FRACTION, _drop_unexplained_hidden, drop_duplicate_particles,
                      search_residual)
 from .segment import segment_views
-from .split import split_merged_particles
+from .split import keep_centroids_on_images, split_merged_particles
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
                        SegmentSettings, SolveSettings)
 from .triangulate import TriangulationFlag, triangulate_clusters
@@ -577,7 +577,13 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     with its strongest neighbour when they overlap in at least
     ``check.refine_pair_overlap`` of the views. Image radii start from the particles'
     whole regions. A fit that moves a particle by more than a tenth of the volume depth
-    is discarded; a particle whose last fit leaves more than
+    is discarded, unless no neighbour is held beside it and a fit with the whole volume
+    depth open explains the pixels (model error at most
+    ``check.refine_max_model_error``): the centroids of two images merged on nearly one
+    line of sight put a particle between the two, which a joint fit with the other,
+    seen alone in a few views, takes to its own depth; it keeps only the centroids on
+    its new image (:func:`~plenoptrack.locate.split.keep_centroids_on_images`). A
+    particle whose last fit leaves more than
     ``check.refine_max_model_error`` of the background unexplained (RMS, beyond the
     pixel noise) gets its centroid solution back. ``check.refine_sweeps`` passes over
     the particles.
@@ -611,6 +617,7 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     sigma = centroid_sigma.copy()
     model_error = np.full(n, np.nan)   # of each particle's last fit
     max_shift = 0.1 * ctx.volume_depth_mm
+    put_back = set()       # moved further than max_shift by a fit that explains them
     for _sweep in range(settings.refine_sweeps):
         pred = _predict_all(ctx.dlfc, np.where(keep[:, None], pos, np.nan), views_uv)
         r = np.where(keep, radius, np.nan)
@@ -629,6 +636,20 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
             held = np.setdiff1d(np.flatnonzero(nearby[free].any(axis=0) & keep), free)
             fitted = ctx.fit_images((views_uv, view_rc), pos[free], rc[free], pos[held],
                                     rc[held], max_depth_shift=max_shift, view_basis=basis)
+            if fitted is None and len(held) == 0:
+                # It ran off in depth (or had too few views). Alone in its patch, one
+                # that goes further counts where it explains the pixels: a particle
+                # whose centroids merged two images on nearly one line of sight, fitted
+                # with the other. Beside other images a fit given the whole depth can
+                # explain pixels by taking over theirs (at 0.1 particles per microlens
+                # it cost recall).
+                far = ctx.fit_images((views_uv, view_rc), pos[free], rc[free], pos[held],
+                                     rc[held], max_depth_shift=ctx.volume_depth_mm,
+                                     view_basis=basis)
+                if far is not None and far.model_error <= settings.refine_max_model_error:
+                    fitted = far
+                    put_back.update(np.asarray(free)[np.abs(far.params[:, 2] - pos[free, 2])
+                                                     > max_shift].tolist())
             if fitted is None or not np.all(np.isfinite(fitted.params)):
                 continue
             theta = fitted.params
@@ -659,7 +680,11 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
         before = (table[column].to_numpy(float) if column in table.columns
                   else np.full(n, np.nan))
         table[column] = np.where(fitted, value, before)
-    return dataclasses.replace(state, positions=pos, table=table)
+    # a particle put back by its image keeps only the centroids on that image (the
+    # others were regions merged with another's), as in the split stage
+    owner, table = keep_centroids_on_images(
+        ctx, state.owner, table, sorted(m for m in put_back if not unexplained[m]), pos)
+    return dataclasses.replace(state, owner=owner, positions=pos, table=table)
 
 
 def find_hidden_particles(ctx: FrameContext, state: ParticleState,

@@ -32,7 +32,7 @@ from .settings import CheckSettings
 from .triangulate import TriangulationFlag
 
 __all__ = ["split_merged_particles", "split_bar", "split_gain_bar", "split_start_travel",
-           "waist_depth_px", "SIDE_BY_SIDE_PARALLAX_PX"]
+           "keep_centroids_on_images", "waist_depth_px", "SIDE_BY_SIDE_PARALLAX_PX"]
 
 
 _MOVED_PX = 1.0
@@ -516,16 +516,8 @@ class _SplitRun:
         # others were regions merged with a neighbour's, and its scatter (residual_px,
         # n_views, hence chi2 and the frame's typical scatter) is that of the centroids
         # it keeps.
-        owner = state.owner
-        if self.relocated_rows:
-            owner = owner.copy()
-            table = table.copy()
-            for m in sorted(self.relocated_rows):
-                mine, off = _centroid_offsets(self.ctx, owner, m, pos[m])
-                on_image = off <= self.ctx.tolerance_px
-                owner[mine[~on_image]] = -1
-                table.loc[m, "n_views"] = int(on_image.sum())
-                table.loc[m, "residual_px"] = float(np.sqrt(np.mean(off[on_image] ** 2)))
+        owner, table = keep_centroids_on_images(self.ctx, state.owner, table,
+                                                sorted(self.relocated_rows), pos)
         if not self.parent:
             table = table.copy()
             table["flags"] = flags
@@ -706,6 +698,27 @@ def split_start_travel(radius_px: float) -> float:
     position off the volume). Apart by a fixed fraction of their radius, the fit is as
     well conditioned at every image size."""
     return max(1.0, radius_px / 3.0) if np.isfinite(radius_px) else 1.0
+
+
+def keep_centroids_on_images(ctx: FrameContext, owner: np.ndarray, table: pd.DataFrame,
+                             rows, positions: np.ndarray) -> tuple[np.ndarray, pd.DataFrame]:
+    """``(owner, table)`` with each particle of ``rows`` keeping only the centroids within
+    ``ctx.tolerance_px`` of its image at ``positions[row]`` (mm), the others released
+    (owner -1), and its ``n_views`` and ``residual_px`` those of the centroids it keeps:
+    for a particle an image fit put back where regions merged with a neighbour's image
+    had pulled its centroid solution. The inputs are returned as they are when ``rows``
+    is empty, else copies."""
+    if len(rows) == 0:
+        return owner, table
+    owner, table = owner.copy(), table.copy()
+    for m in rows:
+        mine, off = _centroid_offsets(ctx, owner, m, positions[m])
+        on_image = off <= ctx.tolerance_px
+        owner[mine[~on_image]] = -1
+        table.loc[m, "n_views"] = int(on_image.sum())
+        table.loc[m, "residual_px"] = (float(np.sqrt(np.mean(off[on_image] ** 2)))
+                                       if on_image.any() else math.nan)
+    return owner, table
 
 
 def _centroid_offsets(ctx: FrameContext, owner: np.ndarray, particle: int,
