@@ -11,8 +11,10 @@ prints, against the truth:
   error splits into a part each particle keeps along its track, a part shared with the
   other particles nearby (a field of the calibration's mapping) and the rest, which is
   all a smoother over time can average (:func:`depth_error_structure`);
-- fragments: fragments of at least ``--min-diameter`` mm (volume-equivalent) located in
-  three or more frames, how many of those one track holds completely, the track's mean
+- fragments: fragments of at least ``--min-diameter`` mm (volume-equivalent) visible in
+  three or more frames (:func:`visible_frames`: the image centre inside the central view
+  and the image not hidden inside others' in every view; whether or not the locator
+  found them), how many of those one track holds completely, the track's mean
   speed and median equivalent diameter against the truth (speed; ``sqrt(4 A / pi)`` of
   the projected area ``A``), tracked with order 1, a window of 6 frames and
   ``--fragment-memory`` (3, as in the README's fragment example).
@@ -150,6 +152,25 @@ def depth_error_structure(tracks: pd.DataFrame, truth: pd.DataFrame, tolerance: 
             "largest robust gain of a smoother over time": _rstd(dz) / _rstd(per_particle)}
 
 
+def visible_frames(truth: pd.DataFrame, calib, white) -> pd.Series:
+    """Frames in which each true particle (index ``particle``) can be seen: its image
+    centre lies inside the central view (``white``: the decoded white image) and the
+    image is not hidden inside other particles' in every view the locator reads
+    (:func:`plenoptrack.evaluate.hidden_particles`)."""
+    from plenoptrack.evaluate import hidden_particles
+    from plenoptrack.locate.perspective import MIN_VIEW_FRACTION
+
+    u, v = np.meshgrid(white.u, white.v)
+    views = np.c_[u[white.valid_fraction > MIN_VIEW_FRACTION],
+                  v[white.valid_fraction > MIN_VIEW_FRACTION]]
+    xyz = truth[["x", "y", "z"]].to_numpy(float)
+    s, t = calib.dlfc.predict(*xyz.T, 0.0, 0.0)
+    n_t, n_s = white.data.shape[2:]
+    inside = (s >= 0) & (s <= n_s - 1) & (t >= 0) & (t <= n_t - 1)
+    seen = inside & ~hidden_particles(truth, calib.dlfc, views)
+    return truth[seen].groupby("particle").size()
+
+
 def fragments(data: Path, calib, work: Path, tolerance: float, min_diameter: float,
               locator=None, memory: int = 3) -> dict:
     particles = _locate(data, calib, work / "fragment_particles.parquet", locator)
@@ -168,6 +189,7 @@ def fragments(data: Path, calib, work: Path, tolerance: float, min_diameter: flo
     info = pd.DataFrame({"diameter": first["diameter"].to_numpy(), "speed": speed, "eq_d": eq_d},
                         index=first.index)
     seen = located[located["_true"] >= 0].groupby("_true").size()
+    visible = visible_frames(truth, calib, decode(read_raw(data / "white.tif"), calib.grid))
     rows = []
     for pid, row in info.iterrows():
         n_seen = int(seen.get(pid, 0))
@@ -177,14 +199,17 @@ def fragments(data: Path, calib, work: Path, tolerance: float, min_diameter: flo
         whole = len(ids) == 1 and ids.iloc[0] == n_seen
         st = result.statistics.set_index("particle").loc[best] if best >= 0 else None
         rows.append({"particle": pid, "diameter": row["diameter"], "eq_d_true": row["eq_d"],
-                     "seen": n_seen, "tracked_whole": bool(whole),
+                     "visible": int(visible.get(pid, 0)), "seen": n_seen,
+                     "tracked_whole": bool(whole),
                      "points_in_best_track": int(ids.iloc[0]) if len(ids) else 0,
                      "speed_err": (st["speed"] / row["speed"] - 1) if st is not None else np.nan,
                      "eq_d_err": (st["diameter"] / row["eq_d"] - 1) if st is not None else np.nan})
     per = pd.DataFrame(rows)
     per.to_csv(work / "fragments_per_fragment.csv", index=False)
-    big = per[(per["diameter"] >= min_diameter) & (per["seen"] >= 3)]
-    return {"fragments": len(per), f"fragments >= {min_diameter} mm seen in >= 3 frames": len(big),
+    big = per[(per["diameter"] >= min_diameter) & (per["visible"] >= 3)]
+    return {"fragments": len(per),
+            f"fragments >= {min_diameter} mm visible in >= 3 frames": len(big),
+            "of those located in >= 3 frames": int((big["seen"] >= 3).sum()),
             "of those tracked whole": int(big["tracked_whole"].sum()),
             "speed error max |rel|": float(big["speed_err"].abs().max()),
             "speed error median |rel|": float(big["speed_err"].abs().median()),
