@@ -447,11 +447,12 @@ def drop_duplicate_particles(ctx: FrameContext, state: ParticleState,
     that fraction whose own pixels are explained (no ``UNEXPLAINED``), with the two images
     nearly one (median distance over the views below the larger radius); it is dropped
     unless, fitted to the pixels beside every other particle, it still explains them
-    (:func:`_still_explains_more`: the tests a particle found in the residual passes). A particle whose images meet several others'
-    is not tested: in a crowd the model beside it is less exact, and real particles fail
-    the test there (on the accuracy matrix's development seeds at 0.05 particles per
-    microlens, testing every such particle with one coinciding neighbour dropped 5 true
-    particles, testing those with none 17). Nor is one beside an unexplained neighbour:
+    (:func:`_still_explains_more`: the tests a particle found in the residual passes).
+    A particle whose images meet several others' is not tested: in a crowd the model
+    beside it is less exact, and real particles fail the test there (on the accuracy
+    matrix's development seeds at 0.05 particles per microlens, testing every such
+    particle with one coinciding neighbour dropped 5 true particles, testing those with
+    none 17). Nor is one beside an unexplained neighbour:
     that neighbour's centroids may hold two images merged on nearly one line of sight,
     and the weak particle, seen only in the views where the two stand apart, is one of
     them (two 1 mm spheres 15 mm apart in depth on the development seeds).
