@@ -513,6 +513,47 @@ def test_a_large_particle_pulled_away_by_merged_regions_is_put_back_by_its_image
     assert np.all(m["sigma_z"] < 0.3)
 
 
+def test_the_split_stage_puts_back_a_particle_the_refinement_left(small_calibrated,
+                                                                  clustered_and_solved):
+    """The first scene above with the refinement fitting nothing (``only`` empty: as
+    when its joint fit does not explain the pixels): both particles reach the split
+    stage never fitted; the one-image fit of the pulled particle explains its pixels,
+    lies on about half of its centroids and replaces its solution, keeping those
+    centroids."""
+    import warnings
+
+    from plenoptrack.locate import perspective
+    from plenoptrack.locate.split import split_merged_particles
+
+    optics, calib = small_calibrated
+    truth = _truth([(2.517, -0.694, -2.803), (1.230, 0.869, 2.900)], 2.0)
+    raw = render_frame(optics, truth, seed=np.random.default_rng([0, 3, 0]))
+    locator = PerspectiveLocator()
+    ctx, state = clustered_and_solved(raw, calib, locator)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        state = perspective.check_particles(ctx, state, locator)
+        state = perspective.refine_particles(ctx, state, locator,
+                                             only=np.zeros(state.n_particles, bool))
+        after = split_merged_particles(ctx, state, locator.check)
+    live = after.live(locator.solve.min_views)
+    found = pd.DataFrame(after.positions[live], columns=["x", "y", "z"])
+    pairs = match_particles(found, truth, tolerance_mm=0.5)
+    assert len(found) == 2 and len(pairs) == 2
+    err = _abs_errors(*_paired(found, truth, pairs))
+    assert np.all(err[:, :2] < 0.05) and np.all(err[:, 2] < 0.3)
+    flags = after.table["flags"].to_numpy()[live]
+    moved = (flags & int(TriangulationFlag.REFINED)) > 0
+    assert moved.sum() == 1
+    table = after.table[live]
+    assert table.loc[moved, "residual_px"].iloc[0] < 0.5
+    assert 0.25 * 130 <= table.loc[moved, "n_views"].iloc[0] <= 0.75 * 150
+    # the centroids off its image are released
+    row = np.flatnonzero(live)[moved][0]
+    assert np.count_nonzero(after.owner == row) == table.loc[moved, "n_views"].iloc[0]
+    assert np.count_nonzero(after.owner == row) < np.count_nonzero(state.owner == row)
+
+
 def test_a_split_half_without_centroids_takes_its_pairs_views():
     from plenoptrack.locate.frame import _SPLIT_OF
     from plenoptrack.locate.perspective import _with_pair_centroids
