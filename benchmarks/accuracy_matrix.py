@@ -762,6 +762,15 @@ def _fmt(value, spec: str) -> str:
         else spec.format(value)
 
 
+def emit_report(lines: list[str], out: Path | None) -> None:
+    """Print the report ``lines`` and, with ``out``, write them there too (the one-camera
+    studies' output)."""
+    text = "\n".join(lines) + "\n"
+    print(text)
+    if out:
+        out.write_text(text)
+
+
 def markdown_table(df: pd.DataFrame, fmt=None) -> list[str]:
     """The lines of a markdown table of ``df``'s columns; each value through ``fmt(value,
     column)`` (default: floats to 3 significant digits, anything else as ``str``)."""

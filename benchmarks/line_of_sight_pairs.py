@@ -142,10 +142,7 @@ def main(argv=None) -> None:
         return f"{value:.3f}" if column == "median_sigma_z" else f"{value:+.3f}"
 
     lines += am.markdown_table(result, cell)
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        args.out.write_text(text)
+    am.emit_report(lines, args.out)
 
 
 if __name__ == "__main__":

@@ -126,10 +126,7 @@ def main(argv=None) -> None:
              " aperture centre.", ""]
     lines += am.markdown_table(result, lambda v, c: f"{v:+.4f}" if isinstance(v, float)
                                and c not in ("size_mm", "z_mm") else f"{v:g}")
-    text = "\n".join(lines) + "\n"
-    print(text)
-    if args.out:
-        args.out.write_text(text)
+    am.emit_report(lines, args.out)
 
 
 if __name__ == "__main__":
