@@ -544,6 +544,36 @@ def test_darkness_the_search_cannot_take_apart_widens_sigma(small_calibrated):
     assert beyond["on"] < beyond["off"]
 
 
+def test_a_fit_that_disagrees_with_its_centroid_solution_widens_sigma(small_calibrated):
+    """80 particles of 0.4 mm (about 0.025 per microlens): ``solve.refit_error`` widens
+    the sigma of refitted particles (not the halves of a split) by the RMS of a shift
+    anywhere between their image fit and their earlier centroid solution, moves nothing,
+    and leaves fewer of the matched particles beyond 3 sigma."""
+    optics, calib = small_calibrated
+    scene = make_scene(calib.camera, n_particles=80, seed=22, diameter_mm=0.4)
+    raw = render_frame(optics, scene.truth, seed=np.random.default_rng([22, 3, 0]))
+    assert PerspectiveLocator().solve.refit_error                      # on by default
+    off = PerspectiveLocator.from_dict({"solve": {"refit_error": False}})
+    on_found = locate_frame(raw, calib).particles
+    off_found = locate_frame(raw, calib, locator=off).particles
+    xyz, sigma = ["x", "y", "z"], ["sigma_x", "sigma_y", "sigma_z"]
+    np.testing.assert_array_equal(on_found[xyz].to_numpy(), off_found[xyz].to_numpy())
+    on_sigma, off_sigma = on_found[sigma].to_numpy(), off_found[sigma].to_numpy()
+    assert np.all(on_sigma >= off_sigma)
+    widened = np.any(on_sigma > off_sigma, axis=1)
+    flags = on_found["flags"].to_numpy(np.int64)
+    assert widened.sum() >= 5
+    assert np.all(flags[widened] & int(TriangulationFlag.REFINED))
+    assert not np.any(flags[widened] & int(TriangulationFlag.SPLIT))
+    pairs = match_particles(on_found, scene.truth, tolerance_mm=1.0)
+    error = np.abs(on_found.loc[pairs["measured_index"], xyz].to_numpy()
+                   - scene.truth.loc[pairs["truth_index"], xyz].to_numpy())
+    rows = pairs["measured_index"].to_numpy()
+    beyond = {name: int(np.any(error > 3 * s[rows], axis=1).sum())
+              for name, s in (("on", on_sigma), ("off", off_sigma))}
+    assert beyond["on"] < beyond["off"]
+
+
 def _duplicate_frame(render_candidate: bool, candidate=(0.05, 0.0, 2.5),
                      candidate_views: int = 7, third=None, neighbour_flags: int = 33):
     """A frame context and particle state for a weakly seen, unexplained particle (row

@@ -6,7 +6,7 @@ import pytest
 from plenoptrack.locate.uncertainty import (centroid_geometry, image_travel_px,
                                            model_error_mm, reduced_chi2, sampling_groups,
                                            total_sigma, typical_scatter_px2,
-                                           with_unexplained_pixels, with_unresolved_companion)
+                                           with_offset_range, with_unexplained_pixels)
 
 
 class _Report:
@@ -317,15 +317,17 @@ def test_image_fit_sampling_error_is_sized_by_the_typical_centroid_scatter():
     np.testing.assert_allclose(before[2], stat[2] * np.sqrt(4.0 + 100.0))
 
 
-def test_an_unresolved_companion_adds_the_rms_of_a_shift_up_to_half_its_offset():
-    """A particle that took in anything from none to half of a companion's offset (a
-    uniform fraction) is off by that shift: its RMS, per axis, is added in quadrature;
-    rows without a companion (NaN) keep their sigma."""
+def test_an_offset_range_adds_the_rms_of_a_shift_up_to_the_offset():
+    """A particle off by anything from none to the offset (a uniform fraction: half a
+    companion's offset, or the whole disagreement of a fit and a centroid solution) is
+    off by that shift: its RMS, per axis, is added in quadrature; rows without one (NaN)
+    keep their sigma."""
     sigma = np.array([[0.004, 0.003, 0.05], [0.004, 0.003, 0.05], [0.01, 0.01, 0.1]])
-    offset = np.array([[0.2, -0.1, 1.5], [np.nan] * 3, [0.0, 0.0, 0.0]])
-    out = with_unresolved_companion(sigma, offset)
+    offset = np.array([[0.1, -0.05, 0.75], [np.nan] * 3, [0.0, 0.0, 0.0]])
+    out = with_offset_range(sigma, offset)
+    np.testing.assert_allclose(out[0], np.sqrt(sigma[0] ** 2 + offset[0] ** 2 / 3))
     rng = np.random.default_rng(0)
-    shift = rng.uniform(0.0, 0.5, (200_000, 1)) * offset[0]
+    shift = rng.uniform(0.0, 1.0, (200_000, 1)) * offset[0]
     rms = np.sqrt(np.mean(shift ** 2, axis=0))
     np.testing.assert_allclose(out[0], np.hypot(sigma[0], rms), rtol=2e-3)
     np.testing.assert_array_equal(out[1:], sigma[1:])

@@ -303,6 +303,11 @@ _COMPANION = ("_companion_dx", "_companion_dy", "_companion_dz")
 """State-table columns: the offset (mm) from a particle to the darkness beside it that the
 hidden-particle search found and could not take apart from it
 (:func:`~plenoptrack.locate.hidden._note_companion`)."""
+_CENTROID_SOLUTION = ("_centroid_x", "_centroid_y", "_centroid_z")
+"""State-table columns: a particle's centroid solution (mm) from before the image-model
+refinement first moved it (:func:`~plenoptrack.locate.perspective.refine_particles`); NaN
+for a particle never moved, and for one put back by its image, whose centroids held
+merged images (:func:`~plenoptrack.locate.split.keep_centroids_on_images`)."""
 
 
 def _large_image_px(calibration) -> float:

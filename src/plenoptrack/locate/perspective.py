@@ -73,8 +73,8 @@ from ._assign import (_MERGED, _add_centroids, _explained_away, _merge_duplicate
                       _predict_all, _release_unclaimed, _trim_refit)
 from ._nearby import ImageSpans, pairs_within
 from ._order import unique_rows
-from .frame import (_COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN, _SPLIT_OF,
-                     MIN_VIEW_FRACTION, FrameContext, ParticleState, SolveMemo,
+from .frame import (_CENTROID_SOLUTION, _COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS,
+                     _HIDDEN, _SPLIT_OF, MIN_VIEW_FRACTION, FrameContext, ParticleState, SolveMemo,
                      _fit_views, _member_diameter, _split)
 from ._regions import _region_shape, _split_pairs
 from .bodies import merge_bodies, one_body_pairs
@@ -89,8 +89,8 @@ from .settings import (CheckSettings, ClusterSettings, GrowSettings, Perspective
                        SegmentSettings, SolveSettings)
 from .triangulate import TriangulationFlag, triangulate_clusters
 from .uncertainty import (centroid_geometry, image_travel_px, reduced_chi2, total_sigma,
-                          typical_scatter_px2, with_shape_error, with_unexplained_pixels,
-                          with_unresolved_companion)
+                          typical_scatter_px2, with_offset_range, with_shape_error,
+                          with_unexplained_pixels)
 
 __all__ = ["PerspectiveLocator", "PARTICLE_COLUMNS", "locate_frame", "LocateResult",
            "FrameContext", "ParticleState", "segment_frame", "cluster_unassigned",
@@ -664,6 +664,13 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
     pos[unexplained] = state.positions[unexplained]
     sigma[unexplained] = centroid_sigma[unexplained]
     changed = keep & np.any(pos != state.positions, axis=1)
+    # the centroid solution of each particle moved for the first time, to be compared
+    # with its fit (measure_particles)
+    before = (table[list(_CENTROID_SOLUTION)].to_numpy(float, copy=True)
+              if _CENTROID_SOLUTION[0] in table.columns else np.full((n, 3), np.nan))
+    first = changed & np.isnan(before[:, 0])
+    before[first] = state.positions[first]
+    table[list(_CENTROID_SOLUTION)] = before
     table.loc[changed, list(POS_COLUMNS)] = pos[changed]
     table.loc[changed, list(SIGMA_COLUMNS)] = sigma[changed]
     flags = table["flags"].fillna(0).to_numpy(np.int64).copy()
@@ -780,8 +787,9 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
     error (:func:`~plenoptrack.locate.uncertainty.total_sigma`), with
     ``solve.companion_error`` the offset to darkness beside them that the hidden-particle
     search could not take apart from them
-    (:func:`~plenoptrack.locate.uncertainty.with_unresolved_companion`) and, with
-    ``solve.shape_error``,
+    (:func:`~plenoptrack.locate.uncertainty.with_offset_range`), with
+    ``solve.refit_error`` the disagreement between a refitted particle's image fit and its
+    centroid solution (the same function) and, with ``solve.shape_error``,
     the uncertainty of an irregular body's centre
     (:func:`~plenoptrack.locate.uncertainty.with_shape_error`); size and shape come from their
     member regions (:func:`~plenoptrack.locate._regions._region_shape`) divided by the
@@ -844,9 +852,16 @@ def measure_particles(ctx: FrameContext, state: ParticleState, solve: SolveSetti
                                    travel_px=travel if solve.sampling_error else None,
                                    from_centroids=~refined, typical_sigma=typical_sigma)
     if solve.companion_error and _COMPANION[0] in table.columns:
-        particles[sigma] = with_unresolved_companion(
+        # the particle may have taken in up to half of the offset to the darkness
+        particles[sigma] = with_offset_range(
             particles[sigma].to_numpy(float),
-            table.loc[keep, list(_COMPANION)].to_numpy(float))
+            0.5 * table.loc[keep, list(_COMPANION)].to_numpy(float))
+    if solve.refit_error and _CENTROID_SOLUTION[0] in table.columns:
+        # the truth anywhere between the image fit and the centroid solution before it
+        disagreement = (particles[list(POS_COLUMNS)].to_numpy(float)
+                        - table.loc[keep, list(_CENTROID_SOLUTION)].to_numpy(float))
+        disagreement[~refined | split] = np.nan
+        particles[sigma] = with_offset_range(particles[sigma].to_numpy(float), disagreement)
     particles["chi2"] = np.where(split, np.nan, chi2)
     particles["travel_px"] = travel
     particles.insert(0, T_COLUMN, frame)

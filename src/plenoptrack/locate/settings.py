@@ -272,7 +272,13 @@ class SolveSettings:
         images merge with its own without parallax, or that a joint fit could not
         separate) the RMS of a shift towards that darkness by up to half the offset,
         ``offset / (2 sqrt 3)`` per axis
-        (:func:`~plenoptrack.locate.uncertainty.with_unresolved_companion`).
+        (:func:`~plenoptrack.locate.uncertainty.with_offset_range`).
+    refit_error : bool
+        Add to the uncertainty of a particle refitted to the view pixels the RMS of a
+        shift by anything from none to the disagreement between its image fit and the
+        centroid solution it had before, ``|fit - centroid| / sqrt 3`` per axis (not for
+        the halves of a split or a particle put back by its image;
+        :func:`~plenoptrack.locate.uncertainty.with_offset_range`).
     shape_error : float
         Standard uncertainty of where an irregular particle's centre of mass lies relative
         to the centre its silhouettes show, per axis, as a fraction of its measured
@@ -343,6 +349,7 @@ class SolveSettings:
     sampling_error: bool = True
     unexplained_error: bool = True
     companion_error: bool = True
+    refit_error: bool = True
     shape_error: float = 0.0
     size_error: tuple[float, float] = (0.002, 0.01)
     opacity: bool = True

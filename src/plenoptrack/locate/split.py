@@ -23,8 +23,8 @@ import pandas as pd
 
 from .._columns import POS_COLUMNS, SIGMA_COLUMNS
 from ._assign import _predict_all
-from .frame import (_FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN, _SPLIT_OF,
-                     FrameContext, ParticleState, _fit_views, _member_diameter)
+from .frame import (_CENTROID_SOLUTION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN,
+                     _SPLIT_OF, FrameContext, ParticleState, _fit_views, _member_diameter)
 from ._nearby import ImageSpans
 from ._regions import pair_half_separation
 from .bodies import parallax_px
@@ -706,11 +706,14 @@ def keep_centroids_on_images(ctx: FrameContext, owner: np.ndarray, table: pd.Dat
     ``ctx.tolerance_px`` of its image at ``positions[row]`` (mm), the others released
     (owner -1), and its ``n_views`` and ``residual_px`` those of the centroids it keeps:
     for a particle an image fit put back where regions merged with a neighbour's image
-    had pulled its centroid solution. The inputs are returned as they are when ``rows``
-    is empty, else copies."""
+    had pulled its centroid solution, which no longer measures it (its recorded
+    centroid solution, ``_CENTROID_SOLUTION``, is cleared). The inputs are returned as
+    they are when ``rows`` is empty, else copies."""
     if len(rows) == 0:
         return owner, table
     owner, table = owner.copy(), table.copy()
+    if _CENTROID_SOLUTION[0] in table.columns:
+        table.loc[list(rows), list(_CENTROID_SOLUTION)] = np.nan
     for m in rows:
         mine, off = _centroid_offsets(ctx, owner, m, positions[m])
         on_image = off <= ctx.tolerance_px
