@@ -74,8 +74,8 @@ from ._assign import (_MERGED, _add_centroids, _explained_away, _merge_duplicate
 from ._nearby import ImageSpans, pairs_within
 from ._order import unique_rows
 from .frame import (_CENTROID_SOLUTION, _COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS,
-                     _HIDDEN, _SPLIT_OF, MIN_VIEW_FRACTION, FrameContext, ParticleState, SolveMemo,
-                     _fit_views, _member_diameter, _split)
+                     _HIDDEN, _SPLIT_OF, MIN_VIEW_FRACTION, FrameContext, ParticleState,
+                     SolveMemo, _fit_views, _member_diameter, _split)
 from ._regions import _region_shape, _split_pairs
 from .bodies import merge_bodies, one_body_pairs
 from .crowding import CROWDED_COVERAGE, image_coverage
