@@ -517,16 +517,17 @@ def test_a_companion_offset_is_kept_per_particle_the_farthest_laterally():
     assert columns[0] not in state.table.columns                 # the input is not changed
 
 
-def test_darkness_the_search_cannot_take_apart_widens_sigma(small_calibrated):
-    """160 particles of 0.4 mm (about 0.05 per microlens): some particles have darkness
-    beside them that the hidden-particle search finds and cannot take apart from them;
-    ``solve.companion_error`` widens their sigma and no one else's, moves nothing, and
-    leaves fewer of the matched particles beyond 3 sigma."""
+def _sigma_term_on_and_off(small_calibrated, switch: str, n_particles: int, seed: int):
+    """A frame of ``n_particles`` of 0.4 mm located with the sigma term ``solve.<switch>``
+    on (the default, checked) and off: the particles found with it, a mask of those whose
+    sigma it widened, and how many matched particles lie beyond 3 sigma with and
+    without it. Asserts what every such term keeps: positions identical, sigma never
+    smaller."""
     optics, calib = small_calibrated
-    scene = make_scene(calib.camera, n_particles=160, seed=21, diameter_mm=0.4)
-    raw = render_frame(optics, scene.truth, seed=np.random.default_rng([21, 3, 0]))
-    assert PerspectiveLocator().solve.companion_error                  # on by default
-    off = PerspectiveLocator.from_dict({"solve": {"companion_error": False}})
+    scene = make_scene(calib.camera, n_particles=n_particles, seed=seed, diameter_mm=0.4)
+    raw = render_frame(optics, scene.truth, seed=np.random.default_rng([seed, 3, 0]))
+    assert getattr(PerspectiveLocator().solve, switch)                  # on by default
+    off = PerspectiveLocator.from_dict({"solve": {switch: False}})
     on_found = locate_frame(raw, calib).particles
     off_found = locate_frame(raw, calib, locator=off).particles
     xyz, sigma = ["x", "y", "z"], ["sigma_x", "sigma_y", "sigma_z"]
@@ -534,13 +535,22 @@ def test_darkness_the_search_cannot_take_apart_widens_sigma(small_calibrated):
     on_sigma, off_sigma = on_found[sigma].to_numpy(), off_found[sigma].to_numpy()
     assert np.all(on_sigma >= off_sigma)
     widened = np.any(on_sigma > off_sigma, axis=1)
-    assert widened.sum() >= 5
     pairs = match_particles(on_found, scene.truth, tolerance_mm=1.0)
     error = np.abs(on_found.loc[pairs["measured_index"], xyz].to_numpy()
                    - scene.truth.loc[pairs["truth_index"], xyz].to_numpy())
     rows = pairs["measured_index"].to_numpy()
     beyond = {name: int(np.any(error > 3 * s[rows], axis=1).sum())
               for name, s in (("on", on_sigma), ("off", off_sigma))}
+    return on_found, widened, beyond
+
+
+def test_darkness_the_search_cannot_take_apart_widens_sigma(small_calibrated):
+    """160 particles of 0.4 mm (about 0.05 per microlens): some particles have darkness
+    beside them that the hidden-particle search finds and cannot take apart from them;
+    ``solve.companion_error`` widens their sigma and no one else's, moves nothing, and
+    leaves fewer of the matched particles beyond 3 sigma."""
+    _, widened, beyond = _sigma_term_on_and_off(small_calibrated, "companion_error", 160, 21)
+    assert widened.sum() >= 5
     assert beyond["on"] < beyond["off"]
 
 
@@ -549,28 +559,11 @@ def test_a_fit_that_disagrees_with_its_centroid_solution_widens_sigma(small_cali
     the sigma of refitted particles (not the halves of a split) by the RMS of a shift
     anywhere between their image fit and their earlier centroid solution, moves nothing,
     and leaves fewer of the matched particles beyond 3 sigma."""
-    optics, calib = small_calibrated
-    scene = make_scene(calib.camera, n_particles=80, seed=22, diameter_mm=0.4)
-    raw = render_frame(optics, scene.truth, seed=np.random.default_rng([22, 3, 0]))
-    assert PerspectiveLocator().solve.refit_error                      # on by default
-    off = PerspectiveLocator.from_dict({"solve": {"refit_error": False}})
-    on_found = locate_frame(raw, calib).particles
-    off_found = locate_frame(raw, calib, locator=off).particles
-    xyz, sigma = ["x", "y", "z"], ["sigma_x", "sigma_y", "sigma_z"]
-    np.testing.assert_array_equal(on_found[xyz].to_numpy(), off_found[xyz].to_numpy())
-    on_sigma, off_sigma = on_found[sigma].to_numpy(), off_found[sigma].to_numpy()
-    assert np.all(on_sigma >= off_sigma)
-    widened = np.any(on_sigma > off_sigma, axis=1)
-    flags = on_found["flags"].to_numpy(np.int64)
+    found, widened, beyond = _sigma_term_on_and_off(small_calibrated, "refit_error", 80, 22)
+    flags = found["flags"].to_numpy(np.int64)
     assert widened.sum() >= 5
     assert np.all(flags[widened] & int(TriangulationFlag.REFINED))
     assert not np.any(flags[widened] & int(TriangulationFlag.SPLIT))
-    pairs = match_particles(on_found, scene.truth, tolerance_mm=1.0)
-    error = np.abs(on_found.loc[pairs["measured_index"], xyz].to_numpy()
-                   - scene.truth.loc[pairs["truth_index"], xyz].to_numpy())
-    rows = pairs["measured_index"].to_numpy()
-    beyond = {name: int(np.any(error > 3 * s[rows], axis=1).sum())
-              for name, s in (("on", on_sigma), ("off", off_sigma))}
     assert beyond["on"] < beyond["off"]
 
 
