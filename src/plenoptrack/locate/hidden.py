@@ -37,7 +37,8 @@ def search_residual(ctx: FrameContext, state: ParticleState, locator: Perspectiv
     """Search again with the located particles' images divided out.
 
     The model of every located particle's image (its fitted radius and contrast, or its
-    regions' shadow and contrast 0.9) is divided out of the light field
+    regions' shadow and contrast 0.9; an elongated particle's regions' ellipse besides,
+    :func:`_elongated_silhouettes`) is divided out of the light field
     (:func:`~plenoptrack.locate.residual.divide_out_particles`, pixels a located image
     blocks set to the background), and the residual is segmented, clustered, solved and
     checked as the frame was (``locate_residual(residual)``: None when it finds nothing,
@@ -123,11 +124,21 @@ class _ResidualSearch:
         from .residual import divide_out_particles
 
         live = self.live
-        return divide_out_particles(self.ctx.lf, self.view_rc, self.pred[live],
-                                    self.radius[live], self.contrast[live],
+        pred, radius = self.pred[live], self.radius[live]
+        axes = np.c_[radius, radius, np.zeros_like(radius)]
+        contrast = self.contrast[live]
+        edge = self.ctx.image_edge.widths(self.state.positions[live, 2])
+        # an elongated particle's regions reach beyond its fitted disc: the rest of
+        # them is its own image too, not a hidden particle's
+        k, centres, shapes = _elongated_silhouettes(self.ctx, self.state.owner,
+                                                    np.flatnonzero(live), pred, radius)
+        return divide_out_particles(self.ctx.lf, self.view_rc,
+                                    np.concatenate([pred, centres]),
+                                    np.r_[radius, shapes[:, 0]],
+                                    np.r_[contrast, contrast[k]],
                                     floor=self.settings.hidden_floor,
-                                    edge=self.ctx.image_edge.widths(
-                                        self.state.positions[live, 2]))
+                                    edge=np.vstack([edge, edge[k]]),
+                                    axes=np.vstack([axes, shapes]))
 
     def take_candidates(self, found: pd.DataFrame, state2: ParticleState) -> None:
         """The residual's particles seen in enough views (``new``), less those whose images
@@ -326,6 +337,75 @@ class _ResidualSearch:
                             ignore_index=True))
         return (FrameContext.build(ctx.lf, calibration, detections, self.locator), joined,
                 int(new.sum()))
+
+ELONGATED_ASPECT = 1.5
+"""Member regions whose median long axis is at least this many times their short one make
+an elongated particle (:func:`_elongated_silhouettes`)."""
+
+ELONGATED_ALIGNMENT = 0.95
+"""Least mean resultant length of the doubled orientations of an elongated particle's
+member regions (1: the same in every view). One rigid body turns little from view to view
+(the study's pin stems: median 0.998, 10th percentile 0.98); two images merged into one
+region turn with the parallax between them (0.76-0.94 for the 5 elongated particles of
+two frames of 160 particles of 0.4 mm on the `small` camera, seeds 7 and 8)."""
+
+
+def _elongated_silhouettes(ctx: FrameContext, owner: np.ndarray, rows: np.ndarray,
+                           pred: np.ndarray, radius: np.ndarray
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The regions of the elongated particles ``rows`` as ellipses, for the residual.
+
+    A particle whose member regions are elongated (median long axis at least
+    :data:`ELONGATED_ASPECT` times the short one, and longer than its image fit's disc,
+    ``radius`` (len(rows),) view pixels) the same way in every view (their orientations
+    aligned to :data:`ELONGATED_ALIGNMENT`: one body, not images merged) is drawn with
+    its regions' ellipse besides the disc: the median second-moment axes of its regions,
+    their axial mean orientation, centred at its image centre ``pred`` (len(rows), V, 2)
+    in each fit view shifted by the median offset of its regions' centroids from it.
+
+    Returns
+    -------
+    k : (K,) int ndarray
+        Index into ``rows`` of each elongated particle.
+    centres : (K, V, 2) float ndarray
+        Its ellipse's centre ``(s, t)`` in each fit view, view pixels.
+    axes : (K, 3) float ndarray
+        Semi-major and semi-minor axis (view pixels) and angle (radians, from ``s``
+        toward ``t``).
+    """
+    n_v = pred.shape[1]
+    none = (np.zeros(0, dtype=np.int64), np.zeros((0, n_v, 2)), np.zeros((0, 3)))
+    usable = _usable_views(ctx)
+    fit_view = np.cumsum(usable) - 1                 # ctx.views index -> _fit_views index
+    index = np.full(max(owner.max(initial=-1), rows.max(initial=-1)) + 1, -1, dtype=np.int64)
+    index[rows] = np.arange(len(rows))
+    member = np.flatnonzero(owner >= 0)
+    member = member[(index[owner[member]] >= 0) & usable[ctx.view[member]]]
+    if len(member) == 0:
+        return none
+    det = ctx.detections
+    k = index[owner[member]]
+    offset = ctx.st[member] - pred[k, fit_view[ctx.view[member]]]
+    theta = 2.0 * det["orientation"].to_numpy(float)[member]
+    regions = pd.DataFrame({"k": k, "major": det["major_axis_px"].to_numpy(float)[member],
+                            "minor": det["minor_axis_px"].to_numpy(float)[member],
+                            "ds": offset[:, 0], "dt": offset[:, 1],
+                            "c2": np.cos(theta), "s2": np.sin(theta)})
+    g = regions.groupby("k")
+    med = g[["major", "minor", "ds", "dt"]].median()
+    mean = g[["c2", "s2"]].mean()
+    ks = med.index.to_numpy()
+    a, b = 0.5 * med["major"].to_numpy(), 0.5 * med["minor"].to_numpy()
+    aligned = np.hypot(mean["c2"].to_numpy(), mean["s2"].to_numpy()) >= ELONGATED_ALIGNMENT
+    elongated = (a >= ELONGATED_ASPECT * b) & (a > radius[ks]) & (b > 0) & aligned
+    if not elongated.any():
+        return none
+    ks = ks[elongated]
+    angle = 0.5 * np.arctan2(mean["s2"].to_numpy(), mean["c2"].to_numpy())[elongated]
+    shift = med[["ds", "dt"]].to_numpy()[elongated]
+    return (ks, pred[ks] + shift[:, None, :],
+            np.c_[a[elongated], b[elongated], angle])
+
 
 def _note_companion(companions: dict, row: int, offset: np.ndarray) -> None:
     """Record in ``companions`` (row -> (3,) offset, mm) darkness at ``offset`` from the

@@ -5,9 +5,10 @@ gives no region of its own there: the segmentation sees one merged region, the
 clustering one particle. Once the neighbours are located and their images fitted
 (:func:`~plenoptrack.locate.perspective.refine_particles`), their model
 (:mod:`~plenoptrack.locate.refine`: a product of blurred discs, one per particle and
-view) says how much of the back-light each view pixel would receive without the hidden
-particle. Dividing the light field by it leaves the hidden particle's shadow where its
-image stands free of theirs (iterative particle reconstruction, IPR, for shadow images).
+view, or an ellipse where a particle's image is elongated) says how much of the
+back-light each view pixel would receive without the hidden particle. Dividing the
+light field by it leaves the hidden particle's shadow where its image stands free of
+theirs (iterative particle reconstruction, IPR, for shadow images).
 Where a located particle blocks most of the light (model transmission below
 ``floor``) nothing behind it can be seen: those pixels are set to the view's background
 level, so neither the located particle nor a half-hidden one reads as dark there.
@@ -37,32 +38,43 @@ def _box(s, t, r, edge, n_t, n_s):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _multiply_disc(out, s, t, r, c, w_s, w_t):  # pragma: no cover - compiled
-    """``out *= 1 - c D(|p - (s, t)|; r)`` over the disc's box (``out`` one view), edge
-    widths ``w_s`` and ``w_t`` along ``s`` and ``t``."""
+def _multiply_disc(out, s, t, a, b, angle, c, w_s, w_t):  # pragma: no cover - compiled
+    """``out *= 1 - c D`` over the image's box (``out`` one view): ``D`` the blurred
+    ellipse of semi-axes ``a >= b`` (view pixels) whose long axis makes ``angle``
+    (radians, from ``s`` toward ``t``) centred on ``(s, t)``, a disc when ``a == b``;
+    edge widths ``w_s`` and ``w_t`` along ``s`` and ``t``.
+
+    An ellipse is the disc of radius ``a`` in coordinates turned onto its axes and
+    stretched by ``a / b`` across them (the edge widths with them)."""
     edge = max(w_s, w_t)
-    i0, i1, j0, j1 = _box(s, t, r, edge, out.shape[0], out.shape[1])
-    reach = r + 4.0 * edge
+    i0, i1, j0, j1 = _box(s, t, a, edge, out.shape[0], out.shape[1])
+    cos, sin, stretch = math.cos(angle), math.sin(angle), a / b
+    w_l = math.sqrt((w_s * cos) ** 2 + (w_t * sin) ** 2)            # along the long axis
+    w_c = math.sqrt((w_s * sin) ** 2 + (w_t * cos) ** 2) * stretch  # across it, stretched
+    edge = max(w_l, w_c)
     # erfc is within 6e-5 of 2 or 0 beyond 4 edge widths of the rim:
     # only the rim's band is evaluated
-    inner, outer = max(r - 4.0 * edge, 0.0) ** 2, reach * reach
+    inner, outer = max(a - 4.0 * edge, 0.0) ** 2, (a + 4.0 * edge) ** 2
     for i in range(i0, i1 + 1):
         for j in range(j0, j1 + 1):
-            rho2 = (j - s) ** 2 + (i - t) ** 2
+            along = cos * (j - s) + sin * (i - t)
+            across = (cos * (i - t) - sin * (j - s)) * stretch
+            rho2 = along * along + across * across
             if rho2 >= outer:
                 continue
             if rho2 <= inner:
                 out[i, j] *= 1.0 - c
             else:
-                x = _edge_argument(j - s, i - t, math.sqrt(rho2), r, w_s, w_t)[0]
+                x = _edge_argument(along, across, math.sqrt(rho2), a, w_l, w_c)[0]
                 out[i, j] *= 1.0 - c * _half_erfc(x, math.exp(-x * x))
 
 
 @numba.njit(cache=True)
-def _divide_out(data, view_rc, pred, radius, contrast, edge, floor, background,
+def _divide_out(data, view_rc, pred, axes, contrast, edge, floor, background,
                 has_background):  # pragma: no cover - compiled
     """In place: each modelled view of ``data`` (n_v, n_u, n_t, n_s) divided by the
-    particles' transmission, pixels below ``floor`` set to the view's background.
+    particles' transmission, pixels below ``floor`` set to the view's background;
+    ``axes`` (P, 3) each image's semi-axes and angle (:func:`_multiply_disc`).
 
     Only the particles' boxes are visited: a view-sized transmission buffer holds 1
     everywhere between particles' boxes, and each pixel is put back to 1 once divided,
@@ -76,15 +88,16 @@ def _divide_out(data, view_rc, pred, radius, contrast, edge, floor, background,
         view = data[view_rc[v, 0], view_rc[v, 1]]
         for p in range(pred.shape[0]):
             s, t = pred[p, v, 0], pred[p, v, 1]
-            if np.isfinite(s) and np.isfinite(t) and radius[p] > 0.0 and contrast[p] > 0.0:
-                _multiply_disc(trans, s, t, radius[p], contrast[p], edge[p, 0], edge[p, 1])
+            if np.isfinite(s) and np.isfinite(t) and axes[p, 1] > 0.0 and contrast[p] > 0.0:
+                _multiply_disc(trans, s, t, axes[p, 0], axes[p, 1], axes[p, 2], contrast[p],
+                               edge[p, 0], edge[p, 1])
         bg = background[v]
         for p in range(pred.shape[0]):
             s, t = pred[p, v, 0], pred[p, v, 1]
-            if not (np.isfinite(s) and np.isfinite(t) and radius[p] > 0.0
+            if not (np.isfinite(s) and np.isfinite(t) and axes[p, 1] > 0.0
                     and contrast[p] > 0.0):
                 continue
-            i0, i1, j0, j1 = _box(s, t, radius[p], max(edge[p, 0], edge[p, 1]), n_t, n_s)
+            i0, i1, j0, j1 = _box(s, t, axes[p, 0], max(edge[p, 0], edge[p, 1]), n_t, n_s)
             for i in range(i0, i1 + 1):
                 for j in range(j0, j1 + 1):
                     tr = trans[i, j]
@@ -100,16 +113,18 @@ def _divide_out(data, view_rc, pred, radius, contrast, edge, floor, background,
 
 
 @numba.njit(cache=True)
-def _transmission(n_t, n_s, pred, radius, contrast, edge, out):  # pragma: no cover - compiled
-    """Product over particles of ``1 - c D(|p - mu|; r)`` in each view: ``pred``
-    (P, V, 2) image centres ``(s, t)``, ``radius`` and ``contrast`` (P,); into ``out``
-    (V, n_t, n_s), filled with 1 first; ``edge`` (P, 2) edge widths ``(w_s, w_t)``."""
+def _transmission(n_t, n_s, pred, axes, contrast, edge, out):  # pragma: no cover - compiled
+    """Product over particles of ``1 - c D`` in each view: ``pred`` (P, V, 2) image
+    centres ``(s, t)``, ``axes`` (P, 3) semi-axes and angle (:func:`_multiply_disc`),
+    ``contrast`` (P,); into ``out`` (V, n_t, n_s), filled with 1 first; ``edge`` (P, 2)
+    edge widths ``(w_s, w_t)``."""
     for v in range(out.shape[0]):
         out[v] = 1.0
         for p in range(pred.shape[0]):
             s, t = pred[p, v, 0], pred[p, v, 1]
-            if np.isfinite(s) and np.isfinite(t) and radius[p] > 0.0 and contrast[p] > 0.0:
-                _multiply_disc(out[v], s, t, radius[p], contrast[p], edge[p, 0], edge[p, 1])
+            if np.isfinite(s) and np.isfinite(t) and axes[p, 1] > 0.0 and contrast[p] > 0.0:
+                _multiply_disc(out[v], s, t, axes[p, 0], axes[p, 1], axes[p, 2], contrast[p],
+                               edge[p, 0], edge[p, 1])
 
 
 def _edge_widths(edge, n: int) -> np.ndarray:
@@ -122,8 +137,21 @@ def _edge_widths(edge, n: int) -> np.ndarray:
     return np.ascontiguousarray(widths)
 
 
+def _image_axes(radius: np.ndarray, axes: np.ndarray | None) -> np.ndarray:
+    """(P, 3) contiguous semi-axes and angle of each image: ``axes`` (P, 3), or discs of
+    ``radius`` (P,) when None."""
+    if axes is None:
+        radius = np.asarray(radius, dtype=np.float64)
+        return np.ascontiguousarray(np.c_[radius, radius, np.zeros_like(radius)])
+    axes = np.ascontiguousarray(axes, dtype=np.float64)
+    if axes.ndim != 2 or axes.shape[1] != 3:
+        raise ValueError(f"axes must be (P, 3) semi-axes and angle; got shape {axes.shape}")
+    return axes
+
+
 def transmission_model(n_t: int, n_s: int, pred: np.ndarray, radius: np.ndarray,
-                       contrast: np.ndarray, edge: float | np.ndarray = EDGE_PX) -> np.ndarray:
+                       contrast: np.ndarray, edge: float | np.ndarray = EDGE_PX, *,
+                       axes: np.ndarray | None = None) -> np.ndarray:
     """The fraction of the back-light the modelled particles let through, per view pixel.
 
     Parameters
@@ -139,6 +167,9 @@ def transmission_model(n_t: int, n_s: int, pred: np.ndarray, radius: np.ndarray,
         Edge blur (standard deviation, view pixels): one width for every image and
         direction, or each particle's ``(w_s, w_t)``
         (:meth:`~plenoptrack.locate.refine.ImageEdge.widths`).
+    axes : (P, 3) float ndarray, optional
+        Elliptical images in place of the discs of ``radius``: semi-major and semi-minor
+        axis (view pixels) and the long axis's angle (radians, from ``s`` toward ``t``).
 
     Returns
     -------
@@ -155,8 +186,7 @@ def transmission_model(n_t: int, n_s: int, pred: np.ndarray, radius: np.ndarray,
     """
     pred = np.ascontiguousarray(pred, dtype=np.float64)
     out = np.empty((pred.shape[1], int(n_t), int(n_s)), dtype=np.float32)
-    _transmission(int(n_t), int(n_s), pred,
-                  np.ascontiguousarray(radius, dtype=np.float64),
+    _transmission(int(n_t), int(n_s), pred, _image_axes(radius, axes),
                   np.ascontiguousarray(contrast, dtype=np.float64),
                   _edge_widths(edge, pred.shape[0]), out)
     return out
@@ -200,12 +230,13 @@ def residual_light_field(lf: LightField, view_rc: np.ndarray, transmission: np.n
 
 def divide_out_particles(lf: LightField, view_rc: np.ndarray, pred: np.ndarray,
                          radius: np.ndarray, contrast: np.ndarray, *, floor: float = 0.5,
-                         edge: float | np.ndarray = EDGE_PX) -> LightField:
+                         edge: float | np.ndarray = EDGE_PX,
+                         axes: np.ndarray | None = None) -> LightField:
     """:func:`residual_light_field` of :func:`transmission_model`, in one pass over the
     particles' images only.
 
     Equal to ``residual_light_field(lf, view_rc, transmission_model(n_t, n_s, pred,
-    radius, contrast, edge), floor=floor)``, value for value, without the view-sized
+    radius, contrast, edge, axes=axes), floor=floor)``, value for value, without the view-sized
     transmission of every view: its cost grows with the particles' image area, not with
     the light field's size (besides the copy of ``lf.data``).
 
@@ -224,6 +255,8 @@ def divide_out_particles(lf: LightField, view_rc: np.ndarray, pred: np.ndarray,
         See :func:`residual_light_field`.
     edge : float or (P, 2) float ndarray
         See :func:`transmission_model`.
+    axes : (P, 3) float ndarray, optional
+        See :func:`transmission_model`.
 
     Returns
     -------
@@ -234,7 +267,7 @@ def divide_out_particles(lf: LightField, view_rc: np.ndarray, pred: np.ndarray,
     data = lf.data.copy()
     background, has_background = _view_backgrounds(data, view_rc)
     _divide_out(data, view_rc, np.ascontiguousarray(pred, dtype=np.float64),
-                np.ascontiguousarray(radius, dtype=np.float64),
+                _image_axes(radius, axes),
                 np.ascontiguousarray(contrast, dtype=np.float64),
                 _edge_widths(edge, len(radius)), float(floor), background, has_background)
     return dataclasses.replace(lf, data=data)
