@@ -338,6 +338,7 @@ class _ResidualSearch:
         return (FrameContext.build(ctx.lf, calibration, detections, self.locator), joined,
                 int(new.sum()))
 
+
 ELONGATED_ASPECT = 1.5
 """Member regions whose median long axis is at least this many times their short one make
 an elongated particle (:func:`_elongated_silhouettes`)."""

@@ -38,7 +38,7 @@ def _box(s, t, r, edge, n_t, n_s):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, inline="always")
-def _multiply_disc(out, s, t, a, b, angle, c, w_s, w_t):  # pragma: no cover - compiled
+def _multiply_image(out, s, t, a, b, angle, c, w_s, w_t):  # pragma: no cover - compiled
     """``out *= 1 - c D`` over the image's box (``out`` one view): ``D`` the blurred
     ellipse of semi-axes ``a >= b`` (view pixels) whose long axis makes ``angle``
     (radians, from ``s`` toward ``t``) centred on ``(s, t)``, a disc when ``a == b``;
@@ -74,7 +74,7 @@ def _divide_out(data, view_rc, pred, axes, contrast, edge, floor, background,
                 has_background):  # pragma: no cover - compiled
     """In place: each modelled view of ``data`` (n_v, n_u, n_t, n_s) divided by the
     particles' transmission, pixels below ``floor`` set to the view's background;
-    ``axes`` (P, 3) each image's semi-axes and angle (:func:`_multiply_disc`).
+    ``axes`` (P, 3) each image's semi-axes and angle (:func:`_multiply_image`).
 
     Only the particles' boxes are visited: a view-sized transmission buffer holds 1
     everywhere between particles' boxes, and each pixel is put back to 1 once divided,
@@ -89,7 +89,7 @@ def _divide_out(data, view_rc, pred, axes, contrast, edge, floor, background,
         for p in range(pred.shape[0]):
             s, t = pred[p, v, 0], pred[p, v, 1]
             if np.isfinite(s) and np.isfinite(t) and axes[p, 1] > 0.0 and contrast[p] > 0.0:
-                _multiply_disc(trans, s, t, axes[p, 0], axes[p, 1], axes[p, 2], contrast[p],
+                _multiply_image(trans, s, t, axes[p, 0], axes[p, 1], axes[p, 2], contrast[p],
                                edge[p, 0], edge[p, 1])
         bg = background[v]
         for p in range(pred.shape[0]):
@@ -115,7 +115,7 @@ def _divide_out(data, view_rc, pred, axes, contrast, edge, floor, background,
 @numba.njit(cache=True)
 def _transmission(n_t, n_s, pred, axes, contrast, edge, out):  # pragma: no cover - compiled
     """Product over particles of ``1 - c D`` in each view: ``pred`` (P, V, 2) image
-    centres ``(s, t)``, ``axes`` (P, 3) semi-axes and angle (:func:`_multiply_disc`),
+    centres ``(s, t)``, ``axes`` (P, 3) semi-axes and angle (:func:`_multiply_image`),
     ``contrast`` (P,); into ``out`` (V, n_t, n_s), filled with 1 first; ``edge`` (P, 2)
     edge widths ``(w_s, w_t)``."""
     for v in range(out.shape[0]):
@@ -123,7 +123,7 @@ def _transmission(n_t, n_s, pred, axes, contrast, edge, out):  # pragma: no cove
         for p in range(pred.shape[0]):
             s, t = pred[p, v, 0], pred[p, v, 1]
             if np.isfinite(s) and np.isfinite(t) and axes[p, 1] > 0.0 and contrast[p] > 0.0:
-                _multiply_disc(out[v], s, t, axes[p, 0], axes[p, 1], axes[p, 2], contrast[p],
+                _multiply_image(out[v], s, t, axes[p, 0], axes[p, 1], axes[p, 2], contrast[p],
                                edge[p, 0], edge[p, 1])
 
 
