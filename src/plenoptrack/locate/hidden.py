@@ -33,12 +33,13 @@ __all__ = ["search_residual", "drop_duplicate_particles", "STRONG_VIEW_FRACTION"
 
 
 def search_residual(ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator,
-                    calibration, locate_residual) -> tuple[FrameContext, ParticleState, int]:
+                    calibration, locate_residual, *, elongated: bool = True
+                    ) -> tuple[FrameContext, ParticleState, int]:
     """Search again with the located particles' images divided out.
 
     The model of every located particle's image (its fitted radius and contrast, or its
-    regions' shadow and contrast 0.9; an elongated particle's regions' ellipse besides,
-    :func:`_elongated_silhouettes`) is divided out of the light field
+    regions' shadow and contrast 0.9; with ``elongated``, an elongated particle's regions'
+    ellipse besides, :func:`_elongated_silhouettes`) is divided out of the light field
     (:func:`~plenoptrack.locate.residual.divide_out_particles`, pixels a located image
     blocks set to the background), and the residual is segmented, clustered, solved and
     checked as the frame was (``locate_residual(residual)``: None when it finds nothing,
@@ -70,7 +71,7 @@ def search_residual(ctx: FrameContext, state: ParticleState, locator: Perspectiv
     image covers (:func:`_may_hide_particles`). Returns the frame context over both sets
     of regions, the joined state and the number of particles added.
     """
-    search = _ResidualSearch(ctx, state, locator)
+    search = _ResidualSearch(ctx, state, locator, elongated)
     if not search.may_hide_particles():
         return ctx, state, 0
     located = locate_residual(search.residual())
@@ -95,8 +96,10 @@ class _ResidualSearch:
     (rows ``0..L-1``, ``live_rows`` their state rows) and then each candidate admitted.
     """
 
-    def __init__(self, ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator):
+    def __init__(self, ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator,
+                 elongated: bool = True):
         self.ctx, self.state, self.locator = ctx, state, locator
+        self.elongated = elongated
         self.settings = locator.check
         table, n = state.table, state.n_particles
         fit_radius = (table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in table.columns
@@ -130,8 +133,9 @@ class _ResidualSearch:
         edge = self.ctx.image_edge.widths(self.state.positions[live, 2])
         # an elongated particle's regions reach beyond its fitted disc: the rest of
         # them is its own image too, not a hidden particle's
-        k, centres, shapes = _elongated_silhouettes(self.ctx, self.state.owner,
-                                                    np.flatnonzero(live), pred, radius)
+        rows = np.flatnonzero(live) if self.elongated else np.zeros(0, dtype=np.int64)
+        k, centres, shapes = _elongated_silhouettes(self.ctx, self.state.owner, rows,
+                                                    pred[:len(rows)], radius[:len(rows)])
         return divide_out_particles(self.ctx.lf, self.view_rc,
                                     np.concatenate([pred, centres]),
                                     np.r_[radius, shapes[:, 0]],

@@ -696,14 +696,17 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
 
 def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                           locator: PerspectiveLocator, calibration, *,
-                          frame: int = 0) -> tuple[FrameContext, ParticleState, int]:
+                          frame: int = 0, elongated: bool = True
+                          ) -> tuple[FrameContext, ParticleState, int]:
     """Stage 5d: search again with the located particles' images divided out, the
     residual segmented, clustered, solved and checked as the frame was
-    (:func:`~plenoptrack.locate.hidden.search_residual`). Returns the frame context over
-    both sets of regions, the joined state and the number of particles added."""
+    (:func:`~plenoptrack.locate.hidden.search_residual`; ``elongated``: elongated
+    particles divided out with their regions' ellipse too). Returns the frame context
+    over both sets of regions, the joined state and the number of particles added."""
     return search_residual(ctx, state, locator, calibration,
                            lambda residual: _locate_again(residual, calibration, locator,
-                                                          frame=frame))
+                                                          frame=frame),
+                           elongated=elongated)
 
 
 def _locate_again(lf: LightField, calibration, locator: PerspectiveLocator, *,
@@ -728,11 +731,16 @@ def search_hidden_rounds(ctx: FrameContext, state: ParticleState, locator: Persp
     particles found and of those their images touch; the particles found whose refit
     leaves their pixels unexplained are dropped again. The rounds stop at the first that
     keeps no particle more than the frame had before it (a particle found and dropped
-    again in every round would otherwise repeat the same search)."""
+    again in every round would otherwise repeat the same search). The first round divides
+    out every particle as its fitted disc: a head fitted together with its stem (one
+    elongated region, its disc at the region's centre) is found again inside it and its
+    refit moves onto it; the later rounds divide out elongated particles with their
+    regions' ellipse too, so that the rest of a thin body is not found again piece by
+    piece, round after round."""
     for _round in range(locator.check.hidden_rounds):
         n_live = _n_live(state, locator.solve.min_views)
         ctx, state, n_hidden = find_hidden_particles(ctx, state, locator, calibration,
-                                                     frame=frame)
+                                                     frame=frame, elongated=_round > 0)
         if not n_hidden:
             break
         # only the particles found and those their images touch are refitted (and
