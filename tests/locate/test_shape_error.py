@@ -97,8 +97,8 @@ def test_fragments_are_covered_only_with_the_shape_error(small_calibrated):
                                       b.particles.drop(columns=["sigma_x", "sigma_y", "sigma_z"]))
         added = (0.02 * a.particles["diameter"].to_numpy()) ** 2
         for axis in ("sigma_x", "sigma_y", "sigma_z"):
-            # to a millionth of the term: sigma^2 of about 1e-4 mm^2 leaves the difference
-            # of two squares a few 1e-15 mm^2 off (1.1e-14 for one particle of seed 12)
+            # to a millionth of the term (one fragment of seed 12 is 1.1e-14 mm^2 off,
+            # 2.7e-9 of it: some small term is not exactly additive; not traced)
             np.testing.assert_allclose(b.particles[axis] ** 2 - a.particles[axis] ** 2, added,
                                        rtol=1e-6, atol=1e-15)
         ratios_plain.append(_errors_over_sigma(a, scene.truth))
