@@ -127,22 +127,23 @@ class _ResidualSearch:
         from .residual import divide_out_particles
 
         live = self.live
-        pred, radius = self.pred[live], self.radius[live]
-        axes = np.c_[radius, radius, np.zeros_like(radius)]
-        contrast = self.contrast[live]
+        pred, radius, contrast = self.pred[live], self.radius[live], self.contrast[live]
         edge = self.ctx.image_edge.widths(self.state.positions[live, 2])
+        floor = self.settings.hidden_floor
+        if not self.elongated:
+            return divide_out_particles(self.ctx.lf, self.view_rc, pred, radius, contrast,
+                                        floor=floor, edge=edge)
         # an elongated particle's regions reach beyond its fitted disc: the rest of
         # them is its own image too, not a hidden particle's
-        rows = np.flatnonzero(live) if self.elongated else np.zeros(0, dtype=np.int64)
-        k, centres, shapes = _elongated_silhouettes(self.ctx, self.state.owner, rows,
-                                                    pred[:len(rows)], radius[:len(rows)])
+        k, centres, shapes = _elongated_silhouettes(self.ctx, self.state.owner,
+                                                    np.flatnonzero(live), pred, radius)
+        discs = np.c_[radius, radius, np.zeros_like(radius)]
         return divide_out_particles(self.ctx.lf, self.view_rc,
                                     np.concatenate([pred, centres]),
                                     np.r_[radius, shapes[:, 0]],
-                                    np.r_[contrast, contrast[k]],
-                                    floor=self.settings.hidden_floor,
+                                    np.r_[contrast, contrast[k]], floor=floor,
                                     edge=np.vstack([edge, edge[k]]),
-                                    axes=np.vstack([axes, shapes]))
+                                    axes=np.vstack([discs, shapes]))
 
     def take_candidates(self, found: pd.DataFrame, state2: ParticleState) -> None:
         """The residual's particles seen in enough views (``new``), less those whose images
