@@ -7,8 +7,9 @@ import pytest
 from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.bodies import parallax_px
 from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
-from plenoptrack.locate.split import (SIDE_BY_SIDE_PARALLAX_PX, _lateral_pair,
-                                      _line_of_sight_pair, _member_axes, _two_images,
+from plenoptrack.locate._regions import ELONGATED_ASPECT, member_axes
+from plenoptrack.locate.split import (SIDE_BY_SIDE_PARALLAX_PX, _end_starts, _lateral_pair,
+                                      _line_of_sight_pair, _two_images,
                                       _view_subgrid, _without_vanished, split_start_travel,
                                       waist_depth_px)
 from plenoptrack.locate.refine import ImageFit
@@ -655,20 +656,39 @@ def test_the_waist_between_two_discs_is_the_smaller_radius_less_the_half_chord()
     assert r1 - height.min() / 2 == pytest.approx(waist_depth_px([d], r1, r2)[0], abs=2e-3)
 
 
-def test_member_axes_are_the_whole_regions_median_axes_and_axial_mean_orientation():
-    """Per particle: the median major and minor axes of its whole regions and their mean
-    orientation taken as an axial angle (near +-pi/2 they average to pi/2, not 0); cut
-    pieces and unassigned regions are left out, a particle with no whole region is NaN."""
+def test_member_axes_are_the_regions_median_axes_and_axial_mean_orientation():
+    """Per particle: the median major and minor axes of its regions (here the whole
+    ones) and their mean orientation taken as an axial angle (near +-pi/2 they average
+    to pi/2, not 0) with the resultant length of the doubled angles; cut pieces and
+    unassigned regions are left out, a particle with no whole region is NaN."""
     detections = pd.DataFrame({
         "major_axis_px": [10.0, 12.0, 11.0, 30.0, 8.0, 9.0],
         "minor_axis_px": [5.0, 6.0, 7.0, 1.0, 4.0, 3.0],
         "orientation": [np.pi / 2 - 0.1, -np.pi / 2 + 0.1, np.pi / 2, 0.0, 0.2, 0.3],
         "whole": [True, True, True, False, False, True]})
     owner = np.array([0, 0, 0, 0, 1, -1])
-    axes = _member_axes(detections, owner, 3)
+    axes = member_axes(detections, owner, 3, detections["whole"])
     np.testing.assert_allclose(axes[0, :2], [11.0, 6.0])
     assert abs(abs(axes[0, 2]) - np.pi / 2) < 1e-9
+    np.testing.assert_allclose(axes[0, 3], (1 + 2 * np.cos(0.2)) / 3)
     assert np.isnan(axes[1]).all() and np.isnan(axes[2]).all()
+    every = member_axes(detections, owner, 3)
+    np.testing.assert_allclose(every[1], [8.0, 4.0, 0.2, 1.0])
+    np.testing.assert_allclose(every[0, :2], [11.5, 5.5])
+
+
+def test_one_elongated_body_is_elongated_the_same_way_in_every_view():
+    """Elongated by ELONGATED_ASPECT and aligned to ELONGATED_ALIGNMENT: one body; less
+    elongated, turning from view to view (images merged, with parallax between them)
+    or without regions: not."""
+    from plenoptrack.locate._regions import ELONGATED_ALIGNMENT, one_elongated_body
+
+    axes = np.array([[ELONGATED_ASPECT * 4.0, 4.0, 0.3, ELONGATED_ALIGNMENT],
+                     [0.99 * ELONGATED_ASPECT * 4.0, 4.0, 0.3, 1.0],
+                     [10.0, 4.0, 0.3, 0.99 * ELONGATED_ALIGNMENT],
+                     [10.0, 0.0, 0.3, 1.0],
+                     [np.nan, np.nan, np.nan, np.nan]])
+    assert one_elongated_body(axes).tolist() == [True, False, False, False, False]
 
 
 def test_a_lateral_split_starts_two_discs_with_the_regions_second_moments(small_calibrated):
@@ -691,6 +711,26 @@ def test_a_lateral_split_starts_two_discs_with_the_regions_second_moments(small_
     np.testing.assert_allclose(offset / d, [np.cos(angle), np.sin(angle)], atol=1e-3)
     assert _lateral_pair(dlfc, xyz, np.array([7.2, 7.0, 0.0])) is None
     assert _lateral_pair(dlfc, xyz, np.array([np.nan, np.nan, np.nan])) is None
+
+
+def test_an_elongated_image_is_started_from_discs_touching_its_ends(small_calibrated):
+    """The end starts are discs of the regions' minor radius whose central-view images
+    touch either end of the major axis: (major - minor) / 2 from the centre along it, at
+    the same depth; an image less elongated than ELONGATED_ASPECT, or without axes,
+    gives none."""
+    _, calib = small_calibrated
+    dlfc = calib.dlfc
+    xyz = np.array([-0.7, 0.3, 1.5])
+    major, minor, angle = 14.0, 4.0, -0.9
+    ends = _end_starts(dlfc, xyz, np.array([major, minor, angle]))
+    np.testing.assert_allclose(ends[:, 2], xyz[2])
+    np.testing.assert_allclose(ends[:, 3:], [[2.0, 0.9], [2.0, 0.9]])
+    st = np.array([dlfc.predict(*q[:3], 0.0, 0.0) for q in ends])
+    centre = np.array(dlfc.predict(*xyz, 0.0, 0.0))
+    direction = np.array([np.cos(angle), np.sin(angle)])
+    np.testing.assert_allclose(st - centre, [-5.0 * direction, 5.0 * direction], atol=1e-3)
+    assert _end_starts(dlfc, xyz, np.array([0.99 * ELONGATED_ASPECT * minor, minor, 0.0])) is None
+    assert _end_starts(dlfc, xyz, np.array([np.nan, np.nan, np.nan])) is None
 
 
 def _image_fit(params, model_error, noise=0.01, n_pixels=1000):

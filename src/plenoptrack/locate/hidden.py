@@ -26,6 +26,7 @@ from .frame import (_COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN,
 from ._nearby import ImageSpans, pairs_within
 from .bodies import parallax_px
 from .settings import CheckSettings, PerspectiveLocator
+from ._regions import member_axes, one_elongated_body
 from .split import _coincides, _coinciding, _explains_more, _two_images, split_gain_bar
 from .triangulate import TriangulationFlag
 
@@ -344,30 +345,18 @@ class _ResidualSearch:
                 int(new.sum()))
 
 
-ELONGATED_ASPECT = 1.5
-"""Member regions whose median long axis is at least this many times their short one make
-an elongated particle (:func:`_elongated_silhouettes`)."""
-
-ELONGATED_ALIGNMENT = 0.95
-"""Least mean resultant length of the doubled orientations of an elongated particle's
-member regions (1: the same in every view). One rigid body turns little from view to view
-(the study's pin stems: median 0.998, 10th percentile 0.98); two images merged into one
-region turn with the parallax between them (0.76-0.94 for the 5 elongated particles of
-two frames of 160 particles of 0.4 mm on the `small` camera, seeds 7 and 8)."""
-
-
 def _elongated_silhouettes(ctx: FrameContext, owner: np.ndarray, rows: np.ndarray,
                            pred: np.ndarray, radius: np.ndarray
                            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The regions of the elongated particles ``rows`` as ellipses, for the residual.
 
-    A particle whose member regions are elongated (median long axis at least
-    :data:`ELONGATED_ASPECT` times the short one, and longer than its image fit's disc,
-    ``radius`` (len(rows),) view pixels) the same way in every view (their orientations
-    aligned to :data:`ELONGATED_ALIGNMENT`: one body, not images merged) is drawn with
-    its regions' ellipse besides the disc: the median second-moment axes of its regions,
-    their axial mean orientation, centred at its image centre ``pred`` (len(rows), V, 2)
-    in each fit view shifted by the median offset of its regions' centroids from it.
+    A particle whose member regions in the fit views make one elongated body
+    (:func:`~plenoptrack.locate._regions.one_elongated_body`: elongated the same way in
+    every view, not images merged) reaching beyond its image fit's disc (median long
+    semi-axis above ``radius`` (len(rows),) view pixels) is drawn with its regions'
+    ellipse besides the disc: the median second-moment axes of its regions, their axial
+    mean orientation, centred at its image centre ``pred`` (len(rows), V, 2) in each fit
+    view shifted by the median offset of its regions' centroids from it.
 
     Returns
     -------
@@ -389,28 +378,18 @@ def _elongated_silhouettes(ctx: FrameContext, owner: np.ndarray, rows: np.ndarra
     member = member[(index[owner[member]] >= 0) & usable[ctx.view[member]]]
     if len(member) == 0:
         return none
-    det = ctx.detections
-    k = index[owner[member]]
-    offset = ctx.st[member] - pred[k, fit_view[ctx.view[member]]]
-    theta = 2.0 * det["orientation"].to_numpy(float)[member]
-    regions = pd.DataFrame({"k": k, "major": det["major_axis_px"].to_numpy(float)[member],
-                            "minor": det["minor_axis_px"].to_numpy(float)[member],
-                            "ds": offset[:, 0], "dt": offset[:, 1],
-                            "c2": np.cos(theta), "s2": np.sin(theta)})
-    g = regions.groupby("k")
-    med = g[["major", "minor", "ds", "dt"]].median()
-    mean = g[["c2", "s2"]].mean()
-    ks = med.index.to_numpy()
-    a, b = 0.5 * med["major"].to_numpy(), 0.5 * med["minor"].to_numpy()
-    aligned = np.hypot(mean["c2"].to_numpy(), mean["s2"].to_numpy()) >= ELONGATED_ALIGNMENT
-    elongated = (a >= ELONGATED_ASPECT * b) & (a > radius[ks]) & (b > 0) & aligned
+    k_owner = np.full(len(owner), -1, dtype=np.int64)
+    k_owner[member] = index[owner[member]]
+    axes = member_axes(ctx.detections, k_owner, len(rows))
+    elongated = one_elongated_body(axes) & (0.5 * axes[:, 0] > radius)
     if not elongated.any():
         return none
-    ks = ks[elongated]
-    angle = 0.5 * np.arctan2(mean["s2"].to_numpy(), mean["c2"].to_numpy())[elongated]
-    shift = med[["ds", "dt"]].to_numpy()[elongated]
-    return (ks, pred[ks] + shift[:, None, :],
-            np.c_[a[elongated], b[elongated], angle])
+    ks = np.flatnonzero(elongated)
+    k = k_owner[member]
+    offset = ctx.st[member] - pred[k, fit_view[ctx.view[member]]]
+    shift = pd.DataFrame({"k": k, "ds": offset[:, 0], "dt": offset[:, 1]}).groupby("k").median()
+    return (ks, pred[ks] + shift.loc[ks, ["ds", "dt"]].to_numpy()[:, None, :],
+            np.c_[0.5 * axes[ks, :2], axes[ks, 2]])
 
 
 def _note_companion(companions: dict, row: int, offset: np.ndarray) -> None:

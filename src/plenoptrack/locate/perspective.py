@@ -731,16 +731,16 @@ def search_hidden_rounds(ctx: FrameContext, state: ParticleState, locator: Persp
     particles found and of those their images touch; the particles found whose refit
     leaves their pixels unexplained are dropped again. The rounds stop at the first that
     keeps no particle more than the frame had before it (a particle found and dropped
-    again in every round would otherwise repeat the same search). The first round divides
-    out every particle as its fitted disc: a head fitted together with its stem (one
-    elongated region, its disc at the region's centre) is found again inside it and its
-    refit moves onto it; the later rounds divide out elongated particles with their
-    regions' ellipse too, so that the rest of a thin body is not found again piece by
-    piece, round after round."""
+    again in every round would otherwise repeat the same search). Elongated particles are
+    divided out with their regions' ellipse as well as their disc, so that the rest of a
+    thin body is not found again piece by piece, round after round (a head measured
+    together with its stem has its disc on the head already:
+    :func:`~plenoptrack.locate.split.split_merged_particles` fits an elongated image
+    from its ends)."""
     for _round in range(locator.check.hidden_rounds):
         n_live = _n_live(state, locator.solve.min_views)
         ctx, state, n_hidden = find_hidden_particles(ctx, state, locator, calibration,
-                                                     frame=frame, elongated=_round > 0)
+                                                     frame=frame)
         if not n_hidden:
             break
         # only the particles found and those their images touch are refitted (and
@@ -990,7 +990,14 @@ def _inconsistent(ctx: FrameContext, state: ParticleState, settings: CheckSettin
     ``tolerance_px``); or when, in more than ``max_explained`` of its views, two other
     particles are predicted on its centroid (a particle made of merged images of two
     others), judged from the particle seen in the fewest views up, each one dropped no
-    longer counting for the rest (:func:`~plenoptrack.locate._assign._explained_away`).
+    longer counting for the rest (:func:`~plenoptrack.locate._assign._explained_away`);
+    or when it is seen in fewer than :data:`~plenoptrack.locate.hidden.STRONG_VIEW_FRACTION`
+    of the valid views and every one of its centroids is a half of a region split as a
+    pair (:func:`~plenoptrack.locate._regions._split_pairs`): those halves are placed
+    along the region's axis as two equal images would lie, not measured, and a few of
+    them make no particle (the head and stem of a pin, merged into one region in most
+    views and cut in two in a few, gave two such particles 2.6 mm off in depth, which
+    then explained the pin's own particle away).
     Particles seen in at least a quarter of the valid views whose only fault is
     the residual are to be refitted.
     """
@@ -1018,6 +1025,11 @@ def _inconsistent(ctx: FrameContext, state: ParticleState, settings: CheckSettin
     res_bad = ok & (res > max(settings.max_residual_ratio * typical, tolerance_px))
     pred = _predict_all(ctx.dlfc, positions, views)
     strong = n_v >= STRONG_VIEW_FRACTION * lf.view_mask.sum()
+    # halves of split regions are placed, not measured: a weakly seen particle made of
+    # nothing else has no centroid of its own
+    halves = np.bincount(own, _split(ctx.detections)[mine].astype(float),
+                         minlength=len(positions))
+    bad |= ok & ~strong & (halves == cnt)
     bad |= _explained_away(pred, ctx.st, view, owner, ctx.radius_px, ok & ~bad & ~res_bad, ok,
                            np.where(strong, settings.max_explained_strong,
                                     settings.max_explained), n_v)

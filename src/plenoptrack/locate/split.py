@@ -26,7 +26,7 @@ from ._assign import _predict_all
 from .frame import (_CENTROID_SOLUTION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN,
                      _SPLIT_OF, FrameContext, ParticleState, _fit_views, _member_diameter)
 from ._nearby import ImageSpans
-from ._regions import pair_half_separation
+from ._regions import ELONGATED_ASPECT, member_axes, pair_half_separation
 from .bodies import parallax_px
 from .settings import CheckSettings
 from .triangulate import TriangulationFlag
@@ -95,6 +95,10 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     pixels; one that stays unexplained and is one with an image of the group
     (:func:`_coincides`) is dropped, the group's image taking its place.
 
+    Where no split passes, a particle whose regions are elongated is fitted as one image
+    from either end of them as well, and takes the better end's image where it explains
+    the pixels better (:meth:`_SplitRun.fit_from_ends`: out of focus a pin's head and
+    stem merge into one region, whose centred disc lies on neither).
     Where no split passes but one image explains the pixels (model error at most
     ``settings.refine_max_model_error``, refitted on every view), that image replaces
     the particle's solution in two cases: a particle found in the residual
@@ -186,7 +190,8 @@ class _SplitRun:
         self.scattered = table["residual_px"].to_numpy(float) > _MOVED_PX
         self.hidden = (table[_HIDDEN].fillna(False).to_numpy(bool) if _HIDDEN in table.columns
                        else np.zeros(len(table), dtype=bool))
-        self.axes = _member_axes(ctx.detections, state.owner, state.n_particles)
+        self.axes = member_axes(ctx.detections, state.owner, state.n_particles,
+                                ctx.detections["whole"].to_numpy(bool))[:, :3]
         # the decision's fits use a sub-grid of the views; a split that passes is refitted
         trial = _view_subgrid(self.view_rc, settings.split_trial_stride)
         self.trial_uv, self.trial_rc = self.views_uv[trial], self.view_rc[trial]
@@ -393,6 +398,8 @@ class _SplitRun:
             if more is None:
                 break
             found = more
+        if found is None and reference is not None and self.fit_from_ends(m, held, one):
+            return
         alone = (found is None and reference is not None
                  and self.single_error[m] <= self.settings.refine_max_model_error)
         put_back = alone and self.relocated(m, reference)
@@ -408,6 +415,47 @@ class _SplitRun:
         if found is None or not np.all(np.isfinite(found[0].sigma)):
             return                         # no split, or one the pixels do not determine
         self.take_group(m, found[0], held)
+
+    def fit_from_ends(self, m, held, one) -> bool:
+        """Particle ``m``'s image fitted from either end of its elongated regions; True
+        when that image is kept.
+
+        One disc fitted to an elongated image from its centroid stays at its centre:
+        out of focus a pin's head merges with its stem into one region, and the disc
+        lies between the two, neither on the head nor explaining the stem. Fitted from
+        the ends of the regions' long axis as well (:func:`_end_starts`; on the trial
+        views, beside the same neighbours as the centred fit ``one``), the disc finds the
+        darker end; a symmetric image (an ellipsoid) keeps it at its centre. The best end
+        is kept when it explains the pixels better than the centred fit by
+        ``check.refine_max_model_error**2`` in mean square (the test a particle found in
+        the residual passes) and its refit on every view stays within a tenth of the
+        volume depth; the particle then takes that image, and stays ``UNEXPLAINED``
+        where it leaves more than ``check.refine_max_model_error`` (the rest of the
+        body: a search of the residual divides it out with the regions' ellipse,
+        :func:`~plenoptrack.locate.hidden._elongated_silhouettes`)."""
+        starts = _end_starts(self.ctx.dlfc, self.pos[m], self.axes[m])
+        if starts is None:
+            return False
+        best = one
+        for start in starts:
+            fit = self.fit(self.trial_uv, self.trial_rc, start[None, :3], start[None, 3:], held)
+            if (fit is not None and np.all(np.isfinite(fit.params))
+                    and fit.model_error < best.model_error):
+                best = fit
+        bar = self.settings.refine_max_model_error
+        if best is one or one.model_error ** 2 - best.model_error ** 2 < bar ** 2:
+            return False
+        fit = self.fit(self.views_uv, self.view_rc, best.params[:, :3], best.params[:, 3:],
+                       held, max_depth_shift=0.1 * self.ctx.volume_depth_mm)
+        if (fit is None or not np.all(np.isfinite(fit.params))
+                or not np.all(np.isfinite(fit.sigma))):
+            return False
+        self.single_error[m] = fit.model_error
+        self.refitted_rows.add(m)
+        self.set_image(m, fit.params[0], fit.sigma[0])
+        if fit.model_error > bar:
+            self.flags[m] |= _UNEXPLAINED
+        return True
 
     def take_group(self, m, group, held) -> None:
         """Particle ``m`` becomes the split ``group``: the image nearer its solution in
@@ -641,27 +689,6 @@ def _line_of_sight_pair(dlfc, xyz: np.ndarray, views_uv: np.ndarray,
     return out
 
 
-def _member_axes(detections: pd.DataFrame, owner: np.ndarray, n: int) -> np.ndarray:
-    """(n, 3) median major and minor axis (view pixels) of each particle's whole regions
-    and their mean orientation (radians from ``s`` toward ``t``, averaged as doubled
-    angles); NaN for particles without whole regions. The thresholded regions' own
-    moments, as the segmentation's pair split reads them (not the shadow-scaled axes of
-    ``_region_shape``)."""
-    mine = (owner >= 0) & detections["whole"].to_numpy(bool)
-    theta = 2.0 * detections["orientation"].to_numpy(float)[mine]
-    d = pd.DataFrame({"owner": owner[mine],
-                      "major": detections["major_axis_px"].to_numpy(float)[mine],
-                      "minor": detections["minor_axis_px"].to_numpy(float)[mine],
-                      "cos": np.cos(theta), "sin": np.sin(theta)})
-    g = d.groupby("owner")
-    med, mean = g[["major", "minor"]].median(), g[["cos", "sin"]].mean()
-    out = np.full((n, 3), np.nan)
-    rows = med.index.to_numpy()
-    out[rows, 0], out[rows, 1] = med["major"].to_numpy(), med["minor"].to_numpy()
-    out[rows, 2] = 0.5 * np.arctan2(mean["sin"].to_numpy(), mean["cos"].to_numpy())
-    return out
-
-
 def _lateral_pair(dlfc, xyz: np.ndarray, axes: np.ndarray) -> np.ndarray | None:
     """(2, 5) starting images ``(x, y, z, r, c)`` of a split of an image elongated by two
     discs side by side: two discs of the regions' minor radius whose union has the
@@ -676,16 +703,38 @@ def _lateral_pair(dlfc, xyz: np.ndarray, axes: np.ndarray) -> np.ndarray | None:
     half = float(pair_half_separation(major, minor))
     if waist_depth_px(2.0 * half, 0.5 * minor, 0.5 * minor) < 1.0:
         return None
+    return np.c_[_along_major_axis(dlfc, xyz, angle, half), np.full(2, 0.5 * minor),
+                 np.full(2, 0.9)]
+
+
+def _along_major_axis(dlfc, xyz: np.ndarray, angle: float, distance_px: float) -> np.ndarray:
+    """(2, 3) positions (mm) at the depth of ``xyz`` whose central-view images lie
+    ``distance_px`` view pixels either side of its own along the direction ``angle``
+    (radians from ``s`` toward ``t``)."""
     s0, t0 = dlfc.predict(xyz[0], xyz[1], xyz[2], 0.0, 0.0)
-    out = np.empty((2, 5))
+    out = np.empty((2, 3))
     for i, sign in enumerate((-1.0, 1.0)):
-        target = np.array([s0, t0]) + sign * half * np.array([math.cos(angle), math.sin(angle)])
+        target = np.array([s0, t0]) + sign * distance_px * np.array([math.cos(angle),
+                                                                     math.sin(angle)])
         q = np.array(xyz, dtype=float)
-        for _ in range(4):   # Newton: that central-view image at the merged depth
+        for _ in range(4):   # Newton: that central-view image at the same depth
             st, j = dlfc.predict_with_jacobian(q[0], q[1], q[2], 0.0, 0.0)
             q[:2] += np.linalg.solve(j[:, :2], target - np.asarray(st, dtype=float))
-        out[i] = [*q, 0.5 * minor, 0.9]
+        out[i] = q
     return out
+
+
+def _end_starts(dlfc, xyz: np.ndarray, axes: np.ndarray) -> np.ndarray | None:
+    """(2, 5) starting images ``(x, y, z, r, c)`` at the two ends of an elongated image:
+    discs of the regions' minor radius touching either end of their major axis in the
+    central view, at the depth of ``xyz``; None unless the whole regions' median
+    ``axes`` (major, minor, angle: :func:`~plenoptrack.locate._regions.member_axes`)
+    make an elongated image (:data:`~plenoptrack.locate._regions.ELONGATED_ASPECT`)."""
+    major, minor, angle = axes
+    if not (np.all(np.isfinite(axes)) and minor > 0 and major >= ELONGATED_ASPECT * minor):
+        return None
+    return np.c_[_along_major_axis(dlfc, xyz, angle, 0.5 * (major - minor)),
+                 np.full(2, 0.5 * minor), np.full(2, 0.9)]
 
 
 def split_start_travel(radius_px: float) -> float:
