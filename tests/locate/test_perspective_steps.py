@@ -399,3 +399,27 @@ def test_each_refine_sweep_refits_the_overlapped_particles_again(small_calibrate
         perspective.locate_frame(raw, calib, locator=locator)
     assert calls[1] >= 5
     assert calls[2] >= 1.8 * calls[1]
+
+
+def test_weak_particles_made_of_the_halves_of_one_region_in_the_same_views_are_pieces():
+    """Particles 0 and 1: only split-pair halves, in the same three views (one region
+    cut in two there): pieces. Particle 2: halves in other views, alone there. Particle
+    3: a whole region among its halves. Particle 4: as 0 and 1 in views of its own, but
+    seen strongly (not weak). Particle 5 pairs with 4's views but 4 is not weak."""
+    import pandas as pd
+    from types import SimpleNamespace
+
+    rows = [  # (owner, view, split half)
+        (0, 1, True), (0, 2, True), (0, 3, True),
+        (1, 1, True), (1, 2, True), (1, 3, True),
+        (2, 1, True), (2, 2, True), (2, 4, True),
+        (3, 1, True), (3, 2, True), (3, 3, False),
+        (4, 7, True), (4, 8, True),
+        (5, 7, True), (5, 8, True),
+        (-1, 1, True),
+    ]
+    owner, view, half = (np.array(c) for c in zip(*rows))
+    ctx = SimpleNamespace(detections=pd.DataFrame({"split_pair": half}), view=view)
+    weak = np.array([True, True, True, True, False, True])
+    pieces = perspective._pieces_of_one_region(ctx, owner, weak)
+    assert pieces.tolist() == [True, True, False, False, False, False]
