@@ -24,9 +24,9 @@ from .frame import (_COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN,
                      FrameContext, ParticleState, _fit_views, _member_diameter,
                      _usable_views)
 from ._nearby import ImageSpans, pairs_within
+from ._regions import member_axes, one_elongated_body
 from .bodies import parallax_px
 from .settings import CheckSettings, PerspectiveLocator
-from ._regions import member_axes, one_elongated_body
 from .split import _coincides, _coinciding, _explains_more, _two_images, split_gain_bar
 from .triangulate import TriangulationFlag
 
