@@ -254,8 +254,9 @@ class SolveSettings:
         uncertainty in quadrature.
     excess_scatter : bool
         Count a particle's centroid scatter beyond the frame's typical scatter (reduced
-        chi-square above 1: an overlapping or merged image) as shared by all its views
-        instead of averaging it over them (:mod:`~plenoptrack.locate.uncertainty`).
+        chi-square above what chance gives, :func:`~plenoptrack.locate.uncertainty.chance_chi2`:
+        an overlapping or merged image) as shared by all its views instead of averaging it
+        over them (:mod:`~plenoptrack.locate.uncertainty`).
     sampling_error : bool
         Count the sampling error that views share when a particle's image moves by less
         than a few view pixels across them (near the focal plane the views see it through
