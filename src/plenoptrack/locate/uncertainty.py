@@ -268,8 +268,8 @@ def total_sigma(sigma_stat: np.ndarray, dlfc, *, error_scale: float,
     chi2, n_views : (N,) float ndarrays, optional
         Reduced chi-square (:func:`reduced_chi2`) and number of centroids of each
         particle: the scatter beyond the frame's typical scatter (and beyond chance,
-        :func:`chance_chi2`) is counted as shared by all views (module notes). NaN in ``chi2`` (no degrees of freedom) means no
-        excess. None: no excess at all.
+        :func:`chance_chi2`) is counted as shared by all views (module notes). NaN in
+        ``chi2`` (no degrees of freedom) means no excess. None: no excess at all.
     z : (N,) float ndarray, optional
         Depth of each particle, mm: the model error is taken at it
         (:func:`model_error_mm`). None: the RMS over all calibration dots.
