@@ -306,12 +306,19 @@ DECODE_BASELINE_REV = "a24c564"
 """Revision before the decode's gather computed each lens's interpolated image once
 for the (about two) samples that blend it, instead of once per sample."""
 
+FITS_BASELINE_REV = "fb2878c"
+"""Revision before an image fit's rejected Levenberg-Marquardt steps stopped summing the
+cost once it reached the current one (:func:`plenoptrack.locate.refine._normal_equations`'s
+``bound``)."""
+
 KERNELS_TIMED = (("decode gather", "lightfield.decode", "_gather", None, DECODE_BASELINE_REV),
                  ("segmentation", "locate.segment", "_region_stats", None, None),
                  ("refinement patch masks", "locate.refine", "_patch_masks", _fitted_part, None),
                  ("k-means Lloyd", "locate.cluster", "_lloyd", None, VIEWS_BASELINE_REV),
                  ("refinement image fits", "locate.refine", "fit_images", _fit_params,
-                  VIEWS_BASELINE_REV))
+                  VIEWS_BASELINE_REV),
+                 ("image fits, steps cut", "locate.refine", "fit_images", _fit_params,
+                  FITS_BASELINE_REV))
 """``(label, module under plenoptrack, function, what to compare, baseline revision)``
 timed by ``--kernels``; ``what to compare`` maps an output to the part the locator reads
 (None: all of it); the baseline revision is :data:`KERNEL_BASELINE_REV` when None. A
