@@ -180,34 +180,6 @@ def test_normal_equations_match_a_finite_difference_jacobian(k, union):
     assert np.allclose(jtj, jac.T @ jac, rtol=1e-3, atol=1e-3 * np.abs(jtj).max())
 
 
-def test_normal_equations_stop_summing_once_the_cost_reaches_the_bound():
-    """A step whose cost reaches the current cost is rejected by Levenberg-Marquardt: the
-    kernel stops summing there (a partial cost at least the bound), and a bound above the
-    whole cost changes nothing."""
-    dlfc = LinearCalibration()
-    views_uv, _ = _views()
-    rng = np.random.default_rng(5)
-    n = 13
-    origin = np.c_[rng.integers(40, 45, len(views_uv)),
-                   rng.integers(30, 35, len(views_uv))].astype(float)
-    y = rng.uniform(0.2, 1.1, (len(views_uv), n, n))
-    held = rng.uniform(0.8, 1.0, y.shape)
-    fit = rng.uniform(size=y.shape) < 0.8
-    theta = np.array([[0.6, 0.3, 1.5, 2.5, 0.9], [0.8, 0.2, -1.0, 1.8, 0.7]])
-    st, dst = dlfc.predict_with_jacobian(theta[:, None, 0], theta[:, None, 1],
-                                         theta[:, None, 2], views_uv[None, :, 0],
-                                         views_uv[None, :, 1])
-    args = (origin, y, held, fit, np.ascontiguousarray(st), np.ascontiguousarray(dst),
-            theta[:, 3:].copy(), EDGE_WIDTHS[:2], False)
-    whole = _normal_equations(*args)
-    above = _normal_equations(*args, whole[0] * (1 + 1e-9))
-    for a, b in zip(whole, above):
-        assert np.array_equal(a, b)
-    cut = _normal_equations(*args, 0.3 * whole[0])
-    assert 0.3 * whole[0] <= cut[0] < whole[0]          # stopped after a few views
-    assert np.abs(cut[1]).sum() < np.abs(whole[1]).sum()
-
-
 def test_the_bivariate_normal_matches_owens_t():
     from plenoptrack.locate.refine import _bivariate_normal_cdf
 

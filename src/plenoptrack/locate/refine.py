@@ -474,8 +474,7 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
     z0 = theta[:, 2].copy()
     theta = theta.copy()
     cost, jtj, grad, meat = _model_normal_equations(origin, y, fixed, fit, basis, xyz_e,
-                                                    tensor, centre, scale, theta, edge, union,
-                                                    math.inf)
+                                                    tensor, centre, scale, theta, edge, union)
     tol = _step_tolerance(absolute, step_sigma, jtj, meat, n_views)
     n_eval = 1
     lam = 1e-3
@@ -507,10 +506,8 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
             # At the minimum a rejected step only raises the damping until the steps
             # are this small; stop there instead of paying for ever smaller trials.
             break
-        # a step that does not lower the cost is rejected: no need to sum it whole
         cost_new, jtj_new, grad_new, meat_new = _model_normal_equations(
-            origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, trial, edge, union,
-            cost)
+            origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, trial, edge, union)
         n_eval += 1
         if cost_new < cost:
             converged = cost - cost_new < 1e-9 * cost
@@ -529,25 +526,23 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
     reference_cost = math.nan
     if reference.shape[0] > 0:
         reference_cost = _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor,
-                                                 centre, scale, reference, edge, union,
-                                                 math.inf)[0]
+                                                 centre, scale, reference, edge, union)[0]
     return (theta, _view_robust_sigma(jtj, meat, n_views), cost, True, n_eval,
             reference_cost)
 
 
 @numba.njit(cache=True, nogil=True)
 def _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale,
-                            theta, edge, union, bound):  # pragma: no cover - compiled
+                            theta, edge, union):  # pragma: no cover - compiled
     """:func:`_normal_equations` at parameters ``theta`` (k, 5), the image centres and
-    their derivatives from the DLFC's view model (summed only until the cost reaches
-    ``bound``)."""
+    their derivatives from the DLFC's view model."""
     # the flag computed, not the literal True: a literal argument would make numba compile
     # (and cache) a second specialisation of _views_kernel beside the one Python calls
     with_jac = theta.shape[0] >= 0
     st, jac = _views_kernel(np.ascontiguousarray(theta[:, :3]), basis, xyz_e, tensor,
                             centre, scale, with_jac)
     return _normal_equations(origin, y, fixed, fit, st, jac,
-                             np.ascontiguousarray(theta[:, 3:]), edge, union, bound)
+                             np.ascontiguousarray(theta[:, 3:]), edge, union)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -803,16 +798,11 @@ def _overlapping_edges(xs, delta, edge, r_grad):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge, union,
-                      bound=math.inf):  # pragma: no cover - compiled
+def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge,
+                      union):  # pragma: no cover - compiled
     """Cost ``sum r**2``, ``J^T J``, ``J^T r`` and ``sum_v J_v^T r_v r_v^T J_v`` (the sum
     over views of the outer products of each view's score) of the patch model,
     ``r = model - y``.
-
-    The cost is summed view by view; once it reaches ``bound`` (a step that does not
-    lower the cost, which Levenberg-Marquardt rejects) the remaining views are skipped
-    and the partial sums returned: the cost, already at least ``bound``, is all the
-    caller uses then. Below ``bound`` nothing depends on it.
 
     ``origin`` (K, 2) is each patch's ``(s, t)`` of pixel ``[0, 0]``; ``y``, ``fixed`` and
     ``fit`` (K, n, n) are the normalised pixels, the held neighbours' image and the pixels
@@ -907,8 +897,6 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge, union,
                 m += 1
         for p in range(m):
             cost += res[p] * res[p]
-        if not cost < bound:
-            break
         for a in range(n_par):
             acc = 0.0
             for p in range(m):
