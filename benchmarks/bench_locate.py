@@ -53,10 +53,11 @@ segmentation of every view, the refinement's patch masks, the k-means Lloyd iter
 the refinement's image fits) on the calls one locate of the image makes, recorded and
 replayed, against the same functions of a baseline revision
 (:data:`KERNEL_BASELINE_REV`, :data:`VIEWS_BASELINE_REV` or :data:`DECODE_BASELINE_REV`,
-read with ``git show`` and imported beside the current modules), alternating, best of ``--repeat`` each, with ``--threads`` numba threads
-(default 1), and says whether the outputs are identical. ``--only WORD...`` times the
-kernels whose label holds one of the words; a kernel whose baseline cannot take today's
-call (an argument added since) is skipped with a note.
+read with ``git show`` and imported beside the current modules), alternating, best of
+``--repeat`` each, with ``--threads`` numba threads (default 1), and says whether the
+outputs are identical. ``--only WORD...`` times the kernels whose label holds one of
+the words; a kernel whose baseline cannot take today's call (an argument added since) is
+skipped with a note.
 """
 
 from __future__ import annotations
@@ -435,13 +436,14 @@ def bench_kernels(args) -> None:
                 return np.where(use[:, :, None, None], buffers[i], 0.0) if keep else None
             return fn(*(_copied(a) if label in MOVES_ARGUMENTS else a), **k)
 
+        ours = [part(run(now, i, a, k, True)) for i, (a, k) in enumerate(replay)]  # compiles
         try:
-            outs = [(part(run(now, i, a, k, True)), part(run(base, i, a, k, True)))  # compiles
-                    for i, (a, k) in enumerate(replay)]
+            theirs = [part(run(base, i, a, k, True)) for i, (a, k) in enumerate(replay)]
         except TypeError as err:       # the call has arguments the baseline lacks
             print(f"  {label:<24} skipped: the baseline ({rev[:7]}) cannot take today's "
                   f"call ({err})")
             continue
+        outs = list(zip(ours, theirs))
         same = all(_same(x, y) for x, y in outs)
         diff = max(_close(x, y) for x, y in outs)
         t_now, t_base = [], []
