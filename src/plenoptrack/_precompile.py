@@ -82,8 +82,10 @@ KERNELS: dict[str, tuple[str, str, tuple]] = {
                       (_a(_f4, 4), _I2, _I1, _I1, _i8)),
     "refine_masks": ("plenoptrack.locate.refine", "_patch_masks",
                      (_F2, _i8, _F3, _F2, _F3, _F1, _f8, _F2)),
+    "refine_pixels": ("plenoptrack.locate.refine", "_fit_pixels",
+                      (_F2, _F3, _F3, _a(_b1, 3))),
     "refine_lm": ("plenoptrack.locate.refine", "_levenberg_marquardt",
-                  (_F2, _F3, _F3, _a(_b1, 3), _F2, _I2r, _F3r, _F1r, _F1r, _F2, _F2, _F2, _F2,
+                  (_I1, _F1, _F1, _F1, _F1, _F2, _I2r, _F3r, _F1r, _F1r, _F2, _F2, _F2, _F2,
                    _f8, _i8, _f8, _F2, _F2, _b1)),
 }
 """Every kernel signature that calibrating and locating a frame compile, by short name.
@@ -96,7 +98,7 @@ STEPS: dict[str, tuple[str, ...]] = {
     "locate": ("decode", "segment", "dlfc_eval", "dlfc_eval_serial", "dlfc_views", "kmeans_lloyd",
                "kmeans_topup", "kmeans_evaluate", "robust_thresholds", "normal", "lm", "moments",
                "residual", "nearby_bucket", "nearby_scan", "first_untaken", "absorb",
-               "refine_gather", "refine_masks", "refine_lm"),
+               "refine_gather", "refine_masks", "refine_pixels", "refine_lm"),
 }
 """The kernels each step needs (``calibrate``: lenslet grid and DLFC fit from a white image
 and dot cards; ``locate``: decoding and the perspective-shift locator)."""
@@ -126,7 +128,8 @@ HELPERS: frozenset[str] = frozenset({
     "plenoptrack.locate.refine._bivariate_normal_cdf",
     "plenoptrack.locate.refine._overlapping_edges",
     "plenoptrack.locate.refine._model_normal_equations",
-    "plenoptrack.locate.refine._normal_equations",
+    "plenoptrack.locate.refine._pixel_normal_equations",
+    "plenoptrack.locate.refine._union_rows",
     "plenoptrack.locate.refine._step_tolerance",
     "plenoptrack.locate.refine._view_robust_sigma",
     "plenoptrack.locate.dlfc._eval_block",

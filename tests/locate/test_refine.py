@@ -10,8 +10,9 @@ from plenoptrack.evaluate import match_particles
 from plenoptrack.locate.perspective import PerspectiveLocator, locate_frame
 from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.locate.refine import (EDGE_PX, HEX_RESAMPLING_PX2, ImageEdge,
-                                       _masked_row_percentile, _normal_equations,
-                                       _patch_masks, _patches, _robust_sd, disc_image,
+                                       _fit_pixels, _masked_row_percentile, _patch_masks,
+                                       _patches, _pixel_normal_equations, _robust_sd,
+                                       disc_image,
                                        fit_images, overlap_fraction)
 from plenoptrack.simulate import make_scene, render_frame
 from scipy.special import erfc, ndtr, ndtri, owens_t
@@ -168,9 +169,10 @@ def test_normal_equations_match_a_finite_difference_jacobian(k, union):
     st, dst = dlfc.predict_with_jacobian(theta[:, None, 0], theta[:, None, 1],
                                          theta[:, None, 2], views_uv[None, :, 0],
                                          views_uv[None, :, 1])
-    cost, jtj, jtr, meat = _normal_equations(origin, y, held, fit, np.ascontiguousarray(st),
-                                             np.ascontiguousarray(dst), theta[:, 3:].copy(),
-                                             EDGE_WIDTHS[:k], union)
+    cost, jtj, jtr, meat = _pixel_normal_equations(*_fit_pixels(origin, y, held, fit),
+                                                   np.ascontiguousarray(st),
+                                                   np.ascontiguousarray(dst),
+                                                   theta[:, 3:].copy(), EDGE_WIDTHS[:k], union)
     res = model(theta)
     assert cost == pytest.approx(res @ res, rel=1e-6)
     view_of = np.broadcast_to(np.arange(len(views_uv))[:, None, None], y.shape)[fit]
@@ -214,9 +216,10 @@ def test_two_images_on_one_spot_darken_the_pixels_as_one_opaque_shadow(contrast)
     single = anisotropic_disc(ss - 7.2, tt - 6.9, 3.5, contrast, *EDGE_WIDTHS[0])
 
     def cost(y, k):
-        return _normal_equations(origin, y, held, fit, np.concatenate([st] * k),
-                                 np.concatenate([jac] * k), np.repeat(rc, k, axis=0),
-                                 np.repeat(EDGE_WIDTHS[:1], k, axis=0), True)[0]
+        return _pixel_normal_equations(*_fit_pixels(origin, y, held, fit),
+                                       np.concatenate([st] * k), np.concatenate([jac] * k),
+                                       np.repeat(rc, k, axis=0),
+                                       np.repeat(EDGE_WIDTHS[:1], k, axis=0), True)[0]
 
     data = np.broadcast_to(single, held.shape).copy()
     assert cost(data, 1) < 1e-9                  # the kernel's one image is anisotropic_disc

@@ -402,6 +402,8 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     ref = (np.zeros((0, 5)) if reference is None
            else np.ascontiguousarray(np.asarray(reference, dtype=float).reshape(-1, 5)))
     y, basis = np.ascontiguousarray(y), np.ascontiguousarray(basis)
+    # every evaluation reads the same pixels: listed once, view by view
+    pixels = _fit_pixels(origin, y, fixed, fit)
     widths = edge.widths(theta[:, 2])
     n_evaluations = 0
     # With union, two images are fitted with the product of their blurred discs first,
@@ -412,8 +414,8 @@ def fit_images(dlfc, views_uv, view_rc, data, free_xyz, free_rc, fixed_xyz, fixe
     for stage, as_union in enumerate(stages):
         last = stage == len(stages) - 1            # the reference is scored on the last
         theta, sigma, cost, within, evaluations, reference_cost = _levenberg_marquardt(
-            origin, y, fixed, fit, basis, xyz_e, tensor, centre_xyz, scale_xyz, theta, lo,
-            hi, absolute, float(step_sigma), int(max_iter), float(max_depth_shift), widths,
+            *pixels, basis, xyz_e, tensor, centre_xyz, scale_xyz, theta, lo, hi, absolute,
+            float(step_sigma), int(max_iter), float(max_depth_shift), widths,
             ref if last else np.zeros((0, 5)), as_union)
         n_evaluations += evaluations
         if not within:
@@ -453,10 +455,11 @@ _NORMAL_MAD = 0.6744897501960817
 
 
 @numba.njit(cache=True, nogil=True)
-def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, theta,
+def _levenberg_marquardt(starts, ps, pt, fixed, y, basis, xyz_e, tensor, centre, scale, theta,
                          lo, hi, absolute, step_sigma, max_iter, max_depth_shift, edge,
                          reference, union):  # pragma: no cover - compiled
-    """The damped Gauss-Newton iterations of :func:`fit_images`, compiled: from
+    """The damped Gauss-Newton iterations of :func:`fit_images` on the fitted pixels
+    ``starts, ps, pt, fixed, y`` (:func:`_fit_pixels`), compiled: from
     ``theta`` (k, 5), steps ``(J^T J + lam diag(J^T J)) d = -J^T r`` within the bounds
     ``lo, hi`` (k, 5); a step that lowers the cost is taken and the damping divided by 3,
     otherwise the damping is multiplied by 4 (stop above 1e8). Stops when a proposed or
@@ -468,13 +471,14 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
     taken step has moved a depth by more than ``max_depth_shift`` from the start;
     ``reference_cost`` is the cost of the ``reference`` parameters (j, 5) on the same
     pixels (NaN if j = 0). ``union``: two free images as the blurred union of their
-    shadows (:func:`_normal_equations`)."""
+    shadows (:func:`_pixel_normal_equations`)."""
     k = theta.shape[0]
-    n_views = y.shape[0]
+    n_views = starts.shape[0] - 1
     z0 = theta[:, 2].copy()
     theta = theta.copy()
-    cost, jtj, grad, meat = _model_normal_equations(origin, y, fixed, fit, basis, xyz_e,
-                                                    tensor, centre, scale, theta, edge, union)
+    pixels = (starts, ps, pt, fixed, y)
+    cost, jtj, grad, meat = _model_normal_equations(pixels, basis, xyz_e, tensor, centre,
+                                                    scale, theta, edge, union)
     tol = _step_tolerance(absolute, step_sigma, jtj, meat, n_views)
     n_eval = 1
     lam = 1e-3
@@ -507,7 +511,7 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
             # are this small; stop there instead of paying for ever smaller trials.
             break
         cost_new, jtj_new, grad_new, meat_new = _model_normal_equations(
-            origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale, trial, edge, union)
+            pixels, basis, xyz_e, tensor, centre, scale, trial, edge, union)
         n_eval += 1
         if cost_new < cost:
             converged = cost - cost_new < 1e-9 * cost
@@ -525,24 +529,26 @@ def _levenberg_marquardt(origin, y, fixed, fit, basis, xyz_e, tensor, centre, sc
                 break
     reference_cost = math.nan
     if reference.shape[0] > 0:
-        reference_cost = _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor,
-                                                 centre, scale, reference, edge, union)[0]
+        reference_cost = _model_normal_equations(pixels, basis, xyz_e, tensor, centre, scale,
+                                                 reference, edge, union)[0]
     return (theta, _view_robust_sigma(jtj, meat, n_views), cost, True, n_eval,
             reference_cost)
 
 
 @numba.njit(cache=True, nogil=True)
-def _model_normal_equations(origin, y, fixed, fit, basis, xyz_e, tensor, centre, scale,
-                            theta, edge, union):  # pragma: no cover - compiled
-    """:func:`_normal_equations` at parameters ``theta`` (k, 5), the image centres and
-    their derivatives from the DLFC's view model."""
+def _model_normal_equations(pixels, basis, xyz_e, tensor, centre, scale, theta, edge,
+                            union):  # pragma: no cover - compiled
+    """:func:`_pixel_normal_equations` of the fitted ``pixels`` (:func:`_fit_pixels`) at
+    parameters ``theta`` (k, 5), the image centres and their derivatives from the DLFC's
+    view model."""
     # the flag computed, not the literal True: a literal argument would make numba compile
     # (and cache) a second specialisation of _views_kernel beside the one Python calls
     with_jac = theta.shape[0] >= 0
     st, jac = _views_kernel(np.ascontiguousarray(theta[:, :3]), basis, xyz_e, tensor,
                             centre, scale, with_jac)
-    return _normal_equations(origin, y, fixed, fit, st, jac,
-                             np.ascontiguousarray(theta[:, 3:]), edge, union)
+    starts, ps, pt, fixed, y = pixels
+    return _pixel_normal_equations(starts, ps, pt, fixed, y, st, jac,
+                                   np.ascontiguousarray(theta[:, 3:]), edge, union)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -797,27 +803,58 @@ def _overlapping_edges(xs, delta, edge, r_grad):  # pragma: no cover - compiled
 
 
 
+@numba.njit(cache=True, nogil=True)
+def _fit_pixels(origin, y, fixed, fit):  # pragma: no cover - compiled
+    """The pixels ``fit`` (K, n, n) of patches with pixel ``[0, 0]`` at ``origin`` (K, 2),
+    listed view by view in row-major order: ``(starts (K + 1,), s (N,), t (N,), fixed (N,),
+    y (N,))``, view ``v``'s pixels at ``starts[v]:starts[v + 1]``."""
+    n_views = y.shape[0]
+    starts = np.zeros(n_views + 1, dtype=np.int64)
+    for view in range(n_views):
+        starts[view + 1] = starts[view] + np.count_nonzero(fit[view])
+    n = starts[n_views]
+    ps, pt = np.empty(n), np.empty(n)
+    fixed_out, y_out = np.empty(n), np.empty(n)
+    m = 0
+    for view in range(n_views):
+        for i in range(y.shape[1]):
+            for j in range(y.shape[2]):
+                if fit[view, i, j]:
+                    ps[m] = origin[view, 0] + j
+                    pt[m] = origin[view, 1] + i
+                    fixed_out[m] = fixed[view, i, j]
+                    y_out[m] = y[view, i, j]
+                    m += 1
+    return starts, ps, pt, fixed_out, y_out
+
+
 @numba.njit(cache=True, nogil=True, fastmath=True)
-def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge,
-                      union):  # pragma: no cover - compiled
+def _pixel_normal_equations(starts, ps, pt, fixed, y, st, jac, rc, edge,
+                            union):  # pragma: no cover - compiled
     """Cost ``sum r**2``, ``J^T J``, ``J^T r`` and ``sum_v J_v^T r_v r_v^T J_v`` (the sum
     over views of the outer products of each view's score) of the patch model,
     ``r = model - y``.
 
-    ``origin`` (K, 2) is each patch's ``(s, t)`` of pixel ``[0, 0]``; ``y``, ``fixed`` and
-    ``fit`` (K, n, n) are the normalised pixels, the held neighbours' image and the pixels
-    fitted; ``st`` (k, K, 2), ``jac`` (k, K, 2, 3) and ``rc`` (k, 2) are each free
-    particle's predicted centres, their derivatives and its radius and contrast, ``edge``
-    (k, 2) its edge widths ``(w_s, w_t)`` (:class:`ImageEdge`). The parameters are
-    ordered ``(x, y, z, r, c)`` per particle. With ``union`` two free images (``k = 2``)
-    are drawn as the blurred union of their shadows where both edges cross a pixel's blur
-    (:func:`_overlapping_edges`), else every image as a factor of the product. The
-    Jacobian rows of one view are collected and then reduced as dot products, which the
-    compiler vectorises.
+    The fitted pixels are listed view by view (:func:`_fit_pixels`): view ``v``'s at
+    ``starts[v]:starts[v + 1]`` of ``ps, pt`` (their ``(s, t)``), ``fixed`` (the held
+    neighbours' image there) and ``y`` (the normalised pixels). ``st`` (k, K, 2), ``jac``
+    (k, K, 2, 3) and ``rc`` (k, 2) are each free particle's predicted centres, their
+    derivatives and its radius and contrast, ``edge`` (k, 2) its edge widths ``(w_s,
+    w_t)`` (:class:`ImageEdge`). The parameters are ordered ``(x, y, z, r, c)`` per
+    particle. With ``union`` two free images (``k = 2``) are drawn as the blurred union of
+    their shadows where both edges cross a pixel's blur (:func:`_overlapping_edges`), else
+    every image as a factor of the product.
+
+    Each view is computed in tight passes over its pixels (the edge arguments, the
+    exponentials, the discs, the Jacobian rows), which the compiler vectorises where it
+    can, and the rows are then reduced as dot products.
     """
     k = st.shape[0]
     n_par = 5 * k
-    n_pix = y.shape[1] * y.shape[2]
+    n_views = starts.shape[0] - 1
+    n_pix = 0
+    for view in range(n_views):
+        n_pix = max(n_pix, starts[view + 1] - starts[view])
     jtj = np.zeros((n_par, n_par))
     jtr = np.zeros(n_par)
     meat = np.zeros((n_par, n_par))
@@ -825,76 +862,62 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge,
     cost = 0.0
     rows = np.empty((n_par, n_pix))
     res = np.empty(n_pix)
-    f = np.empty(k)
-    slope = np.empty(k)
-    disc = np.empty(k)
-    drho = np.empty((k, 3))
-    dr = np.empty(k)
-    xs = np.empty(k)
-    delta = np.empty((k, 2))
+    xs = np.empty((k, n_pix))           # edge argument of each pixel and image
+    dxs = np.empty((k, n_pix))          # and its derivatives along s and t
+    dxt = np.empty((k, n_pix))
+    dxr = np.empty((k, n_pix))          # and with respect to the radius
+    gauss = np.empty((k, n_pix))
+    disc = np.empty((k, n_pix))
+    f = np.empty((k, n_pix))            # each image's factor of the product
+    x2 = np.empty(2)
+    delta = np.empty((2, 2))
     inside = np.empty(2)
     r_grad = np.empty((2, 2))
     norm = 1.0 / math.sqrt(math.pi)
-    for view in range(y.shape[0]):
-        m = 0
-        for i in range(y.shape[1]):
-            t = origin[view, 1] + i
-            for j in range(y.shape[2]):
-                if not fit[view, i, j]:
-                    continue
-                s = origin[view, 0] + j
-                for q in range(k):
-                    ds = s - st[q, view, 0]
-                    dt = t - st[q, view, 1]
-                    rho = math.sqrt(ds * ds + dt * dt)
-                    x, dx_ds, dx_dt, dx_dr = _edge_argument(ds, dt, rho, rc[q, 0], edge[q, 0],
-                                                            edge[q, 1])
-                    xs[q] = x
-                    delta[q, 0] = ds
-                    delta[q, 1] = dt
-                    gauss = math.exp(-x * x)
-                    disc[q] = _half_erfc(x, gauss)
-                    slope[q] = rc[q, 1] * gauss * norm   # df / dx
-                    f[q] = 1.0 - rc[q, 1] * disc[q]
-                    dr[q] = dx_dr
-                    for a in range(3):
-                        drho[q, a] = -(dx_ds * jac[q, view, 0, a] + dx_dt * jac[q, view, 1, a])
-                model = fixed[view, i, j]
-                if (union and k == 2 and _EDGE_BAND < disc[0] < 1.0 - _EDGE_BAND
-                        and _EDGE_BAND < disc[1] < 1.0 - _EDGE_BAND):
-                    # both edges cross the pixel's blur: the blurred union of the two
-                    # shadows, not the product of the blurred shadows (module notes)
-                    both, inside[0], inside[1], density = _overlapping_edges(xs, delta, edge,
-                                                                             r_grad)
-                    model *= (1.0 - rc[0, 1] * disc[0] - rc[1, 1] * disc[1]
-                              + rc[0, 1] * rc[1, 1] * both)
-                    res[m] = model - y[view, i, j]
-                    for q in range(2):
-                        p = 1 - q
-                        others = fixed[view, i, j] * (1.0 - rc[p, 1] * inside[q])
-                        # the edges' correlation moves with the image centre too
-                        turn = fixed[view, i, j] * rc[0, 1] * rc[1, 1] * density
-                        for a in range(3):
-                            rows[5 * q + a, m] = (others * slope[q] * drho[q, a]
-                                                  - turn * (r_grad[q, 0] * jac[q, view, 0, a]
-                                                            + r_grad[q, 1] * jac[q, view, 1, a]))
-                        rows[5 * q + 3, m] = others * slope[q] * dr[q]
-                        rows[5 * q + 4, m] = fixed[view, i, j] * (rc[p, 1] * both - disc[q])
-                    m += 1
-                    continue
-                for q in range(k):
-                    model *= f[q]
-                res[m] = model - y[view, i, j]
-                for q in range(k):
-                    others = fixed[view, i, j]
-                    for p in range(k):
-                        if p != q:
-                            others *= f[p]
-                    for a in range(3):
-                        rows[5 * q + a, m] = others * slope[q] * drho[q, a]
-                    rows[5 * q + 3, m] = others * slope[q] * dr[q]
-                    rows[5 * q + 4, m] = -others * disc[q]
-                m += 1
+    for view in range(n_views):
+        o = starts[view]
+        m = starts[view + 1] - o
+        for q in range(k):
+            cs, ct = st[q, view, 0], st[q, view, 1]
+            radius, w_s, w_t = rc[q, 0], edge[q, 0], edge[q, 1]
+            for p in range(m):
+                ds = ps[o + p] - cs
+                dt = pt[o + p] - ct
+                rho = math.sqrt(ds * ds + dt * dt)
+                xs[q, p], dxs[q, p], dxt[q, p], dxr[q, p] = _edge_argument(ds, dt, rho, radius,
+                                                                           w_s, w_t)
+            for p in range(m):
+                gauss[q, p] = math.exp(-xs[q, p] * xs[q, p])
+            contrast = rc[q, 1]
+            for p in range(m):
+                disc[q, p] = _half_erfc(xs[q, p], gauss[q, p])
+                f[q, p] = 1.0 - contrast * disc[q, p]
+        if union and k == 2:
+            m = _union_rows(o, m, ps, pt, fixed, y, st, jac, rc, edge, view, xs, dxs, dxt,
+                            dxr, gauss, disc, f, rows, res, x2, delta, inside, r_grad)
+        else:
+            for p in range(m):
+                res[p] = fixed[o + p]
+            for q in range(k):
+                for p in range(m):
+                    res[p] *= f[q, p]
+            for p in range(m):
+                res[p] -= y[o + p]
+            for q in range(k):
+                j0, j1, j2 = jac[q, view, 0, 0], jac[q, view, 0, 1], jac[q, view, 0, 2]
+                k0, k1, k2 = jac[q, view, 1, 0], jac[q, view, 1, 1], jac[q, view, 1, 2]
+                contrast = rc[q, 1]
+                for p in range(m):
+                    others = fixed[o + p]
+                    for g in range(k):
+                        if g != q:
+                            others *= f[g, p]
+                    slope = others * contrast * gauss[q, p] * norm      # df / dx
+                    rows[5 * q, p] = -slope * (dxs[q, p] * j0 + dxt[q, p] * k0)
+                    rows[5 * q + 1, p] = -slope * (dxs[q, p] * j1 + dxt[q, p] * k1)
+                    rows[5 * q + 2, p] = -slope * (dxs[q, p] * j2 + dxt[q, p] * k2)
+                    rows[5 * q + 3, p] = slope * dxr[q, p]
+                    rows[5 * q + 4, p] = -others * disc[q, p]
         for p in range(m):
             cost += res[p] * res[p]
         for a in range(n_par):
@@ -915,6 +938,54 @@ def _normal_equations(origin, y, fixed, fit, st, jac, rc, edge,
         for b in range(a):
             jtj[a, b] = jtj[b, a]
     return cost, jtj, jtr, meat
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True)
+def _union_rows(o, m, ps, pt, fixed, y, st, jac, rc, edge, view, xs, dxs, dxt, dxr, gauss,
+                disc, f, rows, res, x2, delta, inside, r_grad):  # pragma: no cover - compiled
+    """Residuals and Jacobian rows of view ``view``'s ``m`` pixels (from ``o`` in the
+    pixel lists) for two free images drawn as the blurred union of their shadows where
+    both edges cross a pixel's blur, as their product elsewhere
+    (:func:`_pixel_normal_equations`, whose per-image passes ``xs ... f`` it reads);
+    returns ``m``."""
+    norm = 1.0 / math.sqrt(math.pi)
+    for p in range(m):
+        held = fixed[o + p]
+        if (_EDGE_BAND < disc[0, p] < 1.0 - _EDGE_BAND
+                and _EDGE_BAND < disc[1, p] < 1.0 - _EDGE_BAND):
+            # both edges cross the pixel's blur: the blurred union of the two shadows,
+            # not the product of the blurred shadows (module notes)
+            for q in range(2):
+                x2[q] = xs[q, p]
+                delta[q, 0] = ps[o + p] - st[q, view, 0]
+                delta[q, 1] = pt[o + p] - st[q, view, 1]
+            both, inside[0], inside[1], density = _overlapping_edges(x2, delta, edge, r_grad)
+            res[p] = (held * (1.0 - rc[0, 1] * disc[0, p] - rc[1, 1] * disc[1, p]
+                              + rc[0, 1] * rc[1, 1] * both) - y[o + p])
+            for q in range(2):
+                g = 1 - q
+                others = held * (1.0 - rc[g, 1] * inside[q])
+                slope = rc[q, 1] * gauss[q, p] * norm
+                # the edges' correlation moves with the image centre too
+                turn = held * rc[0, 1] * rc[1, 1] * density
+                for a in range(3):
+                    drho = -(dxs[q, p] * jac[q, view, 0, a] + dxt[q, p] * jac[q, view, 1, a])
+                    rows[5 * q + a, p] = (others * slope * drho
+                                          - turn * (r_grad[q, 0] * jac[q, view, 0, a]
+                                                    + r_grad[q, 1] * jac[q, view, 1, a]))
+                rows[5 * q + 3, p] = others * slope * dxr[q, p]
+                rows[5 * q + 4, p] = held * (rc[g, 1] * both - disc[q, p])
+            continue
+        res[p] = held * f[0, p] * f[1, p] - y[o + p]
+        for q in range(2):
+            others = held * f[1 - q, p]
+            slope = rc[q, 1] * gauss[q, p] * norm
+            for a in range(3):
+                drho = -(dxs[q, p] * jac[q, view, 0, a] + dxt[q, p] * jac[q, view, 1, a])
+                rows[5 * q + a, p] = others * slope * drho
+            rows[5 * q + 3, p] = others * slope * dxr[q, p]
+            rows[5 * q + 4, p] = -others * disc[q, p]
+    return m
 
 
 def overlap_fraction(pred: np.ndarray, radius: np.ndarray, gap_px: float = 1.0) -> np.ndarray:
