@@ -55,9 +55,9 @@ replayed, against the same functions of a baseline revision
 (:data:`KERNEL_BASELINE_REV`, :data:`VIEWS_BASELINE_REV`, :data:`FIT_PIXELS_BASELINE_REV`
 or :data:`DECODE_BASELINE_REV`, read with ``git show`` and imported beside the current
 modules), alternating, best of ``--repeat`` each, with ``--threads`` numba threads
-(default 1), and says whether the outputs are identical. ``--only WORD...`` times the kernels whose label holds one of
-the words; a kernel whose baseline cannot take today's call (an argument added since) is
-skipped with a note.
+(default 1), and says whether the outputs are identical. ``--only WORD...`` times the
+kernels whose label holds one of the words; a kernel whose baseline cannot take today's
+call (an argument added since) is skipped with a note.
 """
 
 from __future__ import annotations

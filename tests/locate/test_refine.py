@@ -12,8 +12,7 @@ from plenoptrack.locate.triangulate import TriangulationFlag
 from plenoptrack.locate.refine import (EDGE_PX, HEX_RESAMPLING_PX2, ImageEdge,
                                        _fit_pixels, _masked_row_percentile, _patch_masks,
                                        _patches, _pixel_normal_equations, _robust_sd,
-                                       disc_image,
-                                       fit_images, overlap_fraction)
+                                       disc_image, fit_images, overlap_fraction)
 from plenoptrack.simulate import make_scene, render_frame
 from scipy.special import erfc, ndtr, ndtri, owens_t
 
