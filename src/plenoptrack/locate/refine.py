@@ -892,32 +892,31 @@ def _pixel_normal_equations(starts, ps, pt, fixed, y, st, jac, rc, edge,
             for p in range(m):
                 disc[q, p] = _half_erfc(xs[q, p], gauss[q, p])
                 f[q, p] = 1.0 - contrast * disc[q, p]
+        for p in range(m):
+            res[p] = fixed[o + p]
+        for q in range(k):
+            for p in range(m):
+                res[p] *= f[q, p]
+        for p in range(m):
+            res[p] -= y[o + p]
+        for q in range(k):
+            j0, j1, j2 = jac[q, view, 0, 0], jac[q, view, 0, 1], jac[q, view, 0, 2]
+            k0, k1, k2 = jac[q, view, 1, 0], jac[q, view, 1, 1], jac[q, view, 1, 2]
+            contrast = rc[q, 1]
+            for p in range(m):
+                others = fixed[o + p]
+                for g in range(k):
+                    if g != q:
+                        others *= f[g, p]
+                slope = others * contrast * gauss[q, p] * norm      # df / dx
+                rows[5 * q, p] = -slope * (dxs[q, p] * j0 + dxt[q, p] * k0)
+                rows[5 * q + 1, p] = -slope * (dxs[q, p] * j1 + dxt[q, p] * k1)
+                rows[5 * q + 2, p] = -slope * (dxs[q, p] * j2 + dxt[q, p] * k2)
+                rows[5 * q + 3, p] = slope * dxr[q, p]
+                rows[5 * q + 4, p] = -others * disc[q, p]
         if union and k == 2:
-            m = _union_rows(o, m, ps, pt, fixed, y, st, jac, rc, edge, view, xs, dxs, dxt,
-                            dxr, gauss, disc, f, rows, res, x2, delta, inside, r_grad)
-        else:
-            for p in range(m):
-                res[p] = fixed[o + p]
-            for q in range(k):
-                for p in range(m):
-                    res[p] *= f[q, p]
-            for p in range(m):
-                res[p] -= y[o + p]
-            for q in range(k):
-                j0, j1, j2 = jac[q, view, 0, 0], jac[q, view, 0, 1], jac[q, view, 0, 2]
-                k0, k1, k2 = jac[q, view, 1, 0], jac[q, view, 1, 1], jac[q, view, 1, 2]
-                contrast = rc[q, 1]
-                for p in range(m):
-                    others = fixed[o + p]
-                    for g in range(k):
-                        if g != q:
-                            others *= f[g, p]
-                    slope = others * contrast * gauss[q, p] * norm      # df / dx
-                    rows[5 * q, p] = -slope * (dxs[q, p] * j0 + dxt[q, p] * k0)
-                    rows[5 * q + 1, p] = -slope * (dxs[q, p] * j1 + dxt[q, p] * k1)
-                    rows[5 * q + 2, p] = -slope * (dxs[q, p] * j2 + dxt[q, p] * k2)
-                    rows[5 * q + 3, p] = slope * dxr[q, p]
-                    rows[5 * q + 4, p] = -others * disc[q, p]
+            _union_rows(o, m, ps, pt, fixed, y, st, jac, rc, edge, view, xs, dxs, dxt, dxr,
+                        gauss, disc, rows, res, x2, delta, inside, r_grad)
         for p in range(m):
             cost += res[p] * res[p]
         for a in range(n_par):
@@ -942,50 +941,38 @@ def _pixel_normal_equations(starts, ps, pt, fixed, y, st, jac, rc, edge,
 
 @numba.njit(cache=True, nogil=True, fastmath=True)
 def _union_rows(o, m, ps, pt, fixed, y, st, jac, rc, edge, view, xs, dxs, dxt, dxr, gauss,
-                disc, f, rows, res, x2, delta, inside, r_grad):  # pragma: no cover - compiled
-    """Residuals and Jacobian rows of view ``view``'s ``m`` pixels (from ``o`` in the
-    pixel lists) for two free images drawn as the blurred union of their shadows where
-    both edges cross a pixel's blur, as their product elsewhere
-    (:func:`_pixel_normal_equations`, whose per-image passes ``xs ... f`` it reads);
-    returns ``m``."""
+                disc, rows, res, x2, delta, inside, r_grad):  # pragma: no cover - compiled
+    """Residuals and Jacobian rows, in place, of those of view ``view``'s ``m`` pixels
+    (from ``o`` in the pixel lists) where both edges of two free images cross the pixel's
+    blur: there the images are drawn as the blurred union of their shadows, not as the
+    product of their blurred shadows that :func:`_pixel_normal_equations` (whose
+    per-image passes ``xs ... disc`` this reads) wrote for every pixel (module notes)."""
     norm = 1.0 / math.sqrt(math.pi)
     for p in range(m):
-        held = fixed[o + p]
-        if (_EDGE_BAND < disc[0, p] < 1.0 - _EDGE_BAND
+        if not (_EDGE_BAND < disc[0, p] < 1.0 - _EDGE_BAND
                 and _EDGE_BAND < disc[1, p] < 1.0 - _EDGE_BAND):
-            # both edges cross the pixel's blur: the blurred union of the two shadows,
-            # not the product of the blurred shadows (module notes)
-            for q in range(2):
-                x2[q] = xs[q, p]
-                delta[q, 0] = ps[o + p] - st[q, view, 0]
-                delta[q, 1] = pt[o + p] - st[q, view, 1]
-            both, inside[0], inside[1], density = _overlapping_edges(x2, delta, edge, r_grad)
-            res[p] = (held * (1.0 - rc[0, 1] * disc[0, p] - rc[1, 1] * disc[1, p]
-                              + rc[0, 1] * rc[1, 1] * both) - y[o + p])
-            for q in range(2):
-                g = 1 - q
-                others = held * (1.0 - rc[g, 1] * inside[q])
-                slope = rc[q, 1] * gauss[q, p] * norm
-                # the edges' correlation moves with the image centre too
-                turn = held * rc[0, 1] * rc[1, 1] * density
-                for a in range(3):
-                    drho = -(dxs[q, p] * jac[q, view, 0, a] + dxt[q, p] * jac[q, view, 1, a])
-                    rows[5 * q + a, p] = (others * slope * drho
-                                          - turn * (r_grad[q, 0] * jac[q, view, 0, a]
-                                                    + r_grad[q, 1] * jac[q, view, 1, a]))
-                rows[5 * q + 3, p] = others * slope * dxr[q, p]
-                rows[5 * q + 4, p] = held * (rc[g, 1] * both - disc[q, p])
             continue
-        res[p] = held * f[0, p] * f[1, p] - y[o + p]
+        held = fixed[o + p]
         for q in range(2):
-            others = held * f[1 - q, p]
+            x2[q] = xs[q, p]
+            delta[q, 0] = ps[o + p] - st[q, view, 0]
+            delta[q, 1] = pt[o + p] - st[q, view, 1]
+        both, inside[0], inside[1], density = _overlapping_edges(x2, delta, edge, r_grad)
+        res[p] = (held * (1.0 - rc[0, 1] * disc[0, p] - rc[1, 1] * disc[1, p]
+                          + rc[0, 1] * rc[1, 1] * both) - y[o + p])
+        # the edges' correlation moves with the image centre too
+        turn = held * rc[0, 1] * rc[1, 1] * density
+        for q in range(2):
+            g = 1 - q
+            others = held * (1.0 - rc[g, 1] * inside[q])
             slope = rc[q, 1] * gauss[q, p] * norm
             for a in range(3):
                 drho = -(dxs[q, p] * jac[q, view, 0, a] + dxt[q, p] * jac[q, view, 1, a])
-                rows[5 * q + a, p] = others * slope * drho
+                rows[5 * q + a, p] = (others * slope * drho
+                                      - turn * (r_grad[q, 0] * jac[q, view, 0, a]
+                                                + r_grad[q, 1] * jac[q, view, 1, a]))
             rows[5 * q + 3, p] = others * slope * dxr[q, p]
-            rows[5 * q + 4, p] = -others * disc[q, p]
-    return m
+            rows[5 * q + 4, p] = held * (rc[g, 1] * both - disc[q, p])
 
 
 def overlap_fraction(pred: np.ndarray, radius: np.ndarray, gap_px: float = 1.0) -> np.ndarray:
