@@ -219,6 +219,121 @@ def test_further_rounds_find_particles_the_first_left_hidden(mixed_scenes):
     assert counts[4][1] <= counts[1][1] + 1
 
 
+def test_candidates_turned_down_where_nothing_changed_are_not_fitted_again(
+        mixed_scenes, monkeypatch):
+    """A candidate an earlier round fitted and turned down, found again where nothing has
+    changed, is not fitted again: on both frames the same true particles are matched as
+    when every candidate of every round is fitted, with no more unmatched ones, and
+    fewer candidates are fitted."""
+    calib, scenes = mixed_scenes
+    fitted = []
+    admit, joint = hidden._ResidualSearch.admit, hidden._ResidualSearch.fit_jointly
+
+    def counting(method):
+        def wrapper(self, q):
+            fitted[-1] += 1
+            return method(self, q)
+        return wrapper
+
+    monkeypatch.setattr(hidden._ResidualSearch, "admit", counting(admit))
+    monkeypatch.setattr(hidden._ResidualSearch, "fit_jointly", counting(joint))
+    skipped = 0
+    for truth, raw in scenes:
+        counts = {}
+        for name in ("skipping", "every candidate"):
+            fitted.append(0)
+            with monkeypatch.context() as patch:
+                if name == "every candidate":
+                    patch.setattr(hidden._ResidualSearch, "turned_down_before",
+                                  lambda self, rows: np.zeros(len(rows), dtype=bool))
+                found = locate_frame(raw, calib).particles
+            pairs = match_particles(found, truth, tolerance_mm=1.0)
+            counts[name] = (sorted(pairs["truth_index"]), len(found) - len(pairs))
+        assert counts["skipping"][0] == counts["every candidate"][0]
+        assert counts["skipping"][1] <= counts["every candidate"][1]
+        skipped += fitted[-1] - fitted[-2]
+    assert skipped > 0
+
+
+def _linear_predict(dlfc, xyz, views_uv):
+    """Image centres of a stand-in camera: 10 px per mm, 0.25 px of parallax per mm of
+    depth per unit of view coordinate."""
+    xyz = np.asarray(xyz, dtype=float).reshape(-1, 3)
+    return 10.0 * xyz[:, None, :2] + 0.25 * xyz[:, None, 2:] * views_uv[None]
+
+
+_VIEWS = np.array([[u, v] for u in (-2.0, 0.0, 2.0) for v in (-2.0, 0.0, 2.0)])
+
+
+def test_a_candidate_turned_down_before_is_one_whose_images_coincide(monkeypatch):
+    """Images within the grow tolerance (1 px, median over the views) of a turned-down
+    candidate's: 0.2 px beside it, or 1 mm deeper (0.5-0.7 px off the central view) are
+    the same candidate; 3 mm deeper (1.5-2.1 px) is another."""
+    monkeypatch.setattr(hidden, "_predict_all", _linear_predict)
+    search = object.__new__(hidden._ResidualSearch)
+    search.ctx = type("Ctx", (), {"dlfc": None, "tolerance_px": 1.0})()
+    search.views_uv = _VIEWS
+    candidates = np.array([[0.0, 0.0, 1.0], [0.02, 0.0, 1.0], [0.0, 0.0, 2.0],
+                           [0.0, 0.0, 4.0], [5.0, 5.0, 0.0], [5.0, 5.0, 4.1]])
+    search.pred2 = _linear_predict(None, candidates, _VIEWS)
+    search.earlier = hidden.EarlierRounds()
+    rows = np.arange(len(candidates))
+    assert not search.turned_down_before(rows).any()           # nothing turned down yet
+    search.earlier.add([[0.0, 0.0, 1.0], [5.0, 5.0, 0.0]], [2.0, 2.0])
+    np.testing.assert_array_equal(search.turned_down_before(rows),
+                                  [True, True, True, False, True, False])
+    np.testing.assert_array_equal(search.turned_down_before(rows[3:]), [False, True, False])
+    assert not search.turned_down_before(np.array([], dtype=np.int64)).any()
+
+
+def test_turned_down_candidates_near_a_changed_particle_are_forgotten(monkeypatch):
+    """A changed particle's image within the two radii and 4 px of a turned-down
+    candidate's in some view makes it a candidate to fit again; one 0.3 px further is
+    too far."""
+    monkeypatch.setattr(hidden, "_predict_all", _linear_predict)
+    earlier = hidden.EarlierRounds()
+    earlier.add([[0.0, 0.0, 1.0], [5.0, 5.0, 0.0], [-5.0, 0.0, 0.0]], [2.0, 2.0, 1.0])
+    earlier.forget_near(None, _VIEWS, np.zeros((0, 3)), np.zeros(0))
+    assert len(earlier.xyz) == 3
+    # 6.7 px beside the first in every view (2 + 0.7 + 4 = 6.7 px is too far, 6.5 is not)
+    earlier.forget_near(None, _VIEWS, np.array([[0.67, 0.0, 1.0]]), np.array([0.7]))
+    assert len(earlier.xyz) == 3
+    earlier.forget_near(None, _VIEWS, np.array([[0.65, 0.0, 1.0]]), np.array([0.7]))
+    np.testing.assert_array_equal(earlier.xyz, [[5.0, 5.0, 0.0], [-5.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(earlier.radius, [2.0, 1.0])
+
+
+def test_a_rounds_changes_are_its_particles_where_found_and_where_refitted():
+    """``near`` rows and every other row whose position, image fit or regions changed,
+    where the round found them and after their refit, with the particles the refit's
+    split added; radius from the image fit, else half the regions' diameter; particles
+    without a position (dropped) or a radius left out."""
+    detections = pd.DataFrame({"diameter_px": [6.0] * 4, "whole": [True] * 4,
+                               "dark_area": [20.0] * 4})
+    ctx = type("Ctx", (), {"detections": detections})()
+
+    def state(positions, radius, owner=(1, 1, 1, -1)):
+        n = len(positions)
+        return ParticleState(owner=np.array(owner), initial=np.zeros((n, 3)),
+                             positions=np.array(positions, dtype=float),
+                             table=pd.DataFrame({"n_views": np.full(n, 20),
+                                                 hidden._FIT_RADIUS: radius}))
+
+    nan = math.nan
+    found = state([[0, 0, 0], [1, 1, 1], [2, 2, 2], [3, 3, 3], [4, 4, 4], [6, 6, 6]],
+                  [2.0, nan, 3.0, 4.0, 2.5, 2.5])
+    after = state([[0, 0, 0], [1.5, 1, 1], [2, 2, 2], [nan] * 3, [4, 4, 4], [6, 6, 6],
+                   [5, 5, 5]],
+                  [2.0, nan, 3.5, 4.0, 2.5, 2.5, 5.0], owner=(1, 1, 1, 5))
+    xyz, radius = perspective._changed_images(ctx, found, after,
+                                              np.array([False, True, False, True, False,
+                                                        False]))
+    # rows 1 and 3 near; row 2's image fit and row 5's regions changed; rows 0, 4 kept
+    np.testing.assert_array_equal(xyz, [[1, 1, 1], [2, 2, 2], [3, 3, 3], [6, 6, 6],
+                                        [1.5, 1, 1], [2, 2, 2], [6, 6, 6], [5, 5, 5]])
+    np.testing.assert_array_equal(radius, [3.0, 3.0, 4.0, 2.5, 3.0, 3.5, 2.5, 5.0])
+
+
 def _pin_pieces(found: pd.DataFrame, field: pd.DataFrame) -> tuple[int, np.ndarray]:
     """Heads matched within 0.3 mm, and the particles (not heads) within 0.3 mm of each
     stem's axis, of pins from :func:`~plenoptrack.study.study_field`."""
@@ -293,19 +408,24 @@ def test_a_head_measured_with_its_stem_is_fitted_on_the_head(small_calibrated, p
 
 class _Rounds:
     """Stand-ins for the stages :func:`search_hidden_rounds` calls: round ``i`` of
-    ``script`` finds ``found`` particles of which the refit drops ``dropped``."""
+    ``script`` finds ``found`` particles of which the refit drops ``dropped``; ``earlier``
+    records the memory of earlier rounds each round was given, ``forgotten`` the
+    particles the rounds changed."""
 
     def __init__(self, script):
         self.script = list(script)
         self.calls = 0
+        self.earlier, self.forgotten = [], []
 
     def state(self, n):
         table = pd.DataFrame({"n_views": np.full(n, 20)})
         return ParticleState(owner=np.zeros(0, dtype=np.int64), initial=np.zeros((n, 3)),
                              positions=np.zeros((n, 3)), table=table)
 
-    def find(self, ctx, state, locator, calibration, *, frame=0, elongated=True):
+    def find(self, ctx, state, locator, calibration, *, frame=0, elongated=True,
+             earlier=None):
         found, self.dropped = self.script[self.calls]
+        self.earlier.append(earlier)
         self.calls += 1
         grown = dataclasses.replace(
             state, positions=np.zeros((state.n_particles + found, 3)),
@@ -319,14 +439,14 @@ class _Rounds:
         return dataclasses.replace(state, table=table)
 
 
-@pytest.mark.parametrize("script, rounds, calls, kept", [
-    ([(2, 0), (0, 0), (5, 0)], 4, 2, 2),          # a round that finds nothing ends them
-    ([(2, 0), (1, 1), (5, 0)], 4, 2, 2),          # so does one whose finds are all dropped
-    ([(2, 1), (3, 0), (1, 0), (4, 0)], 3, 3, 5),  # at most hidden_rounds
-    ([(3, 0)], 1, 1, 3),
+@pytest.mark.parametrize("script, rounds, calls, kept, went_on", [
+    ([(2, 0), (0, 0), (5, 0)], 4, 2, 2, 1),          # a round that finds nothing ends them
+    ([(2, 0), (1, 1), (5, 0)], 4, 2, 2, 1),          # so does one whose finds are all dropped
+    ([(2, 1), (3, 0), (1, 0), (4, 0)], 3, 3, 5, 3),  # at most hidden_rounds
+    ([(3, 0)], 1, 1, 3, 1),
 ])
 def test_hidden_rounds_stop_when_a_round_keeps_nothing_more(monkeypatch, script, rounds,
-                                                             calls, kept):
+                                                             calls, kept, went_on):
     fake = _Rounds(script)
     monkeypatch.setattr(perspective, "find_hidden_particles", fake.find)
     monkeypatch.setattr(perspective, "_drop_unexplained_hidden", fake.drop)
@@ -334,10 +454,21 @@ def test_hidden_rounds_stop_when_a_round_keeps_nothing_more(monkeypatch, script,
     monkeypatch.setattr(perspective, "refine_particles", lambda ctx, state, *a, **k: state)
     monkeypatch.setattr(perspective, "split_merged_particles",
                         lambda ctx, state, *a, **k: state)
+    # every round is given the same memory of the earlier ones, which forgets the
+    # candidates near what each round that goes on changed
+    monkeypatch.setattr(perspective, "_fit_views", lambda ctx: ("views", None))
+    monkeypatch.setattr(perspective, "_changed_images",
+                        lambda ctx, found, state, near: ("changed", state.n_particles))
+    monkeypatch.setattr(hidden.EarlierRounds, "forget_near",
+                        lambda self, dlfc, views, *changed: fake.forgotten.append(changed))
     locator = PerspectiveLocator.from_dict({"check": {"hidden_rounds": rounds}})
-    _, state = perspective.search_hidden_rounds(None, fake.state(10), locator, None)
+    ctx = type("Ctx", (), {"dlfc": None})()
+    _, state = perspective.search_hidden_rounds(ctx, fake.state(10), locator, None)
     assert fake.calls == calls
     assert perspective._n_live(state, locator.solve.min_views) == 10 + kept
+    assert all(earlier is fake.earlier[0] for earlier in fake.earlier)
+    n = 10 + np.cumsum([found for found, _ in script])
+    assert fake.forgotten == [("changed", int(k)) for k in n[:went_on]]
 
 
 def test_hidden_search_settings_are_checked():

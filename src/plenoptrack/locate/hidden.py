@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 
 from .._columns import POS_COLUMNS, SIGMA_COLUMNS
-from ._assign import _predict_all
+from ._assign import _coincident_pairs, _predict_all
 from .frame import (_COMPANION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN,
                      FrameContext, ParticleState, _fit_views, _member_diameter,
                      _usable_views)
@@ -30,11 +30,62 @@ from .settings import CheckSettings, PerspectiveLocator
 from .split import _coincides, _coinciding, _explains_more, _two_images, split_gain_bar
 from .triangulate import TriangulationFlag
 
-__all__ = ["search_residual", "drop_duplicate_particles", "STRONG_VIEW_FRACTION"]
+__all__ = ["search_residual", "drop_duplicate_particles", "EarlierRounds",
+           "STRONG_VIEW_FRACTION", "CHANGED_MARGIN_PX"]
+
+CHANGED_MARGIN_PX = 4.0
+"""How close (view pixels, beyond the two images' radii) a turned-down candidate's image
+must come to the image of a particle a round changed, in some view, to be fitted again
+when found again (:meth:`EarlierRounds.forget_near`): the margin of the frame's other
+neighbour tests (rim blur and grow tolerance)."""
+
+
+@dataclass
+class EarlierRounds:
+    """The candidates the earlier rounds of a frame's hidden-particle search fitted and
+    turned down, and near which nothing has changed since (:func:`search_residual` adds
+    them; :meth:`forget_near` drops those near a particle a round changed).
+
+    A candidate found again whose images coincide with one of these (median distance
+    over the views at most ``ctx.tolerance_px``) is turned down again without a fit: the
+    fit would start from the same place beside the same images.
+
+    Attributes
+    ----------
+    xyz : (T, 3) float ndarray
+        Where the residual's solve placed each, mm.
+    radius : (T,) float ndarray
+        Their image radii, view pixels.
+    """
+
+    xyz: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros((0, 3)))
+    radius: np.ndarray = dataclasses.field(default_factory=lambda: np.zeros(0))
+
+    def add(self, xyz: np.ndarray, radius: np.ndarray) -> None:
+        """Add the candidates at ``xyz`` (k, 3), mm, with image radii ``radius`` (k,)."""
+        self.xyz = np.vstack([self.xyz, np.asarray(xyz, dtype=float).reshape(-1, 3)])
+        self.radius = np.concatenate([self.radius, np.asarray(radius, dtype=float)])
+
+    def forget_near(self, dlfc, views_uv: np.ndarray, xyz: np.ndarray,
+                    radius: np.ndarray) -> None:
+        """Drop the candidates whose images come within their radius, the changed
+        particle's and :data:`CHANGED_MARGIN_PX` of the image of a changed particle
+        (``xyz`` (F, 3), mm, image radii ``radius`` (F,), view pixels) in some view of
+        ``views_uv`` (V, 2)."""
+        if len(self.xyz) == 0 or len(xyz) == 0:
+            return
+        mine = _predict_all(dlfc, self.xyz, views_uv)
+        spans = ImageSpans(mine)
+        near = np.zeros(len(self.xyz), dtype=bool)
+        for image, r in zip(_predict_all(dlfc, np.asarray(xyz, dtype=float).reshape(-1, 3),
+                                         views_uv), np.asarray(radius, dtype=float)):
+            near |= spans.meet(mine, image, self.radius + r + CHANGED_MARGIN_PX)
+        self.xyz, self.radius = self.xyz[~near], self.radius[~near]
 
 
 def search_residual(ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator,
-                    calibration, locate_residual, *, elongated: bool = True
+                    calibration, locate_residual, *, elongated: bool = True,
+                    earlier: EarlierRounds | None = None
                     ) -> tuple[FrameContext, ParticleState, int]:
     """Search again with the located particles' images divided out.
 
@@ -69,10 +120,14 @@ def search_residual(ctx: FrameContext, state: ParticleState, locator: Perspectiv
     fit explains its pixels to within ``check.refine_max_model_error``, the gain a
     particle found must bring (one whose images merge with a located particle's would
     have spoilt that one's fit), and no more than a few views hold regions no located
-    image covers (:func:`_may_hide_particles`). Returns the frame context over both sets
-    of regions, the joined state and the number of particles added.
+    image covers (:func:`_may_hide_particles`). With ``earlier`` (the frame's earlier
+    rounds), a candidate found again where nothing has changed since a round turned it
+    down is not fitted again (:class:`EarlierRounds`); the candidates this search fits
+    and turns down are added to it. Returns the frame context over both sets of
+    regions, the joined state and the number of particles added.
     """
-    search = _ResidualSearch(ctx, state, locator, elongated)
+    earlier = EarlierRounds() if earlier is None else earlier
+    search = _ResidualSearch(ctx, state, locator, elongated, earlier)
     if not search.may_hide_particles():
         return ctx, state, 0
     located = locate_residual(search.residual())
@@ -86,6 +141,8 @@ def search_residual(ctx: FrameContext, state: ParticleState, locator: Perspectiv
         search.admit(q)
     for q in search.best_seen_first(list(search.shared)):
         search.fit_jointly(q)
+    turned_down = np.array(sorted(q for q in search.fitted if not search.new[q]), dtype=np.int64)
+    earlier.add(state2.positions[turned_down], search.radius2[turned_down])
     return search.joined(calibration)
 
 
@@ -95,12 +152,16 @@ class _ResidualSearch:
 
     ``held_*`` are the images every fit is made beside: the live located particles
     (rows ``0..L-1``, ``live_rows`` their state rows) and then each candidate admitted.
+    ``earlier`` is what the frame's earlier rounds did (:class:`EarlierRounds`),
+    ``fitted`` the candidates this search has fitted.
     """
 
     def __init__(self, ctx: FrameContext, state: ParticleState, locator: PerspectiveLocator,
-                 elongated: bool = True):
+                 elongated: bool = True, earlier: EarlierRounds | None = None):
         self.ctx, self.state, self.locator = ctx, state, locator
         self.elongated = elongated
+        self.earlier = EarlierRounds() if earlier is None else earlier
+        self.fitted = set()
         self.settings = locator.check
         table, n = state.table, state.n_particles
         fit_radius = (table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in table.columns
@@ -146,15 +207,33 @@ class _ResidualSearch:
                                     edge=np.vstack([edge, edge[k]]),
                                     axes=np.vstack([discs, shapes]))
 
+    def turned_down_before(self, rows: np.ndarray) -> np.ndarray:
+        """(len(rows),) bool: the candidates ``rows`` an earlier round fitted and turned
+        down where nothing has changed since (:class:`EarlierRounds`)."""
+        rows = np.asarray(rows, dtype=np.int64)
+        out = np.zeros(len(rows), dtype=bool)
+        if len(self.earlier.xyz) == 0 or len(rows) == 0:
+            return out
+        before = _predict_all(self.ctx.dlfc, self.earlier.xyz, self.views_uv)
+        n = len(before)
+        a, b = _coincident_pairs(np.concatenate([before, self.pred2[rows]]),
+                                 self.ctx.tolerance_px)
+        out[b[(a < n) & (b >= n)] - n] = True
+        return out
+
     def take_candidates(self, found: pd.DataFrame, state2: ParticleState) -> None:
-        """The residual's particles seen in enough views (``new``), less those whose images
-        coincide with a located particle's; those that coincide with one alone are
-        ``shared`` (candidate -> live index) for a joint fit, with ``check.hidden_joint``."""
+        """The residual's particles seen in enough views (``new``), less those an earlier
+        round turned down where nothing has changed (:meth:`turned_down_before`) and those
+        whose images coincide with a located particle's; those that coincide with one
+        alone are ``shared`` (candidate -> live index) for a joint fit, with
+        ``check.hidden_joint``."""
         live = self.live
         self.found, self.state2 = found, state2
         self.new = state2.live(self.locator.solve.min_views)
         self.radius2 = 0.5 * _member_diameter(found, state2.owner, state2.n_particles)
         self.pred2 = _predict_all(self.ctx.dlfc, state2.positions, self.views_uv)
+        seen = np.flatnonzero(self.new)
+        self.new[seen[self.turned_down_before(seen)]] = False
         live_spans = ImageSpans(self.pred[live])
         self.live_rows = np.flatnonzero(live)
         self.shared = {}
@@ -202,6 +281,7 @@ class _ResidualSearch:
         near = self.held_spans.meet(held_pred, self.pred2[q],
                                     held_rc[:, 0] + self.radius2[q] + 4.0)
         start = np.array([[self.radius2[q], 0.9]])
+        self.fitted.add(q)
         fit = ctx.fit_images((self.views_uv, self.view_rc), self.positions2[[q]], start,
                              held_pos[near], held_rc[near],
                              max_depth_shift=0.1 * ctx.volume_depth_mm,
@@ -258,6 +338,7 @@ class _ResidualSearch:
                                 | self.held_spans.meet(held_pred, held_pred[jl],
                                                        held_rc[:, 0] + held_rc[jl, 0] + 4.0))
         others = others[others != jl]
+        self.fitted.add(q)
         fit = ctx.fit_images((self.views_uv, self.view_rc),
                              np.vstack([held_pos[jl], self.positions2[q]]),
                              np.array([[own, held_rc[jl, 1]], [self.radius2[q], 0.9]]),

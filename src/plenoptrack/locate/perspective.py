@@ -81,8 +81,8 @@ from .bodies import merge_bodies, one_body_pairs
 from .crowding import CROWDED_COVERAGE, image_coverage
 from .opacity import blur_at, opacity
 from .cluster import cluster_detections
-from .hidden import (STRONG_VIEW_FRACTION, _drop_unexplained_hidden, drop_duplicate_particles,
-                     search_residual)
+from .hidden import (STRONG_VIEW_FRACTION, EarlierRounds, _drop_unexplained_hidden,
+                     drop_duplicate_particles, search_residual)
 from .segment import segment_views
 from .split import keep_centroids_on_images, split_merged_particles
 from .settings import (CheckSettings, ClusterSettings, GrowSettings, PerspectiveLocator,
@@ -696,17 +696,20 @@ def refine_particles(ctx: FrameContext, state: ParticleState,
 
 def find_hidden_particles(ctx: FrameContext, state: ParticleState,
                           locator: PerspectiveLocator, calibration, *,
-                          frame: int = 0, elongated: bool = True
+                          frame: int = 0, elongated: bool = True,
+                          earlier: EarlierRounds | None = None
                           ) -> tuple[FrameContext, ParticleState, int]:
     """Stage 5d: search again with the located particles' images divided out, the
     residual segmented, clustered, solved and checked as the frame was
     (:func:`~plenoptrack.locate.hidden.search_residual`; ``elongated``: elongated
-    particles divided out with their regions' ellipse too). Returns the frame context
-    over both sets of regions, the joined state and the number of particles added."""
+    particles divided out with their regions' ellipse too; ``earlier``: what the
+    frame's earlier rounds did, :class:`~plenoptrack.locate.hidden.EarlierRounds`).
+    Returns the frame context over both sets of regions, the joined state and the
+    number of particles added."""
     return search_residual(ctx, state, locator, calibration,
                            lambda residual: _locate_again(residual, calibration, locator,
                                                           frame=frame),
-                           elongated=elongated)
+                           elongated=elongated, earlier=earlier)
 
 
 def _locate_again(lf: LightField, calibration, locator: PerspectiveLocator, *,
@@ -731,29 +734,80 @@ def search_hidden_rounds(ctx: FrameContext, state: ParticleState, locator: Persp
     particles found and of those their images touch; the particles found whose refit
     leaves their pixels unexplained are dropped again. The rounds stop at the first that
     keeps no particle more than the frame had before it (a particle found and dropped
-    again in every round would otherwise repeat the same search). Elongated particles are
+    again in every round would otherwise repeat the same search). A candidate an
+    earlier round fitted and turned down is not fitted again unless its images come
+    near a particle the round before found, refitted or dropped (:func:`_changed_images`,
+    :class:`~plenoptrack.locate.hidden.EarlierRounds`). Elongated particles are
     divided out with their regions' ellipse as well as their disc, so that the rest of a
     thin body is not found again piece by piece, round after round (a head measured
     together with its stem has its disc on the head already:
     :func:`~plenoptrack.locate.split.split_merged_particles` fits an elongated image
     from its ends)."""
+    earlier = EarlierRounds()
     for _round in range(locator.check.hidden_rounds):
         n_live = _n_live(state, locator.solve.min_views)
         ctx, state, n_hidden = find_hidden_particles(ctx, state, locator, calibration,
-                                                     frame=frame)
+                                                     frame=frame, earlier=earlier)
         if not n_hidden:
             break
         # only the particles found and those their images touch are refitted (and
         # tried as splits) again
         n_before = state.n_particles - n_hidden
         near = _near_particles(ctx, state, np.arange(n_before, state.n_particles))
+        found = state
         state = refine_particles(ctx, state, locator, only=near)
         if locator.check.split_merged:
             state = split_merged_particles(ctx, state, locator.check, only=near)
         state = _drop_unexplained_hidden(ctx, state, n_before, n_hidden, locator)
         if _n_live(state, locator.solve.min_views) <= n_live:
             break
+        earlier.forget_near(ctx.dlfc, _fit_views(ctx)[0],
+                            *_changed_images(ctx, found, state, near))
     return ctx, state
+
+
+def _changed_images(ctx: FrameContext, found: ParticleState, state: ParticleState,
+                    near: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (F, 3), mm, and image radii (F,), view pixels, of what a round of the
+    hidden search changed, from ``found`` (the state with the round's particles just
+    found) to ``state`` (after their refit, split trials and drops): the particles
+    ``near`` (bool over the rows of ``found``) and every other one whose position,
+    image fit or regions changed (a split refits the neighbours of the particles it
+    splits), where they were and where they are, and the particles the split trials
+    added; particles without a position left out."""
+    n = found.n_particles
+    changed = np.asarray(near, dtype=bool).copy()
+    changed |= ~_same_rows(found.positions, state.positions[:n])
+    for column in (_FIT_RADIUS, _FIT_CONTRAST):
+        if column in state.table.columns:
+            before = (found.table[column].to_numpy(float) if column in found.table.columns
+                      else np.full(n, np.nan))
+            changed |= ~_same_rows(before[:, None], state.table[column].to_numpy(float)[:n, None])
+    moved = found.owner != state.owner
+    owners = np.concatenate([found.owner[moved], state.owner[moved]])
+    changed[owners[(owners >= 0) & (owners < n)]] = True
+    rows = np.flatnonzero(changed)
+    added = np.arange(n, state.n_particles)
+    xyz = np.vstack([found.positions[rows], state.positions[rows], state.positions[added]])
+    radius = np.concatenate([_image_radius(ctx, found)[rows],
+                             _image_radius(ctx, state)[np.r_[rows, added]]])
+    keep = np.all(np.isfinite(xyz), axis=1) & np.isfinite(radius)
+    return xyz[keep], radius[keep]
+
+
+def _same_rows(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n,) bool: rows of ``a`` and ``b`` (n, k) equal value for value, NaN equal to NaN."""
+    return np.all((a == b) | (np.isnan(a) & np.isnan(b)), axis=1)
+
+
+def _image_radius(ctx: FrameContext, state: ParticleState) -> np.ndarray:
+    """(P,) each particle's image radius, view pixels: its image fit's, else half its
+    regions' diameter; NaN for neither."""
+    n = state.n_particles
+    radius = (state.table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in state.table.columns
+              else np.full(n, np.nan))
+    return np.where(np.isfinite(radius), radius,
+                    0.5 * _member_diameter(ctx.detections, state.owner, n))
 
 
 def _n_live(state: ParticleState, min_views: int) -> int:
@@ -765,11 +819,7 @@ def _near_particles(ctx: FrameContext, state: ParticleState, rows: np.ndarray) -
     """(P,) bool: the particles ``rows`` and those whose images come within 4 view
     pixels of theirs in some view (radius from the image fit, else the regions)."""
     n = state.n_particles
-    radius = (state.table[_FIT_RADIUS].to_numpy(float) if _FIT_RADIUS in state.table.columns
-              else np.full(n, np.nan))
-    radius = np.where(np.isfinite(radius), radius,
-                      0.5 * _member_diameter(ctx.detections, state.owner, n))
-    radius = np.nan_to_num(radius, nan=0.0)
+    radius = np.nan_to_num(_image_radius(ctx, state), nan=0.0)
     views_uv, _ = _fit_views(ctx)
     pred = _predict_all(ctx.dlfc, state.positions, views_uv)                  # (P, V, 2)
     spans = ImageSpans(pred)
