@@ -287,15 +287,15 @@ def test_a_candidate_turned_down_before_is_one_whose_images_coincide(monkeypatch
 
 
 def test_turned_down_candidates_near_a_changed_particle_are_forgotten(monkeypatch):
-    """A changed particle's image within the two radii and 4 px of a turned-down
-    candidate's in some view makes it a candidate to fit again; one 0.3 px further is
-    too far."""
+    """A changed particle's image closer than the two radii and 4 px to a turned-down
+    candidate's in some view makes it a candidate to fit again; one at that distance
+    does not."""
     monkeypatch.setattr(hidden, "_predict_all", _linear_predict)
     earlier = hidden.EarlierRounds()
     earlier.add([[0.0, 0.0, 1.0], [5.0, 5.0, 0.0], [-5.0, 0.0, 0.0]], [2.0, 2.0, 1.0])
     earlier.forget_near(None, _VIEWS, np.zeros((0, 3)), np.zeros(0))
     assert len(earlier.xyz) == 3
-    # 6.7 px beside the first in every view (2 + 0.7 + 4 = 6.7 px is too far, 6.5 is not)
+    # beside the first in every view: 6.7 px (= 2 + 0.7 + 4) is too far, 6.5 px is not
     earlier.forget_near(None, _VIEWS, np.array([[0.67, 0.0, 1.0]]), np.array([0.7]))
     assert len(earlier.xyz) == 3
     earlier.forget_near(None, _VIEWS, np.array([[0.65, 0.0, 1.0]]), np.array([0.7]))
