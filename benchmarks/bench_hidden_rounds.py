@@ -30,8 +30,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import json
-import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -70,10 +68,10 @@ def main() -> None:
     import numba
 
     numba.set_num_threads(args.threads)
-    from plenoptrack import preset
+    from bench_study import study_configuration   # this folder: run as a script
     from plenoptrack.locate import hidden, locate_frame
     from plenoptrack.simulate import render_frame
-    from plenoptrack.study import StudyConfig, _frame_particles, _prepare, _setup
+    from plenoptrack.study import _frame_particles, _setup
 
     search = hidden._ResidualSearch
     skipping = search.turned_down_before
@@ -88,15 +86,9 @@ def main() -> None:
         setattr(search, name, counted)
 
     with contextlib.ExitStack() as stack:
-        if args.study_dir is not None:
-            cdir = args.study_dir
-            cfg = StudyConfig.from_dict(json.loads((cdir / "config.json").read_text()))
-        else:
-            cdir = Path(stack.enter_context(tempfile.TemporaryDirectory()))
-            cfg = StudyConfig(preset(args.preset), travel_mm=10, step_mm=1, repeats=1)
+        cdir, cfg = study_configuration(stack, args.study_dir, args.preset)
+        if args.study_dir is None:
             args.positions = [p for p in args.positions if p <= cfg.travel_mm] or [5.0]
-            print(f"calibrating {cfg.label} in {cdir} ...", flush=True)
-            _prepare(cdir, cfg, None)
         optics, calib, white, field = _setup(str(cdir), cfg)
         print(f"{cfg.label}: numba threads {args.threads}, best of {args.repeat}", flush=True)
         total = {v: 0.0 for v in variants}

@@ -61,6 +61,24 @@ def _reset_hwm() -> None:
         Path("/proc/self/clear_refs").write_text("5")
 
 
+def study_configuration(stack: contextlib.ExitStack, study_dir: Path | None,
+                        preset_name: str):
+    """The study configuration folder and its :class:`~plenoptrack.study.StudyConfig`:
+    ``study_dir`` as it is, or (None) the ``preset_name`` camera's 10 mm study calibrated
+    in a temporary folder that ``stack`` removes."""
+    from plenoptrack import preset
+    from plenoptrack.study import StudyConfig, _prepare
+
+    if study_dir is not None:
+        config = json.loads((study_dir / "config.json").read_text())
+        return study_dir, StudyConfig.from_dict(config)
+    cdir = Path(stack.enter_context(tempfile.TemporaryDirectory()))
+    cfg = StudyConfig(preset(preset_name), travel_mm=10, step_mm=1, repeats=1)
+    print(f"calibrating {cfg.label} in {cdir} ...", flush=True)
+    _prepare(cdir, cfg, None)
+    return cdir, cfg
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--study-dir", type=Path, help="a study configuration folder to reuse")
@@ -76,10 +94,8 @@ def main() -> None:
     import numba
 
     numba.set_num_threads(args.threads)
-    from plenoptrack import preset
     from plenoptrack.simulate import render_frame
-    from plenoptrack.study import (StudyConfig, _frame_particles, _prepare, _setup,
-                                   locate_image, traverse_positions)
+    from plenoptrack.study import _frame_particles, _setup, locate_image, traverse_positions
 
     with contextlib.ExitStack() as stack:
         if args.raw is not None:
@@ -95,14 +111,8 @@ def main() -> None:
                 label = f"{calib.camera.name} ({args.raw})"
                 camera = calib.camera
             cfg = _Label()
-        elif args.study_dir is not None:
-            cdir = args.study_dir
-            cfg = StudyConfig.from_dict(json.loads((cdir / "config.json").read_text()))
         else:
-            cdir = Path(stack.enter_context(tempfile.TemporaryDirectory()))
-            cfg = StudyConfig(preset(args.preset), travel_mm=10, step_mm=1, repeats=1)
-            print(f"calibrating {cfg.label} in {cdir} ...", flush=True)
-            _prepare(cdir, cfg, None)
+            cdir, cfg = study_configuration(stack, args.study_dir, args.preset)
         if args.raw is None:
             optics, calib, white, field = _setup(str(cdir), cfg)
             pos = traverse_positions(cfg.travel_mm, cfg.step_mm)
