@@ -22,6 +22,10 @@ one card's exposure and TIFF write and read with and without zlib. Wall-clock an
 process CPU time (all threads) are both printed: on a shared machine the CPU time is the
 steadier of the two.
 
+``--tiff`` times writing a full-sensor image as TIFF with zlib at the level
+:func:`~plenoptrack.io.write_tiff` uses, against tifffile's default level and no
+compression, in the same run.
+
 ``--pins`` times the irradiance of the translation-stage study's pin field (stems of
 aspect 13) culled with chains of small balls along each stem against its bounding sphere,
 in the same run.
@@ -346,7 +350,49 @@ def bench_pins(positions=(0, 25, 50), threads=1):
         print(f"{pos[i]:11.1f} {ta:10.2f} {tb:9.2f} {la:7d}/{lb:7d} {ta / tb:8.2f}x")
 
 
+def bench_tiff(name="hall2019", depth_mm=0.0, repeats=3):
+    """Writing one full-sensor dot-card image (realistic optics, with noise) as TIFF: zlib
+    at :data:`~plenoptrack.io.ZLIB_LEVEL` (``write_tiff``) against zlib at tifffile's
+    default level and uncompressed, alternating, best of ``repeats``; file sizes and a
+    read back of each."""
+    import tifffile
+
+    from plenoptrack.io import ZLIB_LEVEL, write_tiff
+    from plenoptrack.simulate import expose_image
+    from plenoptrack.simulate.dotcard import dotcard_irradiance
+
+    optics = make_optics(preset(name), seed=0, realism="realistic")
+    image = expose_image(dotcard_irradiance(optics, depth_mm), optics, level=0.7,
+                         sensor=SensorModel(), seed=1)
+    ways = {f"zlib level {ZLIB_LEVEL} (write_tiff)":
+            lambda path: write_tiff(path, image),
+            "zlib default level (tifffile)":
+            lambda path: tifffile.imwrite(path, image, compression="zlib",
+                                          photometric="minisblack"),
+            "none": lambda path: write_tiff(path, image, compression=None)}
+    best = dict.fromkeys(ways, np.inf)
+    with tempfile.TemporaryDirectory() as tmp:
+        for r in range(repeats):
+            for k, (way, write) in enumerate(ways.items()):
+                path = Path(tmp) / f"{k}.tif"
+                _, t = _timed(write, path)
+                best[way] = min(best[way], t)
+        print(f"{name} {image.shape[1]} x {image.shape[0]} px dot card, realistic optics; "
+              f"write, best of {repeats}")
+        base = best["zlib default level (tifffile)"]
+        for k, way in enumerate(ways):
+            path = Path(tmp) / f"{k}.tif"
+            back, t_read = _timed(tifffile.imread, path)
+            if not np.array_equal(back, image):
+                raise AssertionError(f"{way}: pixels differ on reading back")
+            print(f"  {way:32s} write {best[way]:6.2f} s ({base / best[way]:5.2f} x the "
+                  f"default level)  read {t_read:5.2f} s  {path.stat().st_size / 1e6:6.1f} MB")
+
+
 def main():
+    if len(sys.argv) == 2 and sys.argv[1] == "--tiff":
+        bench_tiff()
+        return
     if len(sys.argv) == 2 and sys.argv[1] == "--pins":
         bench_pins()
         return

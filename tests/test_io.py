@@ -25,6 +25,20 @@ def test_tiff_round_trip_single_and_multi(tmp_path):
     assert count_frames(tmp_path / "one.tif") == 1
 
 
+def test_tiff_is_deflate_compressed_unless_asked_not_to_and_keeps_every_pixel(tmp_path):
+    import tifffile
+
+    rng = np.random.default_rng(2)
+    img = (2000 + rng.normal(0, 40, size=(300, 400))).astype(np.uint16)   # a noisy frame
+    write_tiff(tmp_path / "z.tif", img)
+    write_tiff(tmp_path / "raw.tif", img, compression=None)
+    for name, tag in (("z.tif", "ADOBE_DEFLATE"), ("raw.tif", "NONE")):
+        with tifffile.TiffFile(tmp_path / name) as tif:
+            assert tif.pages[0].compression.name == tag
+        np.testing.assert_array_equal(read_raw(tmp_path / name), img)
+    assert (tmp_path / "z.tif").stat().st_size < 0.8 * (tmp_path / "raw.tif").stat().st_size
+
+
 def test_missing_file(tmp_path):
     with pytest.raises(InputFileError, match="absent.tif: file not found"):
         read_raw(tmp_path / "absent.tif")

@@ -236,9 +236,9 @@ def simulate_dataset(camera: CameraSpec | str, out_dir: str | Path, *, seed: int
         Largest aspect (long over short semi-axis) of random ellipsoids or fragments, >= 1.
     compression : {"zlib", None}
         TIFF compression of the images (the pixels are the same either way). zlib makes
-        a noisy ``hall2019`` image about 38 MB instead of 58 MB but takes several
-        seconds per image to write and about 2 s to read back; None writes and reads
-        it in a fraction of a second (for data sets that are used once and deleted).
+        a noisy ``hall2019`` image about 44 MB instead of 58 MB but takes about 2 s per
+        image to write and 0.6 s to read back; None writes and reads it in a fraction of
+        a second (for data sets that are used once and deleted).
     scene_params : dict, optional
         Parameters of a built-in scene (:func:`~.scenes.builtin_scene`), written to
         ``scene.toml``.
