@@ -372,7 +372,7 @@ def bench_tiff(name="hall2019", depth_mm=0.0, repeats=3):
             "none": lambda path: write_tiff(path, image, compression=None)}
     best = dict.fromkeys(ways, np.inf)
     with tempfile.TemporaryDirectory() as tmp:
-        for r in range(repeats):
+        for _ in range(repeats):
             for k, (way, write) in enumerate(ways.items()):
                 path = Path(tmp) / f"{k}.tif"
                 _, t = _timed(write, path)
