@@ -30,6 +30,11 @@ depths between them. A dot is not a particle: the locator corrects particles' ce
 for pixel locking (``solve.locking_correction``) and adds a sampling term near the focal
 plane, neither of which the dots get here, so near focus the measured error includes what
 those terms cover.
+
+``--loco`` also refits the DLFC without each calibration card in turn (the calibration's
+own points, order and robust rule) and solves that card's dots through it: the error of
+the mapping where it has no card, from the calibration data alone, printed per card
+beside the perfect dots' error at that depth and at the depths between cards.
 """
 
 from __future__ import annotations
@@ -69,9 +74,10 @@ def _perfect_cards(sim, depths, folder: Path, seed: int) -> None:
 
 
 def run_seed(preset: str, magnification: float, optics: str, seed: int, n_depths: int,
-             workdir: Path) -> pd.DataFrame:
-    """One row per perfect-card depth: measured and estimated model error, mm."""
-    from plenoptrack.calibrate import DEFAULT_REJECT_K, calibrate, dlfc_points
+             workdir: Path, loco: bool = False) -> pd.DataFrame:
+    """One row per perfect-card depth: measured and estimated model error, mm (and with
+    ``loco`` the leave-one-card-out error at the card depths)."""
+    from plenoptrack.calibrate import calibrate, dlfc_points
     from plenoptrack.locate.dlfc import dot_position_errors
     from plenoptrack.locate.uncertainty import model_error_mm
     from plenoptrack.simulate import simulate_dataset
@@ -86,12 +92,7 @@ def run_seed(preset: str, magnification: float, optics: str, seed: int, n_depths
     _perfect_cards(sim, depths, workdir / "perfect", seed)
     points = dlfc_points(workdir / "perfect", calib.grid, sim.camera, white=sim.white_path)
     pts = points[["x", "y", "z", "u", "v", "s", "t"]].to_numpy(float)
-    # the calibration's robust rule on its own points: views whose dot lies further from
-    # the mapping's prediction than median + k MAD are left out, as the fit left them out
-    s, t = calib.dlfc.predict(*pts[:, :5].T)
-    miss = np.hypot(pts[:, 5] - s, pts[:, 6] - t)
-    med = np.median(miss)
-    kept = miss <= med + DEFAULT_REJECT_K * 1.4826 * np.median(np.abs(miss - med))
+    kept = _robust_views(calib.dlfc, pts)
     errors = dot_position_errors(calib.dlfc, pts[kept])
     print(f"seed {seed}: {np.count_nonzero(~kept)} of {len(kept)} perfect-card points left out "
           f"(the calibration's fit left out {calib.dlfc.report.n_rejected})", flush=True)
@@ -107,6 +108,50 @@ def run_seed(preset: str, magnification: float, optics: str, seed: int, n_depths
                      **{f"mean_{a}": float(v) for a, v in zip("xyz", err.mean(axis=0))},
                      **{f"excess_{a}": float(v) for a, v in zip("xyz", excess)},
                      **{f"estimate_{a}": float(v) for a, v in zip("xyz", estimate)}})
+    table = pd.DataFrame(rows)
+    if loco:
+        cal_points = dlfc_points(sim.out_dir / "dotcards", calib.grid, sim.camera,
+                                 white=sim.white_path)
+        loco = _leave_one_card_out(cal_points, calib.dlfc.order)
+        table = table.merge(loco.assign(z=loco["z"].round(6)).rename(columns={"z": "zr"}),
+                            left_on=table["z"].round(6), right_on="zr", how="left")
+        table = table.drop(columns=[c for c in ("key_0", "zr") if c in table.columns])
+    return table
+
+
+def _robust_views(dlfc, pts: np.ndarray) -> np.ndarray:
+    """The calibration fit's robust rule on points ``(N, 7)``: views whose dot lies further
+    from the mapping's prediction than median + k MAD of those distances are left out."""
+    from plenoptrack.calibrate import DEFAULT_REJECT_K
+
+    s, t = dlfc.predict(*pts[:, :5].T)
+    miss = np.hypot(pts[:, 5] - s, pts[:, 6] - t)
+    med = np.median(miss)
+    return miss <= med + DEFAULT_REJECT_K * 1.4826 * np.median(np.abs(miss - med))
+
+
+def _leave_one_card_out(points: pd.DataFrame, order: int) -> pd.DataFrame:
+    """Per calibration card: the RMS error beyond noise (mm, per axis, columns
+    ``loco_x, loco_y, loco_z``) of its dots solved through the DLFC fitted to the other
+    cards."""
+    from plenoptrack.calibrate import DEFAULT_REJECT_K
+    from plenoptrack.locate.dlfc import dot_position_errors, fit_dlfc
+
+    cols = ["x", "y", "z", "u", "v", "s", "t"]
+    rows = []
+    for z in np.unique(points["z"]):
+        mine = (points["z"] == z).to_numpy()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            dlfc = fit_dlfc(points.loc[~mine, cols], order=order, group_by="z",
+                            reject_k=DEFAULT_REJECT_K)
+        pts = points.loc[mine, cols].to_numpy(float)
+        dots = dot_position_errors(dlfc, pts[_robust_views(dlfc, pts)])
+        err = dots[["dx", "dy", "dz"]].to_numpy(float)
+        noise = dots[["sigma_x", "sigma_y", "sigma_z"]].to_numpy(float)
+        excess = np.sqrt(np.maximum(np.mean(err ** 2, axis=0) - np.nanmean(noise ** 2, axis=0),
+                                    0.0))
+        rows.append({"z": float(z), **{f"loco_{a}": float(v) for a, v in zip("xyz", excess)}})
     return pd.DataFrame(rows)
 
 
@@ -123,6 +168,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[100, 101])
     ap.add_argument("--depths", type=int, default=21, help="perfect cards over the card range")
     ap.add_argument("--csv", type=Path, help="write the per-depth rows here")
+    ap.add_argument("--loco", action="store_true",
+                    help="also the error of the DLFC refitted without each card, at that card")
     args = ap.parse_args()
 
     tables = []
@@ -130,7 +177,7 @@ def main() -> None:
         work = Path(tempfile.mkdtemp(prefix="model_error_truth_"))
         try:
             table = run_seed(args.preset, args.magnification, args.optics, seed, args.depths,
-                             work)
+                             work, loco=args.loco)
         finally:
             shutil.rmtree(work, ignore_errors=True)
         tables.append(table)
@@ -140,8 +187,10 @@ def main() -> None:
             cells = "  ".join(f"{1e3 * getattr(r, 'mean_' + a):+6.1f} | "
                               f"{1e3 * getattr(r, 'excess_' + a):5.1f} | "
                               f"{1e3 * getattr(r, 'estimate_' + a):5.1f}" for a in "xyz")
-            print(f"  z {r.z:+6.2f}{' card' if r.at_card else '     '} n {r.n_dots:3d}  {cells}",
-                  flush=True)
+            loco = ("" if not args.loco or not r.at_card else "   loco " + " ".join(
+                f"{1e3 * getattr(r, 'loco_' + a):5.1f}" for a in "xyz"))
+            print(f"  z {r.z:+6.2f}{' card' if r.at_card else '     '} n {r.n_dots:3d}  {cells}"
+                  f"{loco}", flush=True)
     rows = pd.concat(tables, ignore_index=True)
     if args.csv:
         rows.to_csv(args.csv, index=False)
@@ -158,6 +207,11 @@ def main() -> None:
             parts.append(f"{a} {1e3 * measured:5.1f} vs {1e3 * estimate:5.1f} "
                          f"({measured / estimate if estimate else float('nan'):.2f}x)")
         print(f"  {label:13s} ({len(part):3d} depths): " + "   ".join(parts))
+    if args.loco:
+        cards = rows[rows["at_card"]]
+        print("  leave one card out, at the card depths: " + "   ".join(
+            f"{a} {1e3 * _rms(cards[f'loco_{a}']):5.1f}" for a in "xyz")
+              + "  (compare the perfect dots between cards above)")
 
 
 if __name__ == "__main__":
