@@ -480,7 +480,7 @@ def test_hidden_search_settings_are_checked():
         with pytest.raises(SettingsError):
             PerspectiveLocator.from_dict({"check": bad})
     check = dataclasses.asdict(PerspectiveLocator().check)
-    assert check["hidden_floor"] == 0.5 and check["hidden_rounds"] == 4
+    assert check["hidden_floor"] == 0.5 and check["hidden_rounds"] == 8
     assert check["hidden_joint"] is True
 
 
