@@ -544,9 +544,10 @@ class CheckSettings:
         At 0.1 particles per microlens (`small`, realistic optics, the accuracy
         matrix's frames), 8 rounds against 4: recall 0.375 -> 0.394 on the development
         seeds and 0.382 -> 0.404 on the validation seeds, precision 0.766 -> 0.768, 1.4
-        times the time per frame there; at 0.05 and below, on the study's pin images
-        and on the sparse hall2019 frames the rounds stop before the fifth and nothing
-        changes. 1: one search.
+        times the time per frame there; at 0.05 the same or a few more particles
+        (development 401 / 407 -> 401 / 412 matched, validation unchanged); at 0.025
+        and below, on the study's pin images and on the sparse hall2019 frames the
+        rounds stop before the fifth and nothing changes. 1: one search.
     hidden_floor : float
         Pixels the located particles' model lets through less than this fraction of the
         back-light are set to the background in that search: nothing behind an opaque
