@@ -98,36 +98,41 @@ def run_seed(preset: str, magnification: float, optics: str, seed: int, n_depths
           f"(the calibration's fit left out {calib.dlfc.report.n_rejected})", flush=True)
     rows = []
     for z, dots in errors.groupby("z"):
-        err = dots[["dx", "dy", "dz"]].to_numpy(float)
-        noise = dots[["sigma_x", "sigma_y", "sigma_z"]].to_numpy(float)
-        excess = np.sqrt(np.maximum(np.mean(err ** 2, axis=0) - np.nanmean(noise ** 2, axis=0),
-                                    0.0))
         estimate = model_error_mm(calib.dlfc, np.array([z]))[0]
         at_card = bool(np.min(np.abs(card_z - z)) < 1e-6)
         rows.append({"seed": seed, "z": float(z), "at_card": at_card, "n_dots": len(dots),
-                     **{f"mean_{a}": float(v) for a, v in zip("xyz", err.mean(axis=0))},
-                     **{f"excess_{a}": float(v) for a, v in zip("xyz", excess)},
+                     **{f"mean_{a}": float(v)
+                        for a, v in zip("xyz", dots[["dx", "dy", "dz"]].mean())},
+                     **{f"excess_{a}": float(v) for a, v in zip("xyz", _excess_error(dots))},
                      **{f"estimate_{a}": float(v) for a, v in zip("xyz", estimate)}})
     table = pd.DataFrame(rows)
     if loco:
         cal_points = dlfc_points(sim.out_dir / "dotcards", calib.grid, sim.camera,
                                  white=sim.white_path)
-        loco = _leave_one_card_out(cal_points, calib.dlfc.order)
-        table = table.merge(loco.assign(z=loco["z"].round(6)).rename(columns={"z": "zr"}),
-                            left_on=table["z"].round(6), right_on="zr", how="left")
-        table = table.drop(columns=[c for c in ("key_0", "zr") if c in table.columns])
+        left_out = _leave_one_card_out(cal_points, calib.dlfc.order)
+        table = (table.assign(key=table["z"].round(6))
+                 .merge(left_out.assign(key=left_out["z"].round(6)).drop(columns="z"),
+                        on="key", how="left").drop(columns="key"))
     return table
+
+
+def _excess_error(dots: pd.DataFrame) -> np.ndarray:
+    """RMS error of solved dots beyond their least-squares noise, per axis (mm): the
+    mean square of ``dx, dy, dz`` less that of ``sigma_x, sigma_y, sigma_z``, floored at 0."""
+    err = dots[["dx", "dy", "dz"]].to_numpy(float)
+    noise = dots[["sigma_x", "sigma_y", "sigma_z"]].to_numpy(float)
+    return np.sqrt(np.maximum(np.mean(err ** 2, axis=0) - np.nanmean(noise ** 2, axis=0), 0.0))
 
 
 def _robust_views(dlfc, pts: np.ndarray) -> np.ndarray:
     """The calibration fit's robust rule on points ``(N, 7)``: views whose dot lies further
     from the mapping's prediction than median + k MAD of those distances are left out."""
     from plenoptrack.calibrate import DEFAULT_REJECT_K
+    from plenoptrack.locate.dlfc import _robust_threshold
 
     s, t = dlfc.predict(*pts[:, :5].T)
     miss = np.hypot(pts[:, 5] - s, pts[:, 6] - t)
-    med = np.median(miss)
-    return miss <= med + DEFAULT_REJECT_K * 1.4826 * np.median(np.abs(miss - med))
+    return miss <= _robust_threshold(miss, DEFAULT_REJECT_K)
 
 
 def _leave_one_card_out(points: pd.DataFrame, order: int) -> pd.DataFrame:
@@ -147,11 +152,8 @@ def _leave_one_card_out(points: pd.DataFrame, order: int) -> pd.DataFrame:
                             reject_k=DEFAULT_REJECT_K)
         pts = points.loc[mine, cols].to_numpy(float)
         dots = dot_position_errors(dlfc, pts[_robust_views(dlfc, pts)])
-        err = dots[["dx", "dy", "dz"]].to_numpy(float)
-        noise = dots[["sigma_x", "sigma_y", "sigma_z"]].to_numpy(float)
-        excess = np.sqrt(np.maximum(np.mean(err ** 2, axis=0) - np.nanmean(noise ** 2, axis=0),
-                                    0.0))
-        rows.append({"z": float(z), **{f"loco_{a}": float(v) for a, v in zip("xyz", excess)}})
+        rows.append({"z": float(z),
+                     **{f"loco_{a}": float(v) for a, v in zip("xyz", _excess_error(dots))}})
     return pd.DataFrame(rows)
 
 
