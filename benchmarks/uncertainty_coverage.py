@@ -28,6 +28,16 @@ trade the core for the tails (3 % to 5 % of errors beyond 3 sigma), so the defau
 
 The per-particle pairs are written to ``benchmarks/results/uncertainty/pairs_<seeds>.parquet``
 and the summary to ``summary_<seeds>.md`` beside them.
+
+    python benchmarks/uncertainty_coverage.py --ablate --seeds dev --optics realistic
+
+``--ablate`` asks what each term of the uncertainty buys: on the acceptance cells of the
+accuracy matrix (:func:`accuracy_matrix.acceptance_cells`, 3 frames and 80 particles per
+cell and seed at least) every frame is located with the default settings and again with
+one term of :class:`~plenoptrack.locate.settings.SolveSettings` changed at a time
+(:data:`ABLATIONS`), and the coverage is printed per density band and over all. The terms
+change sigma only, so every variant must give the same positions; the script checks that.
+Written to ``ablation_<seeds>.md`` (and the pairs to ``ablation_<seeds>.parquet``).
 """
 
 from __future__ import annotations
@@ -99,6 +109,89 @@ def gather(seeds, optics_modes, tmp: Path) -> pd.DataFrame:
                 print(f"{optics} seed {seed} {cell.name}: {sum(len(r) for r in rows)} pairs",
                       flush=True)
     return pd.concat(rows, ignore_index=True)
+
+
+ABLATIONS = {
+    "defaults": {},
+    "model_error off": {"model_error": False},
+    "sampling_error off": {"sampling_error": False},
+    "excess_scatter off": {"excess_scatter": False},
+    "unexplained_error off": {"unexplained_error": False},
+    "companion_error off": {"companion_error": False},
+    "refit_error off": {"refit_error": False},
+    "error_scale 1.6": {"error_scale": 1.6},
+}
+"""``--ablate`` variants: changes to ``SolveSettings`` (the defaults first)."""
+
+
+def gather_ablation(seeds, optics_modes, tmp: Path) -> pd.DataFrame:
+    """Matched pairs of every acceptance cell's frames located with each of
+    :data:`ABLATIONS`, with ``variant`` and ``band`` columns.
+
+    Raises
+    ------
+    RuntimeError
+        If a variant moves any particle: the terms are meant to change sigma only.
+    """
+    from plenoptrack.io import read_raw
+    from plenoptrack.locate import locate_frame
+    from plenoptrack.simulate import simulate_dataset
+
+    runner = am.Runner(tmp, 80, time.perf_counter(), 3)
+    rows = []
+    for optics in optics_modes:
+        for seed in seeds:
+            calibrations = {}
+            for cell in am.acceptance_cells():
+                if cell.magnification not in calibrations:
+                    calibrations[cell.magnification] = runner.calibrate(
+                        cell.preset, cell.magnification, optics, seed)
+                calib, white, _ = calibrations[cell.magnification]
+                if calib is None:
+                    continue
+                scene = am.make_cell_scene(cell, seed, am.frames_per_seed(cell, 80, 3))
+                folder = tmp / f"f_{zlib.crc32(cell.name.encode())}_{optics}_{seed}"
+                sim = simulate_dataset(cell.preset, folder, seed=seed, scene=scene,
+                                       magnification=cell.magnification,
+                                       realism=am.realism_of(optics), dotcard_depths=[])
+                base = am.cell_locator(cell)
+                band = am.band_of(cell.axis, cell.density)
+                for f, path in enumerate(sim.frame_paths):
+                    raw = read_raw(path)
+                    truth = sim.truth[sim.truth["frame"] == f]
+                    positions = None
+                    for variant, change in ABLATIONS.items():
+                        locator = base.updated({"solve": change}, source="ablation")
+                        with warnings.catch_warnings():
+                            warnings.simplefilter("ignore")
+                            found = locate_frame(raw, calib, frame=f, white=white,
+                                                 locator=locator).particles
+                        xyz = found[["x", "y", "z"]].to_numpy(float)
+                        if positions is None:
+                            positions = xyz
+                        elif xyz.shape != positions.shape or not np.array_equal(
+                                xyz, positions, equal_nan=True):
+                            raise RuntimeError(f"{variant} moved particles in {cell.name}, "
+                                               f"seed {seed}, frame {f}")
+                        pairs = am.match(found, truth, cell.magnification)
+                        rows.append(pairs.assign(variant=variant, cell=cell.name, band=band,
+                                                 optics=optics, seed=seed, frame=f))
+                shutil.rmtree(folder, ignore_errors=True)
+                print(f"{optics} seed {seed} {cell.name}: done", flush=True)
+    return pd.concat(rows, ignore_index=True)
+
+
+def ablation_summary(pairs: pd.DataFrame) -> pd.DataFrame:
+    """Coverage per optics mode, variant and band (and ``all``), variants in the order of
+    :data:`ABLATIONS`."""
+    rows = []
+    order = {v: i for i, v in enumerate(ABLATIONS)}
+    for (optics, variant), g in pairs.groupby(["optics", "variant"]):
+        for band, h in list(g.groupby("band")) + [("all", g)]:
+            rows.append({"optics": optics, "variant": variant, "band": band} | coverage(h))
+    table = pd.DataFrame(rows)
+    return table.sort_values(["optics", "band", "variant"], key=lambda c: c.map(order)
+                             if c.name == "variant" else c, kind="stable")
 
 
 def _robust_std(x: np.ndarray) -> float:
@@ -228,21 +321,30 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", choices=list(SEED_SETS), default="validation")
     parser.add_argument("--optics", nargs="+", choices=am.OPTICS, default=list(am.OPTICS))
-    parser.add_argument("--from-parquet", type=Path, default=None)
+    parser.add_argument("--from-parquet", type=Path, nargs="+", default=None,
+                        help="summarise saved pairs (several files are pooled)")
+    parser.add_argument("--seed-numbers", type=int, nargs="+", default=None,
+                        help="run these seeds of the chosen set only (for example one seed per "
+                             "process; pool the pairs with --from-parquet)")
+    parser.add_argument("--ablate", action="store_true",
+                        help="coverage with each uncertainty term turned off in turn, on the "
+                             "acceptance cells (module docstring)")
     parser.add_argument("--out", type=Path, default=OUT,
                         help=f"folder of the pairs and summary (default {OUT})")
     args = parser.parse_args(argv)
     t0 = time.perf_counter()
+    if args.ablate:
+        return _ablate(args, t0)
     if args.from_parquet is not None:
-        pairs = pd.read_parquet(args.from_parquet)
+        pairs = _read_pairs(args.from_parquet)
     else:
         tmp = Path(tempfile.mkdtemp(prefix="plenoptrack-coverage-"))
         try:
-            pairs = gather(SEED_SETS[args.seeds], args.optics, tmp)
+            pairs = gather(_seeds(args), args.optics, tmp)
         finally:
             shutil.rmtree(tmp, ignore_errors=True)
         args.out.mkdir(parents=True, exist_ok=True)
-        pairs.to_parquet(args.out / f"pairs_{args.seeds}.parquet")
+        pairs.to_parquet(args.out / f"pairs_{_label(args)}.parquet")
     table = summary(pairs)
     pd.set_option("display.width", 250)
     cols = ["optics", "cell", "n"] + [f"{ax} {m}" for ax in "xyz"
@@ -251,8 +353,8 @@ def main(argv=None) -> int:
     print(text)
     lines = [f"# Uncertainty coverage, {args.seeds} seeds {SEED_SETS[args.seeds]}", "",
              "`python benchmarks/uncertainty_coverage.py --seeds " + args.seeds + "`"
-             + (f" (from {args.from_parquet.name})" if args.from_parquet else
-                f", {time.perf_counter() - t0:.0f} s") + ".", "",
+             + (f" (from {', '.join(p.name for p in args.from_parquet)})"
+                if args.from_parquet else f", {time.perf_counter() - t0:.0f} s") + ".", "",
              "Columns per axis: fraction within 1 and 2 sigma and beyond 3 sigma (0.68, 0.95 "
              "and 0.003 for a calibrated Gaussian sigma), k68 (the factor sigma would need "
              "for 68 % coverage), robust (1.4826 MAD) and plain standard deviation of the "
@@ -272,7 +374,60 @@ def main(argv=None) -> int:
                                              "counts as 0.1)" if floor else ""))
             print(lines[-1])
     args.out.mkdir(parents=True, exist_ok=True)
-    (args.out / f"summary_{args.seeds}.md").write_text("\n".join(lines) + "\n")
+    (args.out / f"summary_{_label(args)}.md").write_text("\n".join(lines) + "\n")
+    return 0
+
+
+def _seeds(args) -> tuple[int, ...]:
+    """The seeds to run: the chosen set, or the ``--seed-numbers`` of it."""
+    chosen = SEED_SETS[args.seeds]
+    if args.seed_numbers is None:
+        return chosen
+    unknown = sorted(set(args.seed_numbers) - set(chosen))
+    if unknown:
+        raise SystemExit(f"--seed-numbers {unknown} are not {args.seeds} seeds {chosen}")
+    return tuple(args.seed_numbers)
+
+
+def _label(args) -> str:
+    """File-name label of a run: the seed set, with the seeds when only some ran."""
+    if args.seed_numbers is None:
+        return args.seeds
+    return args.seeds + "_" + "_".join(str(s) for s in args.seed_numbers)
+
+
+def _read_pairs(paths: list[Path]) -> pd.DataFrame:
+    return pd.concat([pd.read_parquet(p) for p in paths], ignore_index=True)
+
+
+def _ablate(args, t0: float) -> int:
+    """``--ablate``: gather (or read) the variants' pairs, print and write the summary."""
+    if args.from_parquet is not None:
+        pairs = _read_pairs(args.from_parquet)
+    else:
+        tmp = Path(tempfile.mkdtemp(prefix="plenoptrack-ablation-"))
+        try:
+            pairs = gather_ablation(_seeds(args), args.optics, tmp)
+        finally:
+            shutil.rmtree(tmp, ignore_errors=True)
+        args.out.mkdir(parents=True, exist_ok=True)
+        pairs.to_parquet(args.out / f"ablation_{_label(args)}.parquet")
+    cols = ["optics", "band", "variant", "n"] + [f"{ax} {m}" for ax in "xyz"
+                                                 for m in ("1s", "2s", ">3s", "k68")]
+    text = _markdown(ablation_summary(pairs)[cols])
+    print(text)
+    lines = [f"# Uncertainty terms, one at a time: {args.seeds} seeds "
+             f"{sorted(set(pairs['seed']))}", "",
+             f"`python benchmarks/uncertainty_coverage.py --ablate --seeds {args.seeds}"
+             f" --optics {' '.join(sorted(set(pairs['optics'])))}`"
+             + (f" (from {', '.join(p.name for p in args.from_parquet)})"
+                if args.from_parquet else f", {time.perf_counter() - t0:.0f} s") + ".", "",
+             "The acceptance cells' frames, each located with the defaults and with one "
+             "`solve` setting changed (`variant`); the positions are the same in every "
+             "variant. Columns per axis: fraction within 1 and 2 sigma, beyond 3 sigma, and "
+             "k68 (the factor sigma would need for 68 % coverage).", "", text, ""]
+    args.out.mkdir(parents=True, exist_ok=True)
+    (args.out / f"ablation_{_label(args)}.md").write_text("\n".join(lines) + "\n")
     return 0
 
 
