@@ -47,10 +47,10 @@ def test_ablation_summary_gives_each_band_and_all_in_the_variants_order(script):
 
 
 def test_turning_a_term_off_changes_sigma_but_never_a_position(small_calibrated):
-    """A crowded frame (160 particles on the small camera: overlapping images, refitted
+    """A crowded frame (110 particles on the small camera: overlapping images, refitted
     and split particles), located with every term on and with each one off."""
     optics, calib = small_calibrated
-    scene = make_scene(calib.camera, n_particles=160, seed=21)
+    scene = make_scene(calib.camera, n_particles=110, seed=21)
     raw = render_frame(optics, scene.truth, seed=np.random.default_rng([21, 3, 0]))
     changes = {"model_error": False, "sampling_error": False, "excess_scatter": False,
                "unexplained_error": False, "companion_error": False, "refit_error": False,
