@@ -335,16 +335,7 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     if args.ablate:
         return _ablate(args, t0)
-    if args.from_parquet is not None:
-        pairs = _read_pairs(args.from_parquet)
-    else:
-        tmp = Path(tempfile.mkdtemp(prefix="plenoptrack-coverage-"))
-        try:
-            pairs = gather(_seeds(args), args.optics, tmp)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-        args.out.mkdir(parents=True, exist_ok=True)
-        pairs.to_parquet(args.out / f"pairs_{_label(args)}.parquet")
+    pairs = _pairs(args, gather, "pairs")
     table = summary(pairs)
     pd.set_option("display.width", 250)
     cols = ["optics", "cell", "n"] + [f"{ax} {m}" for ax in "xyz"
@@ -400,18 +391,24 @@ def _read_pairs(paths: list[Path]) -> pd.DataFrame:
     return pd.concat([pd.read_parquet(p) for p in paths], ignore_index=True)
 
 
+def _pairs(args, gather_pairs, stem: str) -> pd.DataFrame:
+    """The pairs of ``--from-parquet``, or gathered by ``gather_pairs(seeds, optics, tmp)``
+    in a temporary folder and saved as ``<stem>_<label>.parquet`` in ``--out``."""
+    if args.from_parquet is not None:
+        return _read_pairs(args.from_parquet)
+    tmp = Path(tempfile.mkdtemp(prefix=f"plenoptrack-{stem}-"))
+    try:
+        pairs = gather_pairs(_seeds(args), args.optics, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    args.out.mkdir(parents=True, exist_ok=True)
+    pairs.to_parquet(args.out / f"{stem}_{_label(args)}.parquet")
+    return pairs
+
+
 def _ablate(args, t0: float) -> int:
     """``--ablate``: gather (or read) the variants' pairs, print and write the summary."""
-    if args.from_parquet is not None:
-        pairs = _read_pairs(args.from_parquet)
-    else:
-        tmp = Path(tempfile.mkdtemp(prefix="plenoptrack-ablation-"))
-        try:
-            pairs = gather_ablation(_seeds(args), args.optics, tmp)
-        finally:
-            shutil.rmtree(tmp, ignore_errors=True)
-        args.out.mkdir(parents=True, exist_ok=True)
-        pairs.to_parquet(args.out / f"ablation_{_label(args)}.parquet")
+    pairs = _pairs(args, gather_ablation, "ablation")
     cols = ["optics", "band", "variant", "n"] + [f"{ax} {m}" for ax in "xyz"
                                                  for m in ("1s", "2s", ">3s", "k68")]
     text = _markdown(ablation_summary(pairs)[cols])
