@@ -79,6 +79,28 @@ def test_track_refuses_bad_options_and_inputs(tables):
     result = run("track", bad, "--out", tables / "t.parquet")
     assert result.exit_code == 1 and "no column" in result.stderr
     assert not (tables / "t.parquet").exists()
+    result = run("track", tables / "particles.parquet", "--out", tables / "t.parquet",
+                 "--max-sigma-ratio", "0")
+    assert result.exit_code != 0 and "max_sigma_ratio" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+    assert not (tables / "t.parquet").exists()
+
+
+def test_track_leaves_points_too_uncertain_to_link_on_their_own(tables, tracked):
+    # the noisy table's sigmas are far below the search ranges: no point is left out,
+    # until the ratio is small enough for the largest depth sigmas
+    assert "too uncertain to link" in tracked.stdout
+    particles = pd.read_parquet(tables / "particles.parquet")
+    ratio = float(particles["sigma_z"].quantile(0.9)) / 3.0
+    out = tables / "t_ratio.parquet"
+    result = run("track", tables / "particles.parquet", "--out", out, "--min-length", "1",
+                 "--max-sigma-ratio", f"{ratio!r}")
+    assert result.exit_code == 0, result.output
+    tracks = pd.read_parquet(out)
+    alone = tracks.groupby("particle").filter(lambda t: len(t) == 1)
+    uncertain = tracks["sigma_z"] > ratio * 3.0
+    assert uncertain.sum() >= 0.09 * len(tracks)
+    assert set(tracks.index[uncertain]) <= set(alone.index)
 
 
 def test_plot_writes_png_and_pdf(tables, tracked):

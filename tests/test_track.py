@@ -5,6 +5,8 @@ Tables are truth plus noise of the locator's size (lateral 0.04 mm, depth 0.12 m
 outliers of 1 mm, 10 % of the detections missed), no rendering.
 """
 
+import dataclasses
+
 import numpy as np
 import pandas as pd
 import pytest
@@ -13,7 +15,8 @@ from plenoptrack.errors import InputFileError, SettingsError
 from plenoptrack.evaluate import evaluate_tracks
 from plenoptrack.simulate.scenes import FragmentField, VortexRing, fragment_field_scene, vortex_ring_scene
 from plenoptrack.track import (TrackSettings, estimate_drift, extend_tracks, link_particles,
-                               smooth_tracks, track_particles, track_statistics)
+                               smooth_tracks, too_uncertain_to_link, track_particles,
+                               track_statistics)
 
 VEL = ["velocity_x", "velocity_y", "velocity_z"]
 
@@ -213,6 +216,40 @@ def test_anisotropic_search_range_and_memory():
     assert no_memory.loc[no_memory["x"] == 40.0, "particle"].nunique() == 2
 
 
+def test_a_point_less_certain_than_the_search_region_does_not_carry_a_track():
+    # The mechanism seen on a simulated fragment field: a body passes behind a larger one
+    # and is missed in frames 2-4, where the locator reports two misplaced points, the
+    # second with a depth sigma larger than the depth search range. Linked, that point
+    # bridges the first to the body's frame-5 point, which the misplaced track predicts
+    # better than the body's own track (its y velocity from two noisy frames).
+    rows = [(0, 0.0, 0.0, 0.0, 0.1), (1, 1.0, -0.3, 0.0, 0.1), (5, 5.0, 0.0, 0.0, 0.1),
+            (3, 3.0, 1.0, 5.0, 0.1), (4, 4.0, 0.5, 2.5, 4.0)]
+    rows += [(f, float(f), y, 0.0, 0.1) for f in range(6) for y in (10.0, 20.0, 30.0)]
+    p = pd.DataFrame(rows, columns=["frame", "x", "y", "z", "sigma_z"]).assign(sigma_x=0.05,
+                                                                              sigma_y=0.05)
+    settings = TrackSettings(search_range_mm=(1.5, 3.0), memory=3, order=1, window=6)
+    assert too_uncertain_to_link(p, settings).tolist() == [False] * 4 + [True] + [False] * 18
+
+    def frames_with(linked, frame):        # frames of the track of the body's point in `frame`
+        track = linked.loc[(linked["frame"] == frame) & (linked["y"] == 0.0), "particle"]
+        return sorted(linked.loc[linked["particle"] == track.item(), "frame"].tolist())
+
+    assert frames_with(link_particles(p, settings), 5) == [0, 1, 5]
+    every_point = link_particles(p, dataclasses.replace(settings, max_sigma_ratio=np.inf))
+    assert frames_with(every_point, 5) == [3, 4, 5] and frames_with(every_point, 0) == [0, 1]
+    # the uncertain point is kept, in a track of its own, and counted
+    result = track_particles(p, dataclasses.replace(settings, min_length=1))
+    assert len(result.tracks) == len(p) and result.n_too_uncertain == 1
+    assert result.summary()["too uncertain to link (sigma > search range)"] == 1
+    # a looser ratio links it; no sigma columns or NaN sigmas: every point is linked
+    assert not too_uncertain_to_link(p, dataclasses.replace(settings, max_sigma_ratio=2.0)).any()
+    assert not too_uncertain_to_link(p.drop(columns=["sigma_z"]), settings).any()
+    assert not too_uncertain_to_link(p.assign(sigma_z=np.nan), settings).any()
+    # a table of nothing but uncertain points: one track each
+    alone = link_particles(p.assign(sigma_x=2.0), settings)
+    assert alone["particle"].nunique() == len(p)
+
+
 def test_smoother_is_exact_on_polynomials_and_weights_by_sigma():
     f = np.arange(10)
     x = 1.0 + 0.5 * f - 0.03 * f ** 2
@@ -300,5 +337,8 @@ def test_bad_input():
         TrackSettings(search_range_mm=(1.0, -2.0))
     with pytest.raises(SettingsError, match="window"):
         TrackSettings(window=5, order=2)
+    for bad in (0.0, -1.0, np.nan):
+        with pytest.raises(SettingsError, match="max_sigma_ratio"):
+            TrackSettings(max_sigma_ratio=bad)
     with pytest.raises(InputFileError, match="non-finite"):
         link_particles(pd.DataFrame({"frame": [0, 1], "x": [0.0, np.nan], "y": 0.0, "z": 0.0}))

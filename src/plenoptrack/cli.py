@@ -935,6 +935,7 @@ def track(
     search_depth: float = typer.Option(3.0, "--search-depth", callback=_finite(positive=True), help="Depth (z) search range, mm (depth errors exceed lateral ones)."),
     memory: int = typer.Option(2, "--memory", min=0, help="Frames a track may miss and still be continued."),
     min_length: int = typer.Option(3, "--min-length", min=1, help="Drop tracks with fewer points."),
+    max_sigma_ratio: float = typer.Option(1.0, "--max-sigma-ratio", help="Leave out of linking each point whose sigma on an axis exceeds this multiple of the search range on that axis (its own track); inf links every point."),
     window: int = typer.Option(7, "--window", min=2, help="Points of each local fit along a track."),
     order: int = typer.Option(2, "--order", min=0, max=3, help="Degree of the local fit: 1 constant velocity (ballistic), 2 constant acceleration."),
     frame_interval: Optional[float] = typer.Option(None, "--frame-interval", callback=_finite(positive=True), help="Time between frames, s (adds speeds in m/s); a simulated data set's scene.toml gives it."),
@@ -950,7 +951,8 @@ def track(
         raise typer.BadParameter(f"a fit of --order {order} needs at least {minimum} points; "
                                  f"got {window}", param_hint="--window")
     settings = TrackSettings(search_range_mm=(search_range, search_depth), memory=memory,
-                             min_length=min_length, window=window, order=order,
+                             min_length=min_length, max_sigma_ratio=max_sigma_ratio,
+                             window=window, order=order,
                              frame_interval_s=frame_interval, predict=not no_predict,
                              passes=1 if no_predict else 2, extend=not no_extend)
     with _outputs({"--out": out_file, "--stats": stats_file},

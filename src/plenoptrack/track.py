@@ -47,7 +47,7 @@ from .io import METADATA_KEY
 __all__ = ["TrackSettings", "TrackVelocityPredict", "link_particles", "smooth_tracks",
            "track_statistics", "track_particles", "TrackResult", "SIGMA_COLUMNS",
            "SMOOTH_COLUMNS", "VELOCITY_COLUMNS", "ACCELERATION_COLUMNS", "depth_scatter_ratio",
-           "estimate_drift", "extend_tracks", "tracking_record"]
+           "estimate_drift", "extend_tracks", "tracking_record", "too_uncertain_to_link"]
 
 SMOOTH_COLUMNS = ("x_smooth", "y_smooth", "z_smooth")
 """Track-smoothed position, mm."""
@@ -82,6 +82,13 @@ class TrackSettings:
         at both ends along its own velocity (:func:`extend_tracks`): a point the linking
         left alone or in a track of one or two points joins the track it fits, within
         the search range, ``memory`` frames included.
+    max_sigma_ratio : float
+        A point whose standard uncertainty on an axis (``sigma_x``, ``sigma_y``,
+        ``sigma_z``, where the table has them) exceeds ``max_sigma_ratio`` times the
+        search range on that axis is left out of linking and becomes a track of its own:
+        its position alone is less certain than the region a track is searched in, so any
+        link it made would be chance, and it could carry a track onto the wrong particle
+        (a misplaced particle where two images merge). ``inf`` links every point.
     min_length : int
         Tracks with fewer points are dropped from the output.
     window : int
@@ -102,6 +109,7 @@ class TrackSettings:
     predict: bool = True
     passes: int = 2
     extend: bool = True
+    max_sigma_ratio: float = 1.0
     min_length: int = 3
     window: int = 7
     order: int = 2
@@ -125,6 +133,9 @@ class TrackSettings:
         if not (isinstance(self.window, (int, np.integer)) and self.window >= self.min_window):
             raise SettingsError(f"window must be an integer of at least {self.min_window} points "
                                 f"for a fit of order {self.order}; got {self.window!r}")
+        if not (self.max_sigma_ratio > 0):        # inf allowed
+            raise SettingsError(f"max_sigma_ratio must be positive (inf: link every point); "
+                                f"got {self.max_sigma_ratio!r}")
         if not (math.isfinite(self.clip) and self.clip >= 0):
             raise SettingsError(f"clip must be >= 0 (0: no rejection); got {self.clip!r}")
         if self.frame_interval_s is not None and not (
@@ -362,7 +373,8 @@ def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSetti
         Columns ``frame`` and ``x, y, z`` (mm), e.g. from ``plenoptrack locate``; any
         other columns are kept. Not changed.
     settings : TrackSettings
-        Search range, memory, prediction and passes.
+        Search range, memory, prediction and passes. Rows too uncertain to link
+        (:func:`too_uncertain_to_link`) each get a track of their own.
 
     Returns
     -------
@@ -376,6 +388,38 @@ def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSetti
     if len(particles) == 0:
         warnings.warn("no particles to link", NoParticlesWarning, stacklevel=2)
         return particles.assign(**{ID_COLUMN: pd.Series(dtype=np.int64)})
+    unlinkable = too_uncertain_to_link(particles, settings)
+    ids = np.empty(len(particles), dtype=np.int64)
+    if not unlinkable.all():
+        ids[~unlinkable] = _linked_ids(particles[~unlinkable].reset_index(drop=True), settings)
+    ids[unlinkable] = ids[~unlinkable].max(initial=-1) + 1 + np.arange(int(unlinkable.sum()))
+    # renumber in order of first appearance
+    order = pd.DataFrame({"id": ids, "f": particles[T_COLUMN].to_numpy()}).groupby("id")["f"].min()
+    first_seen = order.sort_values(kind="stable").index.to_numpy()
+    remap = np.empty(ids.max() + 1, dtype=np.int64)
+    remap[first_seen] = np.arange(len(first_seen))
+    out = particles.assign(**{ID_COLUMN: remap[ids]})
+    return out.sort_values([ID_COLUMN, T_COLUMN], kind="stable").reset_index(drop=True)
+
+
+def too_uncertain_to_link(particles: pd.DataFrame,
+                          settings: TrackSettings = TrackSettings()) -> np.ndarray:
+    """Rows whose position is less certain than the search region
+    (:attr:`TrackSettings.max_sigma_ratio`): ``sigma_x`` or ``sigma_y`` above
+    ``max_sigma_ratio`` times the lateral search range, or ``sigma_z`` above that times
+    the depth range. A table without sigma columns has none; a NaN sigma counts as
+    certain (nothing says otherwise)."""
+    lateral, depth = settings.search_range_mm
+    out = np.zeros(len(particles), dtype=bool)
+    for column, search in zip(SIGMA_COLUMNS, (lateral, lateral, depth), strict=True):
+        if column in particles.columns:
+            out |= particles[column].to_numpy(float) > settings.max_sigma_ratio * search
+    return out
+
+
+def _linked_ids(particles: pd.DataFrame, settings: TrackSettings) -> np.ndarray:
+    """Track id of every row (not yet renumbered): one or two linking passes, then the
+    tracks continued at their ends (:func:`link_particles`)."""
     first_pass = settings
     if settings.predict and settings.passes == 2:
         lateral, depth = settings.search_range_mm
@@ -399,13 +443,7 @@ def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSetti
         ids = _link_once(particles, settings, guess)
     if settings.extend:
         ids = extend_tracks(particles, ids, settings)
-    # renumber in order of first appearance
-    order = pd.DataFrame({"id": ids, "f": particles[T_COLUMN].to_numpy()}).groupby("id")["f"].min()
-    first_seen = order.sort_values(kind="stable").index.to_numpy()
-    remap = np.empty(ids.max() + 1, dtype=np.int64)
-    remap[first_seen] = np.arange(len(first_seen))
-    out = particles.assign(**{ID_COLUMN: remap[ids]})
-    return out.sort_values([ID_COLUMN, T_COLUMN], kind="stable").reset_index(drop=True)
+    return ids
 
 
 EXTEND_MIN_POINTS = 3
@@ -907,6 +945,9 @@ class TrackResult:
     depth_scatter_ratio : float
         Estimated per-frame over smoothed depth scatter (:func:`depth_scatter_ratio`).
     settings : TrackSettings
+    n_too_uncertain : int
+        Rows of the particles table left out of linking as too uncertain
+        (:func:`too_uncertain_to_link`).
     """
 
     tracks: pd.DataFrame
@@ -914,11 +955,14 @@ class TrackResult:
     n_input: int
     depth_scatter_ratio: float
     settings: TrackSettings
+    n_too_uncertain: int = 0
 
     def summary(self) -> dict:
         """Numbers for a report: counts, lengths, speeds and the depth refinement."""
         st = self.statistics
-        out = {"particles in": self.n_input, "tracks": len(st),
+        out = {"particles in": self.n_input,
+               "too uncertain to link (sigma > search range)": self.n_too_uncertain,
+               "tracks": len(st),
                "points in tracks": len(self.tracks),
                "mean track length (frames)": float(st["n_frames"].mean()) if len(st) else 0.0,
                "outliers rejected": int(self.tracks["outlier"].sum()) if len(self.tracks) else 0,
@@ -947,4 +991,5 @@ def track_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSett
     tracks = smooth_tracks(linked, settings)
     stats = track_statistics(tracks, frame_interval_s=settings.frame_interval_s)
     return TrackResult(tracks=tracks, statistics=stats, n_input=len(particles),
-                       depth_scatter_ratio=depth_scatter_ratio(tracks), settings=settings)
+                       depth_scatter_ratio=depth_scatter_ratio(tracks), settings=settings,
+                       n_too_uncertain=int(too_uncertain_to_link(particles, settings).sum()))
