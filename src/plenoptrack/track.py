@@ -32,6 +32,7 @@ squares procedures", Anal. Chem. 36 (1964) 1627-1639 (local polynomial fits).
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 import warnings
 from dataclasses import asdict, dataclass
@@ -541,7 +542,8 @@ def extend_tracks(particles: pd.DataFrame, ids: np.ndarray,
 # smoothing
 
 
-def _windows(frames: np.ndarray, starts: np.ndarray, lengths: np.ndarray, k: int) -> np.ndarray:
+def _windows(frames: np.ndarray, starts: np.ndarray, lengths: np.ndarray, k: int,
+             keep: np.ndarray | None = None) -> np.ndarray:
     """For each row, the rows of its track that its local fit uses.
 
     ``frames`` are sorted within each track. A row with ``k // 2`` points on either side
@@ -551,22 +553,52 @@ def _windows(frames: np.ndarray, starts: np.ndarray, lengths: np.ndarray, k: int
     certain than at its centre; the longer window makes up for it). A track of fewer
     points uses all of them. Unused slots hold -1; the array has ``k + 2 (k // 2)``
     columns (``2 k - 1`` for odd ``k``, ``2 k`` for even), the longest end window.
+
+    With ``keep`` (n,) bool, windows are made of kept rows only: each row's window is
+    the one it would have among the kept rows of its track, a row not kept standing
+    where it lies in time but left out of its own window. Points rejected from the fits
+    then leave every window its ``k`` points (a window of 7 that lost three would
+    otherwise fit a line to a curved track, and its residuals reject more).
     """
     n = len(frames)
     half = k // 2
     width = k + 2 * half
     out = np.full((n, width), -1, dtype=np.int64)
     for s0, m in zip(starts, lengths):
+        rows = np.arange(s0, s0 + m)
+        kept = rows if keep is None else rows[keep[s0:s0 + m]]
         for i in range(m):
-            left, right = i, m - 1 - i
+            row = s0 + i
+            pos = i if keep is None else int(np.searchsorted(kept, row))
+            alone = keep is not None and not keep[row]
+            seq = np.insert(kept, pos, row) if alone else kept
+            mm = len(seq)
+            left, right = pos, mm - 1 - pos
             if min(left, right) >= half:
-                a, b = i - half, i - half + k
+                a, b = pos - half, pos - half + k
             else:
                 s = min(left, right)
                 long = k - 1 - s + 2 * (half - s)
-                a, b = (i - s, i + long + 1) if left <= right else (i - long, i + s + 1)
-            a, b = max(a, 0), min(b, m)
-            out[s0 + i, :b - a] = s0 + np.arange(a, b)
+                a, b = (pos - s, pos + long + 1) if left <= right else (pos - long, pos + s + 1)
+            chosen = seq[max(a, 0):min(b, mm)]
+            if alone:
+                chosen = chosen[chosen != row]
+            out[row, :len(chosen)] = chosen
+    return out
+
+
+def _kept_windows(idx: np.ndarray, frames: np.ndarray, starts: np.ndarray,
+                  lengths: np.ndarray, k: int, keep: np.ndarray) -> np.ndarray:
+    """``idx`` (the windows of :func:`_windows`) with the windows of every track that has
+    a row not kept made again of its kept rows (:func:`_windows` with ``keep``)."""
+    if keep.all():
+        return idx
+    out = idx.copy()
+    dropped = np.add.reduceat((~keep).astype(np.int64), starts) if len(starts) else []
+    for s0, m in zip(starts[np.flatnonzero(dropped)], lengths[np.flatnonzero(dropped)]):
+        part = _windows(frames[s0:s0 + m], np.array([0]), np.array([m]), k,
+                        keep=keep[s0:s0 + m])
+        out[s0:s0 + m] = np.where(part >= 0, part + s0, -1)
     return out
 
 
@@ -636,13 +668,19 @@ def _robust_line(t: np.ndarray, y: np.ndarray, idx: np.ndarray, order: int) -> n
     Theil-Sen line (median of the slopes between every two points of the window,
     intercept the median of the points less that slope), or the window's median for
     ``order`` 0. Unlike a least-squares fit it follows the majority of the window even
-    when several neighbouring points lie far off. NaN where the window has fewer than
-    two points at distinct times."""
+    when several neighbouring points lie far off. For ``order`` 2 and above the
+    window's curvature is taken out first: the median second divided difference of
+    every three points times ``dt^2`` (the same idea one degree up), so that a track
+    that accelerates is not judged against a straight line (every point of a strongly
+    curved track would lie off it). NaN where the window has fewer than two points at
+    distinct times."""
     n, k = idx.shape
     valid = idx >= 0
     safe = np.where(valid, idx, 0)
     dt = np.where(valid, t[safe] - t[:, None], np.nan)
     yy = np.where(valid, y[safe], np.nan)
+    if order >= 2 and n and k >= 3:
+        yy = yy - _robust_half_curvature(dt, yy)[:, None] * dt ** 2
     if order == 0 or n == 0:
         slope = np.zeros(n)
     else:
@@ -659,6 +697,23 @@ def _robust_line(t: np.ndarray, y: np.ndarray, idx: np.ndarray, order: int) -> n
     intercept = np.full(n, np.nan)
     intercept[has] = np.nanmedian(line[has], axis=1)
     return y - intercept
+
+
+def _robust_half_curvature(dt: np.ndarray, yy: np.ndarray) -> np.ndarray:
+    """(n,) median second divided difference over every three points of each window
+    (``dt``, ``yy`` (n, k), NaN where unused): the window's quadratic coefficient (half
+    its second derivative), robust to a minority of far-off points; 0 where no three
+    points are at distinct times."""
+    a, b, c = (np.array(v) for v in zip(*itertools.combinations(range(dt.shape[1]), 3)))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        first_ab = (yy[:, b] - yy[:, a]) / (dt[:, b] - dt[:, a])
+        first_bc = (yy[:, c] - yy[:, b]) / (dt[:, c] - dt[:, b])
+        second = (first_bc - first_ab) / (dt[:, c] - dt[:, a])
+    second[~np.isfinite(second)] = np.nan
+    usable = np.isfinite(second).any(axis=1)
+    half = np.zeros(len(dt))
+    half[usable] = np.nanmedian(second[usable], axis=1)
+    return half
 
 
 def _smoothed_sigma(L: np.ndarray, sigma_window: np.ndarray, scale: float, *,
@@ -794,10 +849,20 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
                 if s0 > 0:
                     bad = _rejected(start, settings.clip * s0, long_track, pid, lengths)
                     w = np.where(bad, 0.0, w0)
+        fitted = None                   # the weights of the latest fit
         for _round in range(3 if settings.clip > 0 else 1):
-            coef, L, _ = _local_fit(t, y, w, idx, settings.order)
-            h = np.where(idx == np.arange(n)[:, None], L, 0.0).sum(axis=1)
-            resid = (y - coef[:, 0]) / (sigma * np.sqrt(np.clip(1.0 - h, 1e-3, None)))
+            idx_fit = _kept_windows(idx, t, starts, lengths, settings.window, w > 0)
+            coef, L, _ = _local_fit(t, y, w, idx_fit, settings.order)
+            fitted = w
+            h = np.where(idx_fit == np.arange(n)[:, None], L, 0.0).sum(axis=1)
+            # a point in its own fit scatters about it by sigma sqrt(1 - h); one left out
+            # by its own sigma and the fit's uncertainty where it stands
+            used = idx_fit >= 0
+            fit_var = (L ** 2 * np.where(used, sigma[np.where(used, idx_fit, 0)], 0.0) ** 2
+                       ).sum(axis=1)
+            resid = (y - coef[:, 0]) / np.where(
+                w > 0, sigma * np.sqrt(np.clip(1.0 - h, 1e-3, None)),
+                np.sqrt(sigma ** 2 + fit_var))
             fit_ok = np.isfinite(resid) & (w > 0) & (h < 0.999)
             if fit_ok.sum() >= 3:
                 scale = float(1.4826 * np.median(np.abs(resid[fit_ok])))
@@ -809,13 +874,17 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
             if np.array_equal(new_w, w):
                 break
             w = new_w
+        if fitted is not w:             # the last round's rejections: fit without them
+            idx_fit = _kept_windows(idx, t, starts, lengths, settings.window, w > 0)
+            coef, L, _ = _local_fit(t, y, w, idx_fit, settings.order)
         lost = np.isnan(coef[:, 0])
         if lost.any():     # every point of the window rejected: fit them all, unweighted by it
             coef_all, L_all, _ = _local_fit(t, y, w0, idx, settings.order)
             coef[lost], L[lost] = coef_all[lost], L_all[lost]
+            idx_fit = np.where(lost[:, None], idx, idx_fit)
         outlier |= w == 0
-        valid = idx >= 0
-        sig_win = np.where(valid, sigma[np.where(valid, idx, 0)], 0.0)
+        valid = idx_fit >= 0
+        sig_win = np.where(valid, sigma[np.where(valid, idx_fit, 0)], 0.0)
         out[SMOOTH_COLUMNS[axis]] = coef[:, 0]
         out[SMOOTH_SIGMA_COLUMNS[axis]] = _smoothed_sigma(L, sig_win, scale,
                                                           measured=sig_name in df.columns)
