@@ -741,10 +741,27 @@ def _smoothed_sigma(L: np.ndarray, sigma_window: np.ndarray, scale: float, *,
     return np.sqrt(var)
 
 
-def _rejected(resid: np.ndarray, limit: float, eligible: np.ndarray, pid: np.ndarray,
+TRACK_SCALE_MIN_POINTS = 4
+"""Points of a track (residuals in its own fit) that its own robust scale needs."""
+
+
+def _track_scales(resid: np.ndarray, usable: np.ndarray, pid: np.ndarray,
+                  scale: float) -> np.ndarray:
+    """(T,) robust scale of each track's normalised residuals (1.4826 MAD about 0 of the
+    ``usable`` rows; rows sorted by track ``pid``), never below ``scale``, the scale over
+    all tracks; ``scale`` for a track of fewer than :data:`TRACK_SCALE_MIN_POINTS`
+    usable rows."""
+    a = pd.Series(np.where(usable, np.abs(resid), np.nan))
+    g = a.groupby(pid, sort=False)
+    own = 1.4826 * g.median().to_numpy()
+    enough = g.count().to_numpy() >= TRACK_SCALE_MIN_POINTS
+    return np.where(enough & np.isfinite(own), np.maximum(own, scale), scale)
+
+
+def _rejected(resid: np.ndarray, limit, eligible: np.ndarray, pid: np.ndarray,
               lengths: np.ndarray) -> np.ndarray:
-    """Rows of ``eligible`` whose finite ``|resid|`` exceeds ``limit``, at most the worst
-    third of each track (:func:`_worst_third`)."""
+    """Rows of ``eligible`` whose finite ``|resid|`` exceeds ``limit`` (a number or one
+    per row), at most the worst third of each track (:func:`_worst_third`)."""
     bad = eligible & np.isfinite(resid) & (np.abs(resid) > limit)
     return _worst_third(bad, np.abs(np.nan_to_num(resid)), pid, lengths)
 
@@ -795,9 +812,13 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     in ``frame - frame_row``, weights ``1 / sigma^2``; the constant term is the smoothed
     position, the linear term the velocity, twice the quadratic term the acceleration.
     With ``clip > 0`` the residuals of each coordinate, normalised by
-    ``sigma sqrt(1 - h)`` (``h`` the point's weight in its own fit), are compared with
-    ``clip`` times their robust scale ``s`` (1.4826 MAD over all rows); points beyond are
-    given weight 0 and the fits repeated (three rounds). The rounds start from the points
+    ``sigma sqrt(1 - h)`` (``h`` the point's weight in its own fit; a point left out by
+    its sigma and the fit's uncertainty where it stands), are compared with ``clip``
+    times their robust scale: ``s`` (1.4826 MAD over all rows), or the track's own
+    where that is larger (from at least :data:`TRACK_SCALE_MIN_POINTS` points: how much
+    of a sigma shows as scatter differs from particle to particle); points beyond are
+    given weight 0, the windows made up again from the other points
+    (:func:`_windows` with ``keep``) and the fits repeated (three rounds). The rounds start from the points
     beyond ``clip`` times the robust scale of their residuals from a Theil-Sen line through
     their window (:func:`_robust_line`), not from an unweighted least-squares fit, which
     two neighbouring far-off points (another particle's, a ghost on the line of sight) can
@@ -869,7 +890,8 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
                 scale = scale if scale > 0 else 1.0
             if settings.clip <= 0:
                 break
-            bad = _rejected(resid, settings.clip * scale, long_track, pid, lengths)
+            limit = settings.clip * _track_scales(resid, fit_ok, pid, scale).repeat(lengths)
+            bad = _rejected(resid, limit, long_track, pid, lengths)
             new_w = np.where(bad, 0.0, w0)
             if np.array_equal(new_w, w):
                 break
