@@ -399,3 +399,18 @@ def test_bad_input():
             TrackSettings(max_sigma_ratio=bad)
     with pytest.raises(InputFileError, match="non-finite"):
         link_particles(pd.DataFrame({"frame": [0, 1], "x": [0.0, np.nan], "y": 0.0, "z": 0.0}))
+
+
+def test_bench_track_runs_and_its_baseline_smooths_identically(monkeypatch, capsys):
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_track.py"
+    spec = importlib.util.spec_from_file_location("bench_track", path)
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    monkeypatch.setattr("sys.argv", ["bench_track.py", "--particles", "60", "--frames", "8",
+                                     "--repeats", "1"])
+    bench.main()
+    out = capsys.readouterr().out
+    assert "identical output: True" in out and "link" in out

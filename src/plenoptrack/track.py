@@ -701,18 +701,28 @@ def _robust_line(t: np.ndarray, y: np.ndarray, idx: np.ndarray, order: int) -> n
 
 def _robust_half_curvature(dt: np.ndarray, yy: np.ndarray) -> np.ndarray:
     """(n,) median second divided difference over every three points of each window
-    (``dt``, ``yy`` (n, k), NaN where unused): the window's quadratic coefficient (half
-    its second derivative), robust to a minority of far-off points; 0 where no three
-    points are at distinct times."""
-    a, b, c = (np.array(v) for v in zip(*itertools.combinations(range(dt.shape[1]), 3)))
-    with np.errstate(invalid="ignore", divide="ignore"):
-        first_ab = (yy[:, b] - yy[:, a]) / (dt[:, b] - dt[:, a])
-        first_bc = (yy[:, c] - yy[:, b]) / (dt[:, c] - dt[:, b])
-        second = (first_bc - first_ab) / (dt[:, c] - dt[:, a])
-    second[~np.isfinite(second)] = np.nan
-    usable = np.isfinite(second).any(axis=1)
+    (``dt``, ``yy`` (n, k), their points first and NaN after them, as :func:`_windows`
+    lays them out): the window's quadratic coefficient (half its second derivative),
+    robust to a minority of far-off points; 0 where no three points are at distinct
+    times. Rows are taken in groups of equal point count, each with only its own
+    triples."""
+    count = np.isfinite(yy).sum(axis=1)
     half = np.zeros(len(dt))
-    half[usable] = np.nanmedian(second[usable], axis=1)
+    for c in np.unique(count[count >= 3]):
+        rows = np.flatnonzero(count == c)
+        a, b, d = (np.array(v) for v in zip(*itertools.combinations(range(int(c)), 3)))
+        t, y = dt[rows, :c], yy[rows, :c]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            first_ab = (y[:, b] - y[:, a]) / (t[:, b] - t[:, a])
+            first_bd = (y[:, d] - y[:, b]) / (t[:, d] - t[:, b])
+            second = (first_bd - first_ab) / (t[:, d] - t[:, a])
+        finite = np.isfinite(second)
+        if finite.all():
+            half[rows] = np.median(second, axis=1)
+            continue
+        second[~finite] = np.nan
+        usable = finite.any(axis=1)
+        half[rows[usable]] = np.nanmedian(second[usable], axis=1)
     return half
 
 
