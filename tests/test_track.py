@@ -401,16 +401,11 @@ def test_bad_input():
         link_particles(pd.DataFrame({"frame": [0, 1], "x": [0.0, np.nan], "y": 0.0, "z": 0.0}))
 
 
-def test_bench_track_runs_and_its_baseline_smooths_identically(monkeypatch, capsys):
-    import importlib.util
-    from pathlib import Path
-
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "bench_track.py"
-    spec = importlib.util.spec_from_file_location("bench_track", path)
-    bench = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(bench)
+def test_bench_track_runs_and_its_baseline_smooths_identically(benchmark_module, monkeypatch,
+                                                               capsys):
     monkeypatch.setattr("sys.argv", ["bench_track.py", "--particles", "60", "--frames", "8",
                                      "--repeats", "1"])
-    bench.main()
+    with benchmark_module("bench_track") as bench:
+        bench.main()
     out = capsys.readouterr().out
     assert "identical output: True" in out and "link" in out
