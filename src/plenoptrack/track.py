@@ -827,14 +827,14 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     times their robust scale: ``s`` (1.4826 MAD over all rows), or the track's own
     where that is larger (from at least :data:`TRACK_SCALE_MIN_POINTS` points: how much
     of a sigma shows as scatter differs from particle to particle); points beyond are
-    given weight 0, the windows made up again from the other points
-    (:func:`_windows` with ``keep``) and the fits repeated (three rounds). The rounds start from the points
-    beyond ``clip`` times the robust scale of their residuals from a Theil-Sen line through
-    their window (:func:`_robust_line`), not from an unweighted least-squares fit, which
-    two neighbouring far-off points (another particle's, a ghost on the line of sight) can
-    pull onto them so that their good neighbours are rejected instead; at most a third of a track's
-    points are rejected (the worst), and tracks shorter than ``order + 4`` points keep
-    every point. The smoothed sigma is ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's
+    given weight 0, the windows made up again from the other points (:func:`_windows`
+    with ``keep``) and the fits repeated (three rounds). The rounds start from the
+    points beyond ``clip`` times the robust scale of their residuals from a Theil-Sen
+    line through their window (:func:`_robust_line`), not from an unweighted
+    least-squares fit, which two neighbouring far-off points (another particle's, a
+    ghost on the line of sight) can pull onto them so that their good neighbours are
+    rejected instead; at most a third of a track's points are rejected (the worst), and
+    tracks shorter than ``order + 4`` points keep every point. The smoothed sigma is ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's
     weights) when ``s >= 1``: ``s`` rescales the locator's sigmas to the scatter the
     tracks show. When ``s < 1`` the rest of each sigma is error that the track does not
     show as scatter (kept from frame to frame) and is not averaged away
