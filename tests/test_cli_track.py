@@ -56,6 +56,7 @@ def test_track_writes_tracks_and_statistics(tables, tracked):
     # the settings travel with the table, beside the particles' provenance
     record = tracks.attrs["plenoptrack"]
     assert record["tracking"]["settings"]["frame_interval_s"] == 0.001
+    assert set(record["tracking"]["windows"]) == {"x", "y", "z"}
     assert record["tracking"]["scatter_scale"]["z"] > 0
 
 
@@ -84,6 +85,16 @@ def test_track_refuses_bad_options_and_inputs(tables):
     assert result.exit_code != 0 and "max_sigma_ratio" in result.stderr
     assert len(result.stderr.strip().splitlines()) == 1
     assert not (tables / "t.parquet").exists()
+
+
+def test_track_fixed_window(tables):
+    out = tables / "t_fixed.parquet"
+    result = run("track", tables / "particles.parquet", "--out", out, "--fixed-window",
+                 "--window", "9")
+    assert result.exit_code == 0, result.output
+    record = pd.read_parquet(out).attrs["plenoptrack"]["tracking"]
+    assert record["windows"] == {"x": 9, "y": 9, "z": 9}
+    assert record["settings"]["adapt_window"] is False
 
 
 def test_track_leaves_points_too_uncertain_to_link_on_their_own(tables, tracked):

@@ -941,6 +941,7 @@ def track(
     frame_interval: Optional[float] = typer.Option(None, "--frame-interval", callback=_finite(positive=True), help="Time between frames, s (adds speeds in m/s); a simulated data set's scene.toml gives it."),
     no_predict: bool = typer.Option(False, "--no-predict", help="Link without the velocity predictor."),
     no_extend: bool = typer.Option(False, "--no-extend", help="Do not continue tracks at both ends along their own velocity after linking (a lone point or a track of one or two points that fits a track's extrapolation joins it)."),
+    fixed_window: bool = typer.Option(False, "--fixed-window", help="Smooth every coordinate over --window points (by default each coordinate's window is chosen among --window -2, +0, +2 and +4 by its leave-one-out prediction error)."),
 ) -> None:
     """Link particles over frames into 3D tracks; velocities, accelerations, track-refined depth."""
     from .io import read_table, write_table
@@ -954,7 +955,8 @@ def track(
                              min_length=min_length, max_sigma_ratio=max_sigma_ratio,
                              window=window, order=order,
                              frame_interval_s=frame_interval, predict=not no_predict,
-                             passes=1 if no_predict else 2, extend=not no_extend)
+                             passes=1 if no_predict else 2, extend=not no_extend,
+                             adapt_window=not fixed_window)
     with _outputs({"--out": out_file, "--stats": stats_file},
                   {"PARTICLES": particles_file}) as (out_tmp, stats_tmp):
         t0 = time.perf_counter()

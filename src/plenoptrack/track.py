@@ -96,6 +96,14 @@ class TrackSettings:
         Points of each local fit (odd numbers centre the window): at least 3 for
         ``order`` 1, ``2 order + 2`` above; the degree is lowered where fewer points are
         available.
+    adapt_window : bool
+        Choose each coordinate's window among ``window - 2`` (not below the least the
+        order needs), ``window``, ``window + 2`` and ``window + 4`` by the smallest
+        leave-one-out prediction error of its points (the median of
+        ``|y - fit| / (sigma (1 - h))``, ``h`` a point's weight in its own fit): a
+        coordinate that changes slowly (the depth of tracers in a mostly lateral flow)
+        is smoothed over more points than one that curves. The choice is stored in the
+        tracking record (``windows``).
     order : int
         Degree of the local polynomial (1: constant velocity, 2: constant acceleration).
     clip : float
@@ -113,6 +121,7 @@ class TrackSettings:
     max_sigma_ratio: float = 1.0
     min_length: int = 3
     window: int = 7
+    adapt_window: bool = True
     order: int = 2
     clip: float = 3.5
     frame_interval_s: float | None = None
@@ -587,6 +596,41 @@ def _windows(frames: np.ndarray, starts: np.ndarray, lengths: np.ndarray, k: int
     return out
 
 
+def _window_candidates(settings: TrackSettings, longest: int) -> list[int]:
+    """The windows :attr:`TrackSettings.adapt_window` chooses from (only ``window``
+    without it): ``window - 2``, ``window``, ``window + 2``, ``window + 4``, none below
+    the least the order needs, none beyond the first that holds the longest track."""
+    k = settings.window
+    if not settings.adapt_window:
+        return [k]
+    out = []
+    for cand in (k - 2, k, k + 2, k + 4):
+        if cand >= settings.min_window and (not out or out[-1] < longest):
+            out.append(cand)
+    return sorted(set(out) | {k})
+
+
+def _press_window(t: np.ndarray, y: np.ndarray, sigma: np.ndarray, w: np.ndarray,
+                  window_idx: dict, order: int) -> int:
+    """The window of ``window_idx`` (window: rows of each row's window) whose fits
+    predict each kept point (weight ``w > 0``) best when it is left out: the smallest
+    median ``|y - fit| / (sigma (1 - h))``; the smallest window on a tie or where
+    nothing can be judged."""
+    best, best_score = min(window_idx), np.inf
+    rows = np.arange(len(y))[:, None]
+    for k in sorted(window_idx):
+        idx = window_idx[k]
+        coef, L, _ = _local_fit(t, y, w, idx, order)
+        h = np.where(idx == rows, L, 0.0).sum(axis=1)
+        ok = (w > 0) & (h < 0.999) & np.isfinite(coef[:, 0])
+        if ok.sum() < 3:
+            continue
+        score = float(np.mean(((y[ok] - coef[ok, 0]) / (sigma[ok] * (1.0 - h[ok]))) ** 2))
+        if score < best_score:
+            best, best_score = k, score
+    return best
+
+
 def _kept_windows(idx: np.ndarray, frames: np.ndarray, starts: np.ndarray,
                   lengths: np.ndarray, k: int, keep: np.ndarray) -> np.ndarray:
     """``idx`` (the windows of :func:`_windows`) with the windows of every track that has
@@ -854,7 +898,10 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     change = np.flatnonzero(np.diff(pid)) + 1 if n else np.zeros(0, np.int64)
     starts = np.concatenate([[0], change]).astype(np.int64) if n else np.zeros(0, np.int64)
     lengths = np.diff(np.concatenate([starts, [n]])).astype(np.int64)
-    idx = _windows(t, starts, lengths, settings.window)
+    candidates = _window_candidates(settings, int(lengths.max(initial=1)))
+    window_idx = {k: _windows(t, starts, lengths, k) for k in candidates}
+    idx = window_idx[settings.window]
+    chosen = {}
     out = {}
     outlier = np.zeros(n, dtype=bool)
     # too short to tell an outlier from the track: no rejection
@@ -880,9 +927,12 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
                 if s0 > 0:
                     bad = _rejected(start, settings.clip * s0, long_track, pid, lengths)
                     w = np.where(bad, 0.0, w0)
+        window = _press_window(t, y, sigma, w, window_idx, settings.order)
+        chosen[c] = window
+        idx = window_idx[window]
         fitted = None                   # the weights of the latest fit
         for _round in range(3 if settings.clip > 0 else 1):
-            idx_fit = _kept_windows(idx, t, starts, lengths, settings.window, w > 0)
+            idx_fit = _kept_windows(idx, t, starts, lengths, window, w > 0)
             coef, L, _ = _local_fit(t, y, w, idx_fit, settings.order)
             fitted = w
             h = np.where(idx_fit == np.arange(n)[:, None], L, 0.0).sum(axis=1)
@@ -907,7 +957,7 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
                 break
             w = new_w
         if fitted is not w:             # the last round's rejections: fit without them
-            idx_fit = _kept_windows(idx, t, starts, lengths, settings.window, w > 0)
+            idx_fit = _kept_windows(idx, t, starts, lengths, window, w > 0)
             coef, L, _ = _local_fit(t, y, w, idx_fit, settings.order)
         lost = np.isnan(coef[:, 0])
         if lost.any():     # every point of the window rejected: fit them all, unweighted by it
@@ -933,7 +983,7 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     scale = {c: float(out[f"_scale_{c}"][0]) if n else float("nan") for c in POS_COLUMNS}
     res.attrs = {METADATA_KEY: {**(linked.attrs.get(METADATA_KEY) or {}),
                                 "tracking": {"settings": settings.to_dict(),
-                                             "scatter_scale": scale}}}
+                                             "scatter_scale": scale, "windows": chosen}}}
     return res
 
 
