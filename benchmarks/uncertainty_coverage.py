@@ -69,45 +69,57 @@ def cells() -> list:
             am._cell("shape", shape="ellipsoid")]
 
 
-def gather(seeds, optics_modes, tmp: Path) -> pd.DataFrame:
-    """Matched (measured, true) pairs with sigma, for every cell, optics mode and seed."""
-    from plenoptrack.io import read_raw
-    from plenoptrack.locate import locate_frame
-    from plenoptrack.locate.uncertainty import model_error_mm
+def _simulated_cells(runner, cell_list, seeds, optics_modes, tmp: Path, frames_of):
+    """Per optics mode, seed and cell (calibrated once per magnification; cells whose
+    calibration failed skipped): ``(optics, seed, cell, calib, white, sim)`` with
+    ``frames_of(cell)`` frames simulated into ``tmp``, removed once the caller moves on."""
     from plenoptrack.simulate import simulate_dataset
 
-    runner = am.Runner(tmp, MIN_PARTICLES, time.perf_counter())
-    rows = []
     for optics in optics_modes:
         for seed in seeds:
             calibrations = {}
-            for cell in cells():
+            for cell in cell_list:
                 if cell.magnification not in calibrations:
                     calibrations[cell.magnification] = runner.calibrate(
                         cell.preset, cell.magnification, optics, seed)
                 calib, white, _ = calibrations[cell.magnification]
                 if calib is None:
                     continue
-                frames = max(1, math.ceil(MIN_PARTICLES / am.n_particles(cell)))
-                scene = am.make_cell_scene(cell, seed, frames)
+                scene = am.make_cell_scene(cell, seed, frames_of(cell))
                 folder = tmp / f"f_{zlib.crc32(cell.name.encode())}_{optics}_{seed}"
                 sim = simulate_dataset(cell.preset, folder, seed=seed, scene=scene,
                                        magnification=cell.magnification,
                                        realism=am.realism_of(optics), dotcard_depths=[])
-                for f, path in enumerate(sim.frame_paths):
-                    truth = sim.truth[sim.truth["frame"] == f]
-                    with warnings.catch_warnings():
-                        warnings.simplefilter("ignore")
-                        found = locate_frame(read_raw(path), calib, frame=f, white=white).particles
-                    pairs = am.match(found, truth, cell.magnification)
-                    # the model error total_sigma used: the DLFC's at the measured depth
-                    model = model_error_mm(calib.dlfc, pairs["z_true"] + pairs["dz"])
-                    rows.append(pairs.assign(cell=cell.name, optics=optics, seed=seed,
-                                             density=cell.density, model_x=model[:, 0],
-                                             model_y=model[:, 1], model_z=model[:, 2]))
-                shutil.rmtree(folder, ignore_errors=True)
-                print(f"{optics} seed {seed} {cell.name}: {sum(len(r) for r in rows)} pairs",
-                      flush=True)
+                try:
+                    yield optics, seed, cell, calib, white, sim
+                finally:
+                    shutil.rmtree(folder, ignore_errors=True)
+
+
+def gather(seeds, optics_modes, tmp: Path) -> pd.DataFrame:
+    """Matched (measured, true) pairs with sigma, for every cell, optics mode and seed."""
+    from plenoptrack.io import read_raw
+    from plenoptrack.locate import locate_frame
+    from plenoptrack.locate.uncertainty import model_error_mm
+
+    runner = am.Runner(tmp, MIN_PARTICLES, time.perf_counter())
+    rows = []
+    for optics, seed, cell, calib, white, sim in _simulated_cells(
+            runner, cells(), seeds, optics_modes, tmp,
+            lambda cell: max(1, math.ceil(MIN_PARTICLES / am.n_particles(cell)))):
+        for f, path in enumerate(sim.frame_paths):
+            truth = sim.truth[sim.truth["frame"] == f]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                found = locate_frame(read_raw(path), calib, frame=f, white=white).particles
+            pairs = am.match(found, truth, cell.magnification)
+            # the model error total_sigma used: the DLFC's at the measured depth
+            model = model_error_mm(calib.dlfc, pairs["z_true"] + pairs["dz"])
+            rows.append(pairs.assign(cell=cell.name, optics=optics, seed=seed,
+                                     density=cell.density, model_x=model[:, 0],
+                                     model_y=model[:, 1], model_z=model[:, 2]))
+        print(f"{optics} seed {seed} {cell.name}: {sum(len(r) for r in rows)} pairs",
+              flush=True)
     return pd.concat(rows, ignore_index=True)
 
 
@@ -135,49 +147,35 @@ def gather_ablation(seeds, optics_modes, tmp: Path) -> pd.DataFrame:
     """
     from plenoptrack.io import read_raw
     from plenoptrack.locate import locate_frame
-    from plenoptrack.simulate import simulate_dataset
 
     runner = am.Runner(tmp, 80, time.perf_counter(), 3)
     rows = []
-    for optics in optics_modes:
-        for seed in seeds:
-            calibrations = {}
-            for cell in am.acceptance_cells():
-                if cell.magnification not in calibrations:
-                    calibrations[cell.magnification] = runner.calibrate(
-                        cell.preset, cell.magnification, optics, seed)
-                calib, white, _ = calibrations[cell.magnification]
-                if calib is None:
-                    continue
-                scene = am.make_cell_scene(cell, seed, am.frames_per_seed(cell, 80, 3))
-                folder = tmp / f"f_{zlib.crc32(cell.name.encode())}_{optics}_{seed}"
-                sim = simulate_dataset(cell.preset, folder, seed=seed, scene=scene,
-                                       magnification=cell.magnification,
-                                       realism=am.realism_of(optics), dotcard_depths=[])
-                base = am.cell_locator(cell)
-                band = am.band_of(cell.axis, cell.density)
-                for f, path in enumerate(sim.frame_paths):
-                    raw = read_raw(path)
-                    truth = sim.truth[sim.truth["frame"] == f]
-                    positions = None
-                    for variant, change in ABLATIONS.items():
-                        locator = base.updated({"solve": change}, source="ablation")
-                        with warnings.catch_warnings():
-                            warnings.simplefilter("ignore")
-                            found = locate_frame(raw, calib, frame=f, white=white,
-                                                 locator=locator).particles
-                        xyz = found[["x", "y", "z"]].to_numpy(float)
-                        if positions is None:
-                            positions = xyz
-                        elif xyz.shape != positions.shape or not np.array_equal(
-                                xyz, positions, equal_nan=True):
-                            raise RuntimeError(f"{variant} moved particles in {cell.name}, "
-                                               f"seed {seed}, frame {f}")
-                        pairs = am.match(found, truth, cell.magnification)
-                        rows.append(pairs.assign(variant=variant, cell=cell.name, band=band,
-                                                 optics=optics, seed=seed, frame=f))
-                shutil.rmtree(folder, ignore_errors=True)
-                print(f"{optics} seed {seed} {cell.name}: done", flush=True)
+    for optics, seed, cell, calib, white, sim in _simulated_cells(
+            runner, am.acceptance_cells(), seeds, optics_modes, tmp,
+            lambda cell: am.frames_per_seed(cell, 80, 3)):
+        base = am.cell_locator(cell)
+        band = am.band_of(cell.axis, cell.density)
+        for f, path in enumerate(sim.frame_paths):
+            raw = read_raw(path)
+            truth = sim.truth[sim.truth["frame"] == f]
+            positions = None
+            for variant, change in ABLATIONS.items():
+                locator = base.updated({"solve": change}, source="ablation")
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    found = locate_frame(raw, calib, frame=f, white=white,
+                                         locator=locator).particles
+                xyz = found[["x", "y", "z"]].to_numpy(float)
+                if positions is None:
+                    positions = xyz
+                elif xyz.shape != positions.shape or not np.array_equal(
+                        xyz, positions, equal_nan=True):
+                    raise RuntimeError(f"{variant} moved particles in {cell.name}, "
+                                       f"seed {seed}, frame {f}")
+                pairs = am.match(found, truth, cell.magnification)
+                rows.append(pairs.assign(variant=variant, cell=cell.name, band=band,
+                                         optics=optics, seed=seed, frame=f))
+        print(f"{optics} seed {seed} {cell.name}: done", flush=True)
     return pd.concat(rows, ignore_index=True)
 
 
