@@ -26,7 +26,7 @@ from ._assign import _predict_all
 from .frame import (_CENTROID_SOLUTION, _FIT_CONTRAST, _FIT_ERROR, _FIT_RADIUS, _HIDDEN,
                      _SPLIT_OF, FrameContext, ParticleState, _fit_views, _member_diameter)
 from ._nearby import ImageSpans
-from ._regions import ELONGATED_ASPECT, member_axes, pair_half_separation
+from ._regions import member_axes, pair_half_separation
 from .bodies import parallax_px
 from .settings import CheckSettings
 from .triangulate import TriangulationFlag
@@ -95,10 +95,11 @@ def split_merged_particles(ctx: FrameContext, state: ParticleState,
     pixels; one that stays unexplained and is one with an image of the group
     (:func:`_coincides`) is dropped, the group's image taking its place.
 
-    Where no split passes, a particle whose regions are elongated is fitted as one image
-    from either end of them as well, and takes the better end's image where it explains
-    the pixels better (:meth:`_SplitRun.fit_from_ends`: out of focus a pin's head and
-    stem merge into one region, whose centred disc lies on neither).
+    Where no split passes, a particle whose regions are elongated (:data:`END_FIT_ASPECT`)
+    is fitted as one image from either end of them as well, and takes the better end's
+    image where it explains the pixels better (:meth:`_SplitRun.fit_from_ends`: out of
+    focus a pin's head and stem merge into one region, whose centred disc lies on
+    neither).
     Where no split passes but one image explains the pixels (model error at most
     ``settings.refine_max_model_error``, refitted on every view), that image replaces
     the particle's solution in two cases: a particle found in the residual
@@ -729,12 +730,23 @@ def _end_starts(dlfc, xyz: np.ndarray, axes: np.ndarray) -> np.ndarray | None:
     discs of the regions' minor radius touching either end of their major axis in the
     central view, at the depth of ``xyz``; None unless the whole regions' median
     ``axes`` (major, minor, angle: :func:`~plenoptrack.locate._regions.member_axes`)
-    make an elongated image (:data:`~plenoptrack.locate._regions.ELONGATED_ASPECT`)."""
+    make an image at least :data:`END_FIT_ASPECT` times as long as wide."""
     major, minor, angle = axes
-    if not (np.all(np.isfinite(axes)) and minor > 0 and major >= ELONGATED_ASPECT * minor):
+    if not (np.all(np.isfinite(axes)) and minor > 0 and major >= END_FIT_ASPECT * minor):
         return None
     return np.c_[_along_major_axis(dlfc, xyz, angle, 0.5 * (major - minor)),
                  np.full(2, 0.5 * minor), np.full(2, 0.9)]
+
+
+END_FIT_ASPECT = 2.5
+"""Least ratio of the whole regions' median long axis to their short one for an image to
+be fitted from its ends (:func:`_end_starts`, :meth:`_SplitRun.fit_from_ends`). The end
+fit is for a compact end on a long thin part (a pin's head on its stem: 3.0-5.5 on the
+hall2019 study's images at traverse positions 10, 25 and 40 mm). A shorter, blocky body
+has no such end: a disc pulled toward one end of an irregular fragment's image (regions
+of aspect 1.5-2.1 on the simulated fragment fields of seeds 0 and 1) comes to rest
+between its end and its centre, 0.3-1 mm off the centroid the regions show, and moves
+on at every later split pass."""
 
 
 def split_start_travel(radius_px: float) -> float:
