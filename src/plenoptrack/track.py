@@ -99,8 +99,8 @@ class TrackSettings:
     adapt_window : bool
         Choose each coordinate's window among ``window - 2`` (not below the least the
         order needs), ``window``, ``window + 2`` and ``window + 4`` by the smallest
-        leave-one-out prediction error of its points (the median of
-        ``|y - fit| / (sigma (1 - h))``, ``h`` a point's weight in its own fit): a
+        leave-one-out prediction error of its points (the mean of
+        ``((y - fit) / (sigma (1 - h)))^2``, ``h`` a point's weight in its own fit): a
         coordinate that changes slowly (the depth of tracers in a mostly lateral flow)
         is smoothed over more points than one that curves. The choice is stored in the
         tracking record (``windows``).
@@ -614,14 +614,13 @@ def _press_window(t: np.ndarray, y: np.ndarray, sigma: np.ndarray, w: np.ndarray
                   window_idx: dict, order: int) -> int:
     """The window of ``window_idx`` (window: rows of each row's window) whose fits
     predict each kept point (weight ``w > 0``) best when it is left out: the smallest
-    median ``|y - fit| / (sigma (1 - h))``; the smallest window on a tie or where
-    nothing can be judged."""
+    mean of ``((y - fit) / (sigma (1 - h)))^2`` (``h`` from :func:`_leverage`); the
+    smallest window on a tie or where nothing can be judged."""
     best, best_score = min(window_idx), np.inf
-    rows = np.arange(len(y))[:, None]
     for k in sorted(window_idx):
         idx = window_idx[k]
         coef, L, _ = _local_fit(t, y, w, idx, order)
-        h = np.where(idx == rows, L, 0.0).sum(axis=1)
+        h = _leverage(idx, L)
         ok = (w > 0) & (h < 0.999) & np.isfinite(coef[:, 0])
         if ok.sum() < 3:
             continue
@@ -629,6 +628,12 @@ def _press_window(t: np.ndarray, y: np.ndarray, sigma: np.ndarray, w: np.ndarray
         if score < best_score:
             best, best_score = k, score
     return best
+
+
+def _leverage(idx: np.ndarray, L: np.ndarray) -> np.ndarray:
+    """(n,) each row's weight in its own local fit (``L`` (n, k) the fit's weights over
+    the rows ``idx`` (n, k) of its window); 0 for a row not in its window."""
+    return np.where(idx == np.arange(len(idx))[:, None], L, 0.0).sum(axis=1)
 
 
 def _kept_windows(idx: np.ndarray, frames: np.ndarray, starts: np.ndarray,
@@ -878,10 +883,11 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
     least-squares fit, which two neighbouring far-off points (another particle's, a
     ghost on the line of sight) can pull onto them so that their good neighbours are
     rejected instead; at most a third of a track's points are rejected (the worst), and
-    tracks shorter than ``order + 4`` points keep every point. The smoothed sigma is ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's
-    weights) when ``s >= 1``: ``s`` rescales the locator's sigmas to the scatter the
-    tracks show. When ``s < 1`` the rest of each sigma is error that the track does not
-    show as scatter (kept from frame to frame) and is not averaged away
+    tracks shorter than ``order + 4`` points keep every point. The smoothed sigma is
+    ``s sqrt(sum L_j^2 sigma_j^2)`` (``L`` the fit's weights) when ``s >= 1``: ``s``
+    rescales the locator's sigmas to the scatter the tracks show. When ``s < 1`` the rest
+    of each sigma is error that the track does not show as scatter (kept from frame to
+    frame) and is not averaged away
     (:func:`_smoothed_sigma`).
     """
     cols = [T_COLUMN, ID_COLUMN, *POS_COLUMNS]
@@ -935,7 +941,7 @@ def smooth_tracks(linked: pd.DataFrame, settings: TrackSettings = TrackSettings(
             idx_fit = _kept_windows(idx, t, starts, lengths, window, w > 0)
             coef, L, _ = _local_fit(t, y, w, idx_fit, settings.order)
             fitted = w
-            h = np.where(idx_fit == np.arange(n)[:, None], L, 0.0).sum(axis=1)
+            h = _leverage(idx_fit, L)
             # a point in its own fit scatters about it by sigma sqrt(1 - h); one left out
             # by its own sigma and the fit's uncertainty where it stands
             used = idx_fit >= 0
