@@ -19,7 +19,8 @@ from plenoptrack.lightfield import decode
 from plenoptrack.locate.dlfc import fit_dlfc
 from plenoptrack.locate.dotcards import dotcard_points
 from plenoptrack.locate.opacity import edge_blur_by_depth
-from plenoptrack.locate.perspective import PARTICLE_COLUMNS, PerspectiveLocator, locate_frame
+from plenoptrack.locate.perspective import (PARTICLE_COLUMNS, PerspectiveLocator, locate_frame,
+                                          segment_frame)
 from plenoptrack.simulate import (default_dotcard, default_dotcard_depths, make_optics,
                                   make_scene, render_dotcard, render_frame, render_white)
 
@@ -109,6 +110,21 @@ def test_raw_and_lightfield_inputs_agree(small):
     det = from_raw.detections
     assert det["particle"].max() == len(from_raw.particles) - 1
     assert (det.loc[det["inlier"], "particle"] >= 0).all()
+
+
+def test_locating_without_splitting_regions(small):
+    # With neither cores nor pairs split every region is whole; the later stages read
+    # the column (it was missing and refinement failed)
+    optics, calib = small
+    scene = make_scene(calib.camera, n_particles=8, seed=11)
+    locator = PerspectiveLocator.from_dict({"segment": {"core_contrast": None,
+                                                         "split_pairs": False}})
+    raw = _frame(optics, scene.truth, 11)
+    regions = segment_frame(decode(raw, calib.grid), locator.segment)
+    assert regions["whole"].all() and not regions["split_pair"].any()
+    result = locate_frame(raw, calib, locator=locator)
+    ev = evaluate_particles(result.particles, scene.truth, tolerance_mm=1.0)
+    assert ev.n_matched >= 7 and ev.precision == 1.0, ev
 
 
 def test_no_particles_gives_empty_table_and_warning(small):

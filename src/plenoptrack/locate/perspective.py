@@ -285,9 +285,13 @@ def segment_frame(lf: LightField, settings: SegmentSettings, *, frame: int = 0) 
         noisy = counts > settings.max_view_ratio * np.median(counts)
         if noisy.any():
             detections = detections[~noisy[view_of]]
+    if "whole" not in detections.columns:          # no core splitting: every region whole
+        detections = detections.assign(whole=True)
     if len(detections) and settings.split_pairs:
         detections = _split_pairs(detections, settings.max_area_ratio,
                                   settings.merged_elongation)
+    if "split_pair" not in detections.columns:
+        detections = detections.assign(split_pair=False)
     return detections.reset_index(drop=True)
 
 
