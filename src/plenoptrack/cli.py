@@ -935,12 +935,12 @@ def track(
     search_depth: float = typer.Option(3.0, "--search-depth", callback=_finite(positive=True), help="Depth (z) search range, mm (depth errors exceed lateral ones)."),
     memory: int = typer.Option(2, "--memory", min=0, help="Frames a track may miss and still be continued."),
     min_length: int = typer.Option(3, "--min-length", min=1, help="Drop tracks with fewer points."),
-    max_sigma_ratio: float = typer.Option(1.0, "--max-sigma-ratio", help="Leave out of linking each point whose sigma on an axis exceeds this multiple of the search range on that axis (its own track); inf links every point."),
+    max_sigma_ratio: float = typer.Option(1.0, "--max-sigma-ratio", help="Leave out of linking each point whose sigma on an axis exceeds this multiple of the search range on that axis (its own track, unless extension fills a track its position fits); inf links every point."),
     window: int = typer.Option(7, "--window", min=2, help="Points of each local fit along a track."),
     order: int = typer.Option(2, "--order", min=0, max=3, help="Degree of the local fit: 1 constant velocity (ballistic), 2 constant acceleration."),
     frame_interval: Optional[float] = typer.Option(None, "--frame-interval", callback=_finite(positive=True), help="Time between frames, s (adds speeds in m/s); a simulated data set's scene.toml gives it."),
     no_predict: bool = typer.Option(False, "--no-predict", help="Link without the velocity predictor."),
-    no_extend: bool = typer.Option(False, "--no-extend", help="Do not continue tracks at both ends along their own velocity after linking (a lone point or a track of one or two points that fits a track's extrapolation joins it)."),
+    no_extend: bool = typer.Option(False, "--no-extend", help="Do not continue tracks at both ends along their own velocity, nor fill their gaps, after linking (a lone point or a track of one or two points that fits a track's prediction joins it)."),
     fixed_window: bool = typer.Option(False, "--fixed-window", help="Smooth every coordinate over --window points (by default each coordinate's window is chosen among --window -2, +0, +2 and +4 by its leave-one-out prediction error)."),
 ) -> None:
     """Link particles over frames into 3D tracks; velocities, accelerations, track-refined depth."""

@@ -80,16 +80,18 @@ class TrackSettings:
         new tracks with the velocity measured near them in the first.
     extend : bool
         After linking, continue every track of at least :data:`EXTEND_MIN_POINTS` points
-        at both ends along its own velocity (:func:`extend_tracks`): a point the linking
-        left alone or in a track of one or two points joins the track it fits, within
-        the search range, ``memory`` frames included.
+        at both ends along its own velocity and fill its gaps (:func:`extend_tracks`): a
+        point the linking left alone or in a track of one or two points joins the track
+        it fits, within the search range widened by the point's own uncertainty,
+        ``memory`` frames included.
     max_sigma_ratio : float
         A point whose standard uncertainty on an axis (``sigma_x``, ``sigma_y``,
         ``sigma_z``, where the table has them) exceeds ``max_sigma_ratio`` times the
         search range on that axis is left out of linking and becomes a track of its own:
         its position alone is less certain than the region a track is searched in, so any
         link it made would be chance, and it could carry a track onto the wrong particle
-        (a misplaced particle where two images merge). ``inf`` links every point.
+        (a misplaced particle where two images merge). With ``extend`` such a point can
+        still fill a track that its position fits. ``inf`` links every point.
     min_length : int
         Tracks with fewer points are dropped from the output.
     window : int
@@ -384,7 +386,8 @@ def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSetti
         other columns are kept. Not changed.
     settings : TrackSettings
         Search range, memory, prediction and passes. Rows too uncertain to link
-        (:func:`too_uncertain_to_link`) each get a track of their own.
+        (:func:`too_uncertain_to_link`) are left out; each gets a track of its own,
+        unless extension (``extend``) lets it fill a track its position fits.
 
     Returns
     -------
@@ -403,6 +406,8 @@ def link_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSetti
     if not unlinkable.all():
         ids[~unlinkable] = _linked_ids(particles[~unlinkable].reset_index(drop=True), settings)
     ids[unlinkable] = ids[~unlinkable].max(initial=-1) + 1 + np.arange(int(unlinkable.sum()))
+    if settings.extend:
+        ids = extend_tracks(particles, ids, settings)
     # renumber in order of first appearance
     order = pd.DataFrame({"id": ids, "f": particles[T_COLUMN].to_numpy()}).groupby("id")["f"].min()
     first_seen = order.sort_values(kind="stable").index.to_numpy()
@@ -428,8 +433,8 @@ def too_uncertain_to_link(particles: pd.DataFrame,
 
 
 def _linked_ids(particles: pd.DataFrame, settings: TrackSettings) -> np.ndarray:
-    """Track id of every row (not yet renumbered): one or two linking passes, then the
-    tracks continued at their ends (:func:`link_particles`)."""
+    """Track id of every row (not yet renumbered): one or two linking passes
+    (:func:`link_particles`)."""
     first_pass = settings
     if settings.predict and settings.passes == 2:
         lateral, depth = settings.search_range_mm
@@ -451,8 +456,6 @@ def _linked_ids(particles: pd.DataFrame, settings: TrackSettings) -> np.ndarray:
             guess[int(t)] = (grp.loc[ok, list(POS_COLUMNS)].to_numpy(float),
                              grp.loc[ok, list(VELOCITY_COLUMNS)].to_numpy(float))
         ids = _link_once(particles, settings, guess)
-    if settings.extend:
-        ids = extend_tracks(particles, ids, settings)
     return ids
 
 
@@ -461,37 +464,59 @@ EXTEND_MIN_POINTS = 3
 velocity but no check of it (one of them may be a ghost)."""
 
 
-def _end_prediction(frames, xyz, at_start: bool, degree: int, window: int, gap: int):
-    """Position a track's fit over its ``window`` points nearest one end predicts ``gap``
-    frames beyond that end (before the first point when ``at_start``)."""
-    take = slice(0, window) if at_start else slice(-window, None)
-    f, p = frames[take], xyz[take]
-    target = f[0] - gap if at_start else f[-1] + gap
-    deg = min(degree, len(f) - 2)
-    coef = np.polynomial.polynomial.polyfit(f - target, p, deg)
+def _slot_prediction(frames: np.ndarray, xyz: np.ndarray, target: int, degree: int,
+                     window: int) -> np.ndarray:
+    """(3,) position at frame ``target`` of a track's fit (degree ``degree``, at most the
+    points minus two) over its ``window`` points nearest ``target`` in time: beyond an
+    end the fit over the points nearest that end, in a gap the fit over those around it."""
+    near = np.argsort(np.abs(frames - target), kind="stable")[:window]
+    deg = min(degree, len(near) - 2)
+    coef = np.polynomial.polynomial.polyfit(frames[near] - target, xyz[near], deg)
     return coef[0]
+
+
+def _search_scales(particles: pd.DataFrame, settings: TrackSettings) -> np.ndarray:
+    """(n, 3) half-axes, mm, of the region around a prediction in which each row is a
+    candidate: the search range on each axis widened by two of the row's own standard
+    uncertainties, added in quadrature (the search range alone where a sigma is missing
+    or NaN)."""
+    lateral, depth = settings.search_range_mm
+    scale = np.tile(np.array([lateral, lateral, depth]), (len(particles), 1))
+    for axis, column in enumerate(SIGMA_COLUMNS):
+        if column in particles.columns:
+            sigma = np.nan_to_num(particles[column].to_numpy(float), nan=0.0)
+            scale[:, axis] = np.hypot(scale[:, axis], 2.0 * np.maximum(sigma, 0.0))
+    return scale
 
 
 def extend_tracks(particles: pd.DataFrame, ids: np.ndarray,
                   settings: TrackSettings = TrackSettings()) -> np.ndarray:
-    """Continue tracks at both ends along their own velocity.
+    """Continue tracks at both ends along their own velocity and fill their gaps.
 
     Linking predicts a new track's first step from the velocity field around it; where
     that guess is wrong (a ghost took the first link, particles fly apart in every
     direction) a particle's first or last point ends up alone or in a track of one or
-    two points beside its real track. Here every track of at least
-    :data:`EXTEND_MIN_POINTS` points is extrapolated from the fit over its ``window``
-    points nearest each end (degree ``order``, at least 1 and at most the points minus
-    two), up to ``memory + 1`` frames beyond it; points of tracks shorter than that
-    within the search range of a prediction (the ellipsoid of
-    :attr:`TrackSettings.search_range_mm`) are candidates. The closest pairs (normalised
-    distance) are joined first, one point per track end and one track end per point,
-    and the ends are extended again until no point joins.
+    two points beside its real track. A point too uncertain to link
+    (:func:`too_uncertain_to_link`) is alone too. Here every track of at least
+    :data:`EXTEND_MIN_POINTS` points predicts its position in each frame it lacks, up to
+    ``memory + 1`` frames beyond its ends and in the gaps between its points, from the
+    fit (degree ``order``, at least 1 and at most the points minus two) over its
+    ``window`` points nearest that frame. The points of tracks shorter than
+    :data:`EXTEND_MIN_POINTS` are candidates within the search region of a prediction:
+    the ellipsoid of :attr:`TrackSettings.search_range_mm` widened on each axis by two
+    of the point's own standard uncertainties (``sigma_x, sigma_y, sigma_z`` where the
+    table has them, added in quadrature), so a point whose depth is uncertain joins the
+    track its lateral position fits, where the smoothing weights its depth by its sigma.
+    Such a point only fills a track that three or more linked points already define; it
+    never starts or bridges one. The closest pairs (distance in units of the region) are
+    joined first, one point per track and frame and one track per point, and the tracks
+    are extended again until no point joins.
 
     Parameters
     ----------
     particles : DataFrame
-        Columns ``frame`` and ``x, y, z`` (mm); one row per particle and frame.
+        Columns ``frame`` and ``x, y, z`` (mm), optionally ``sigma_x, sigma_y, sigma_z``
+        (mm); one row per particle and frame.
     ids : (n,) int ndarray
         Track id of every row, as linking gave it.
     settings : TrackSettings
@@ -506,41 +531,48 @@ def extend_tracks(particles: pd.DataFrame, ids: np.ndarray,
     ids = np.asarray(ids, dtype=np.int64).copy()
     frames = particles[T_COLUMN].to_numpy(np.int64)
     xyz = particles[list(POS_COLUMNS)].to_numpy(float)
-    scale = np.array([settings.search_range_mm[0]] * 2 + [settings.search_range_mm[1]])
+    region = _search_scales(particles, settings)
+    base = region.min(axis=0)
+    reach = settings.memory + 1
     degree = max(1, settings.order)
     window = max(settings.window, EXTEND_MIN_POINTS)
-    for _ in range(int(frames.max(initial=0) - frames.min(initial=0)) + 1):
+    while True:     # each join takes a point out of the short tracks: this ends
         sizes = np.bincount(ids)
         loose = np.flatnonzero(sizes[ids] < EXTEND_MIN_POINTS)
         if len(loose) == 0:
             break
-        trees = {int(f): (loose[frames[loose] == f],
-                          cKDTree(xyz[loose[frames[loose] == f]] / scale))
-                 for f in np.unique(frames[loose])}
-        pairs = []   # (distance, track end, row)
+        candidates = {}   # frame -> (rows, tree in base units, widest region / base)
+        for f in np.unique(frames[loose]):
+            rows = loose[frames[loose] == f]
+            candidates[int(f)] = (rows, cKDTree(xyz[rows] / base),
+                                  float(np.max(region[rows] / base)))
+        pairs = []   # (distance in region units, (track, frame), row)
         order = np.lexsort((frames, ids))
-        bounds = np.searchsorted(ids[order], np.flatnonzero(sizes >= EXTEND_MIN_POINTS))
-        for track, lo in zip(np.flatnonzero(sizes >= EXTEND_MIN_POINTS), bounds, strict=True):
+        long_tracks = np.flatnonzero(sizes >= EXTEND_MIN_POINTS)
+        bounds = np.searchsorted(ids[order], long_tracks)
+        for track, lo in zip(long_tracks, bounds, strict=True):
             rows = order[lo:lo + sizes[track]]
-            for at_start in (True, False):
-                end = frames[rows[0]] if at_start else frames[rows[-1]]
-                for gap in range(1, settings.memory + 2):
-                    tree = trees.get(int(end - gap if at_start else end + gap))
-                    if tree is None:
-                        continue
-                    pred = _end_prediction(frames[rows], xyz[rows], at_start, degree, window,
-                                           gap)
-                    dist, k = tree[1].query(pred / scale, distance_upper_bound=1.0)
-                    if np.isfinite(dist):
-                        pairs.append((float(dist), 2 * int(track) + int(at_start),
-                                      int(tree[0][k])))
-        joined, ends_used, rows_used = 0, set(), set()
-        for dist, end, row in sorted(pairs):
-            if end in ends_used or row in rows_used:
+            have = frames[rows]
+            for target in range(int(have[0]) - reach, int(have[-1]) + reach + 1):
+                gap = np.min(np.abs(have - target))
+                if target not in candidates or gap == 0 or gap > reach:
+                    continue
+                pred = _slot_prediction(have, xyz[rows], target, degree, window)
+                rows_f, tree, widest = candidates[target]
+                near = rows_f[tree.query_ball_point(pred / base, widest)]
+                if len(near) == 0:
+                    continue
+                dist = np.linalg.norm((xyz[near] - pred) / region[near], axis=1)
+                k = int(np.argmin(dist))
+                if dist[k] <= 1.0:
+                    pairs.append((float(dist[k]), (int(track), target), int(near[k])))
+        joined, slots_used, rows_used = 0, set(), set()
+        for dist, slot, row in sorted(pairs):
+            if slot in slots_used or row in rows_used:
                 continue
-            ends_used.add(end)
+            slots_used.add(slot)
             rows_used.add(row)
-            ids[row] = end // 2
+            ids[row] = slot[0]
             joined += 1
         if joined == 0:
             break
