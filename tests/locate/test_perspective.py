@@ -13,7 +13,7 @@ import pytest
 
 from plenoptrack import preset
 from plenoptrack.calibration import calibrate_from_white
-from plenoptrack.errors import NoParticlesWarning
+from plenoptrack.errors import NoParticlesWarning, SettingsError
 from plenoptrack.evaluate import evaluate_particles, match_particles
 from plenoptrack.lightfield import decode
 from plenoptrack.locate.dlfc import fit_dlfc
@@ -125,6 +125,14 @@ def test_locating_without_splitting_regions(small):
     result = locate_frame(raw, calib, locator=locator)
     ev = evaluate_particles(result.particles, scene.truth, tolerance_mm=1.0)
     assert ev.n_matched >= 7 and ev.precision == 1.0, ev
+
+
+def test_locking_pattern_asked_of_a_calibration_without_one(small):
+    optics, calib = small
+    assert calib.locking_pattern is None
+    locator = PerspectiveLocator.from_dict({"solve": {"locking_from_calibration": True}})
+    with pytest.raises(SettingsError, match="no pixel-locking pattern"):
+        locate_frame(np.ones(calib.camera.sensor_shape_px), calib, locator=locator)
 
 
 def test_no_particles_gives_empty_table_and_warning(small):

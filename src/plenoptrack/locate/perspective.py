@@ -66,7 +66,7 @@ import numpy as np
 import pandas as pd
 
 from .._columns import POS_COLUMNS, SIGMA_COLUMNS, T_COLUMN
-from ..errors import CrowdedFrameWarning, NoParticlesWarning
+from ..errors import CrowdedFrameWarning, NoParticlesWarning, SettingsError
 from ..io import warn_exposure
 from ..lightfield.decode import LightField, decode
 from ._assign import (_MERGED, _add_centroids, _explained_away, _merge_duplicates,
@@ -169,8 +169,19 @@ def locate_frame(raw_or_lf, calibration, *, frame: int = 0,
         ``particles`` (columns :data:`PARTICLE_COLUMNS`, mm) and ``detections``. An image
         with no particles gives an empty table and a :class:`NoParticlesWarning`; a black
         or saturated raw frame also an :class:`~plenoptrack.errors.ExposureWarning`.
+
+    Raises
+    ------
+    SettingsError
+        ``solve.locking_from_calibration`` is set and the calibration holds no
+        pixel-locking pattern.
     """
     locator = PerspectiveLocator() if locator is None else locator
+    if (locator.solve.locking_from_calibration
+            and getattr(calibration, "locking_pattern", None) is None):
+        raise SettingsError("solve.locking_from_calibration is set but the calibration holds "
+                            "no pixel-locking pattern; calibrate again with plenoptrack "
+                            "calibrate (it records the dots' pattern) or leave the setting off")
     clock = _StageClock()
     with clock("decode"):
         lf = _decoded(raw_or_lf, calibration, frame, white)
