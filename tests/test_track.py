@@ -432,6 +432,11 @@ def test_bad_input():
             TrackSettings(max_sigma_ratio=bad)
     with pytest.raises(InputFileError, match="non-finite"):
         link_particles(pd.DataFrame({"frame": [0, 1], "x": [0.0, np.nan], "y": 0.0, "z": 0.0}))
+    for frames in ([0.0, 0.5], [0, np.nan], ["a", "b"]):     # 0.5 would be read as frame 0
+        with pytest.raises(InputFileError, match="whole numbers"):
+            link_particles(pd.DataFrame({"frame": frames, "x": 0.0, "y": 0.0, "z": 0.0}))
+    assert len(link_particles(pd.DataFrame({"frame": [0.0, 1.0], "x": 0.0, "y": 0.0,
+                                            "z": 0.0}))) == 2
 
 
 def test_bench_track_runs_and_its_baseline_smooths_identically(benchmark_module, monkeypatch,

@@ -311,6 +311,13 @@ def _check_particles(particles) -> pd.DataFrame:
     pos = particles[list(POS_COLUMNS)].to_numpy(float)
     if not np.isfinite(pos).all():
         raise InputFileError("particles table has non-finite positions; drop those rows first")
+    try:
+        frames = particles[T_COLUMN].to_numpy(float)
+    except (TypeError, ValueError):
+        frames = np.array([np.nan])
+    if not (np.isfinite(frames).all() and np.array_equal(frames, np.round(frames))):
+        raise InputFileError("particles table has frame numbers that are not whole numbers; "
+                             "number the frames 0, 1, 2, ... as `plenoptrack locate` does")
     return particles
 
 
