@@ -898,7 +898,13 @@ def test_blocky_fragments_keep_the_centre_their_regions_show():
     end, and a disc pulled toward one end of it came to rest between the end and the
     centre. Before :data:`END_FIT_ASPECT` (ends tried from an aspect of 1.5) the 3.6 mm
     fragment lay 1.1 mm off its centroid and three of the seven fragments of at least
-    2 mm more than 0.5 mm off; now 0.14 mm and one (1.2 mm: placed so by the centroids)."""
+    2 mm more than 0.5 mm off; now 0.14 mm and one: the 2.8 mm fragment, 1.21 mm off
+    where the centroids of its images, merged with those of a 0.6 and a 0.9 mm
+    fragment, put it. The hidden-particle search finds it in the residual, but as a
+    candidate whose images coincide with that particle's; the joint fit of the two
+    fails the split's tests. (Letting the candidate's image replace the centroid
+    solution there put it 0.65 mm off, but gave 7 more unmatched particles in a crowded
+    development frame; only a candidate turned down when admitted may replace one.)"""
     import warnings
 
     from plenoptrack.lightfield import decode

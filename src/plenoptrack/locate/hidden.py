@@ -27,7 +27,8 @@ from ._nearby import ImageSpans, pairs_within
 from ._regions import member_axes, one_elongated_body
 from .bodies import parallax_px
 from .settings import CheckSettings, PerspectiveLocator
-from .split import _coincides, _coinciding, _explains_more, _two_images, split_gain_bar
+from .split import (_coincides, _coinciding, _explains_more, _never_fitted, _two_images,
+                    split_gain_bar)
 from .triangulate import TriangulationFlag
 
 __all__ = ["search_residual", "drop_duplicate_particles", "EarlierRounds",
@@ -112,7 +113,11 @@ def search_residual(ctx: FrameContext, state: ParticleState, locator: Perspectiv
     the model without it by ``check.refine_max_model_error**2`` in mean square (the
     split's test, :func:`~plenoptrack.locate.split.split_merged_particles`), and neither
     lies inside a located particle nor overlaps one with images that keep their offset
-    across the views (nothing tells those from one elongated image). The kept ones join
+    across the views (nothing tells those from one elongated image). Where that one
+    particle has no image fit of its own (its position the centroid solution's, which
+    merged images can misplace), the candidate's image is fitted again in its place and,
+    when it explains the pixels better than that particle's image by the same gain, the
+    located particle takes it (:meth:`_ResidualSearch.replaces_unfitted`). The kept ones join
     the frame with their regions, their position, sigma and image from the fit
     (``REFINED``; their size too, in
     :func:`~plenoptrack.locate.perspective.measure_particles`: their regions were cut by
@@ -304,6 +309,14 @@ class _ResidualSearch:
         merged = ((dist < fit.params[0, 3] + held_rc[close, 0])
                   & (parallax_px(offset) < 1.0))
         if np.any(inside) or np.any(merged):
+            one = np.flatnonzero(inside | np.isin(np.arange(len(held_pos)),
+                                                  np.flatnonzero(close)[merged]))
+            others = np.flatnonzero(near)
+            if (len(one) == 1
+                    and self.replaces_unfitted(fit.params, int(one[0]),
+                                               others[others != one[0]])):
+                self.new[q] = False
+                return
             # beside a particle, not inside its body (that was its own image), and not
             # taken apart from it: darkness its fit may have taken in
             for jl in np.flatnonzero(close)[merged]:
@@ -315,6 +328,38 @@ class _ResidualSearch:
         self.positions2[q] = fit.params[0, :3]
         self.fits[q] = _OneImage(fit, 0)
         self.hold(fit.params, fitted_pred)
+
+    def replaces_unfitted(self, start: np.ndarray, jl: int, others: np.ndarray) -> bool:
+        """Whether a candidate's image, started at ``start`` (1, 5: x, y, z mm, radius
+        view pixels, contrast), is a better image of the located particle held at ``jl``
+        than its own; if so that particle takes it.
+
+        Only a live particle that no image fit has explained or tried qualifies: its
+        position is the centroid solution's, which images merged with smaller
+        neighbours' can misplace. The candidate is fitted in its place (beside the held
+        images ``others``, not beside it), and kept when that one image explains the
+        pixels better than the located particle's image by the gain a particle found
+        must bring (``check.refine_max_model_error**2`` in mean square) and is opaque
+        enough; the located particle then takes it as a joint fit's first image."""
+        if jl >= len(self.live_rows):
+            return False
+        j = int(self.live_rows[jl])
+        flags = int(np.nan_to_num(self.state.table["flags"].to_numpy(float)[j]))
+        if j in self.joint or not _never_fitted(np.array([flags]), self.fit_error[[j]])[0]:
+            return False
+        ctx = self.ctx
+        again = ctx.fit_images((self.views_uv, self.view_rc), start[:, :3],
+                               start[:, 3:], self.held_pos[others], self.held_rc[others],
+                               max_depth_shift=0.1 * ctx.volume_depth_mm,
+                               reference=np.array([[*self.held_pos[jl], *self.held_rc[jl]]]))
+        if not (_one_image_explains(again, self.settings) and np.all(np.isfinite(again.sigma))):
+            return False
+        fitted_pred = _predict_all(ctx.dlfc, again.params[:, :3], self.views_uv)
+        self.joint[j] = again
+        self.held_pos[jl], self.held_rc[jl] = again.params[0, :3], again.params[0, 3:]
+        self.held_pred[jl] = fitted_pred[0]
+        self.held_spans.set_rows([jl], fitted_pred[[0]])
+        return True
 
     def fit_jointly(self, q) -> None:
         """A candidate that coincides with one located particle can be a particle that
@@ -377,7 +422,7 @@ class _ResidualSearch:
         ctx, new, n = self.ctx, self.new, self.state.n_particles
         state = _with_companions(self.state, self.companions)
         table = state.table
-        if not new.any():
+        if not new.any() and not self.joint:
             return ctx, state, 0
         if self.joint:
             # the located particles refitted with a particle they had swallowed
@@ -395,6 +440,8 @@ class _ResidualSearch:
             table.loc[rows, "flags"] = ((flags & ~int(TriangulationFlag.UNEXPLAINED))
                                         | int(TriangulationFlag.REFINED))
             state = dataclasses.replace(state, positions=positions, table=table)
+        if not new.any():
+            return ctx, state, 0
         # their position, sigma and image are the fit's (REFINED), as a refined particle's
         fits, positions2 = self.fits, self.positions2
         added = self.state2.table.copy()
