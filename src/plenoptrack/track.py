@@ -482,6 +482,14 @@ def _slot_prediction(frames: np.ndarray, xyz: np.ndarray, target: int, degree: i
     return coef[0]
 
 
+def _missing_frames(have: np.ndarray, reach: int, available) -> list[int]:
+    """Frames within ``reach`` of a track's frames ``have`` (sorted) that it has no point
+    in, beyond its ends and in its gaps, among those ``available``."""
+    span = range(int(have[0]) - reach, int(have[-1]) + reach + 1)
+    return [t for t in span
+            if t in available and 0 < np.min(np.abs(have - t)) <= reach]
+
+
 def _search_scales(particles: pd.DataFrame, settings: TrackSettings) -> np.ndarray:
     """(n, 3) half-axes, mm, of the region around a prediction in which each row is a
     candidate: the search range on each axis widened by two of the row's own standard
@@ -559,19 +567,13 @@ def extend_tracks(particles: pd.DataFrame, ids: np.ndarray,
         bounds = np.searchsorted(ids[order], long_tracks)
         for track, lo in zip(long_tracks, bounds, strict=True):
             rows = order[lo:lo + sizes[track]]
-            have = frames[rows]
-            for target in range(int(have[0]) - reach, int(have[-1]) + reach + 1):
-                gap = np.min(np.abs(have - target))
-                if target not in candidates or gap == 0 or gap > reach:
-                    continue
-                pred = _slot_prediction(have, xyz[rows], target, degree, window)
+            for target in _missing_frames(frames[rows], reach, candidates):
+                pred = _slot_prediction(frames[rows], xyz[rows], target, degree, window)
                 rows_f, tree, widest = candidates[target]
                 near = rows_f[tree.query_ball_point(pred / base, widest)]
-                if len(near) == 0:
-                    continue
                 dist = np.linalg.norm((xyz[near] - pred) / region[near], axis=1)
-                k = int(np.argmin(dist))
-                if dist[k] <= 1.0:
+                if len(near) and dist.min() <= 1.0:
+                    k = int(np.argmin(dist))
                     pairs.append((float(dist[k]), (int(track), target), int(near[k])))
         joined, slots_used, rows_used = 0, set(), set()
         for dist, slot, row in sorted(pairs):
