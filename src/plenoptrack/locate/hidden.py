@@ -179,6 +179,8 @@ class _ResidualSearch:
                      & np.isfinite(self.radius) & (self.radius > 0))
         self.fit_error = (table[_FIT_ERROR].to_numpy(float) if _FIT_ERROR in table.columns
                           else np.full(n, np.nan))
+        self.never_fitted = _never_fitted(table["flags"].fillna(0).to_numpy(np.int64),
+                                          self.fit_error)
         self.views_uv, self.view_rc = _fit_views(ctx)
         self.pred = _predict_all(ctx.dlfc, np.where(self.live[:, None], state.positions, np.nan),
                                  self.views_uv)
@@ -309,8 +311,9 @@ class _ResidualSearch:
         merged = ((dist < fit.params[0, 3] + held_rc[close, 0])
                   & (parallax_px(offset) < 1.0))
         if np.any(inside) or np.any(merged):
-            one = np.flatnonzero(inside | np.isin(np.arange(len(held_pos)),
-                                                  np.flatnonzero(close)[merged]))
+            touched = inside.copy()
+            touched[np.flatnonzero(close)[merged]] = True
+            one = np.flatnonzero(touched)
             others = np.flatnonzero(near)
             if (len(one) == 1
                     and self.replaces_unfitted(fit.params, int(one[0]),
@@ -344,8 +347,7 @@ class _ResidualSearch:
         if jl >= len(self.live_rows):
             return False
         j = int(self.live_rows[jl])
-        flags = int(np.nan_to_num(self.state.table["flags"].to_numpy(float)[j]))
-        if j in self.joint or not _never_fitted(np.array([flags]), self.fit_error[[j]])[0]:
+        if j in self.joint or not self.never_fitted[j]:
             return False
         ctx = self.ctx
         again = ctx.fit_images((self.views_uv, self.view_rc), start[:, :3],
