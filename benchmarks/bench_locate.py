@@ -52,7 +52,7 @@ of both, and the ratio baseline over plenoptrack.
 segmentation of every view, the refinement's patch masks, the k-means Lloyd iterations,
 the refinement's image fits) on the calls one locate of the image makes, recorded and
 replayed, against the same functions of a baseline revision
-(:data:`KERNEL_BASELINE_REV`, :data:`VIEWS_BASELINE_REV`, :data:`FIT_PIXELS_BASELINE_REV`
+(:data:`KERNEL_BASELINE_REV`, :data:`VIEWS_BASELINE_REV`, :data:`FIT_VECTOR_BASELINE_REV`
 or :data:`DECODE_BASELINE_REV`, read with ``git show`` and imported beside the current
 modules), alternating, best of ``--repeat`` each, with ``--threads`` numba threads
 (default 1), and says whether the outputs are identical. ``--only WORD...`` times the
@@ -304,9 +304,11 @@ VIEWS_BASELINE_REV = "8d3ba72"
 """Revision before the k-means lower bounds dropped by the moves of nearby centres only
 and before the image fits predicted in the DLFC's view-factorised form."""
 
-FIT_PIXELS_BASELINE_REV = "5770203"
-"""Revision before the image fits listed their pixels once per fit and computed each view
-in passes the compiler vectorises (edge arguments, exponentials, discs, Jacobian rows)."""
+FIT_VECTOR_BASELINE_REV = "996abc3"
+"""Revision before the image fits' kernels were compiled with numpy's error model (no
+zero-divisor branch in the per-pixel passes, which the compiler then vectorises) and took
+their exponentials in a vectorised pass of their own (``refine._exp_neg_squares``). The
+fits' previous baseline, 5770203, preceded their listing of their pixels once per fit."""
 
 DECODE_BASELINE_REV = "a24c564"
 """Revision before the decode's gather computed each lens's interpolated image once
@@ -317,7 +319,7 @@ KERNELS_TIMED = (("decode gather", "lightfield.decode", "_gather", None, DECODE_
                  ("refinement patch masks", "locate.refine", "_patch_masks", _fitted_part, None),
                  ("k-means Lloyd", "locate.cluster", "_lloyd", None, VIEWS_BASELINE_REV),
                  ("refinement image fits", "locate.refine", "fit_images", _fit_params,
-                  FIT_PIXELS_BASELINE_REV))
+                  FIT_VECTOR_BASELINE_REV))
 """``(label, module under plenoptrack, function, what to compare, baseline revision)``
 timed by ``--kernels``; ``what to compare`` maps an output to the part the locator reads
 (None: all of it); the baseline revision is :data:`KERNEL_BASELINE_REV` when None. A

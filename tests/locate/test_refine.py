@@ -389,6 +389,26 @@ def test_a_fitted_image_casts_the_shadow_of_the_blurred_silhouette(silhouette, b
     assert abs(math.sqrt(contrast) * radius / silhouette - 1) > 0.02   # r alone does not
 
 
+def test_the_vectorised_exponential_matches_math_exp():
+    from plenoptrack.locate.refine import _EXP_LIMIT, _exp_neg_squares
+
+    rng = np.random.default_rng(5)
+    x = np.r_[rng.normal(0, 3, 20000), rng.uniform(-26.6, 26.6, 20000),
+              np.linspace(-26.6, 26.6, 4001), 0.0, -0.0]
+    out = np.full(len(x) + 3, -1.0)
+    _exp_neg_squares(x, out, np.empty(len(x) + 3, dtype=np.int64), len(x))
+    exact = np.exp(-x * x)
+    ulp = np.spacing(exact)
+    assert np.max(np.abs(out[:len(x)] - exact) / ulp) <= 2.0
+    assert out[len(x) - 2] == 1.0 and out[len(x) - 1] == 1.0       # exp(0) exactly
+    assert np.all(out[len(x):] == -1.0)            # only the first m are written
+    # beyond the cap (and for inf or NaN) the value is exp(-cap): about 3e-308, not 0
+    far = np.array([27.0, 1e3, np.inf, -np.inf, np.nan])
+    got = np.empty(5)
+    _exp_neg_squares(far, got, np.empty(5, dtype=np.int64), 5)
+    assert np.all(got == got[0]) and got[0] == pytest.approx(math.exp(-_EXP_LIMIT), rel=1e-12)
+
+
 def test_masked_row_percentile_matches_numpy():
     rng = np.random.default_rng(2)
     values = rng.normal(size=(6, 5, 5))

@@ -52,6 +52,14 @@ from scipy.special import erfc, ndtr
 
 from .dlfc import _views_kernel
 
+_KERNEL = dict(cache=True, nogil=True, error_model="numpy")
+"""Options of the compiled kernels. numba's default error model checks the divisor of every
+float division and raises ``ZeroDivisionError`` on zero, a branch that keeps the compiler
+from vectorising the per-pixel passes of :func:`_pixel_normal_equations` (the image fits
+ran 1.6 times slower with it: ``benchmarks/bench_locate.py --kernels``); with ``"numpy"`` a
+zero divisor gives inf or NaN, as numpy's would. Every division here is guarded where its
+divisor can vanish."""
+
 EDGE_PX = 0.6
 """Width (standard deviation, view pixels) of the blurred edge of a particle image when
 the calibration measured none (:class:`ImageEdge`)."""
@@ -272,7 +280,7 @@ def _patches(data, view_rc, centre, half):
     return keep, origin, values, inside
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _gather_patches(data, view_rc, s0, t0, n):  # pragma: no cover - compiled
     """The ``n x n`` patches of ``data[v, u]`` (``view_rc`` (K, 2) rows ``(v, u)``) with
     pixel ``[0, 0]`` at ``(s0, t0)`` (K,), as float64, pixels beyond the view clamped to
@@ -454,7 +462,7 @@ _NORMAL_MAD = 0.6744897501960817
 """``scipy.special.ndtri(0.75)``: the median absolute deviation of a unit normal."""
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _levenberg_marquardt(starts, ps, pt, fixed, y, basis, xyz_e, tensor, centre, scale, theta,
                          lo, hi, absolute, step_sigma, max_iter, max_depth_shift, edge,
                          reference, union):  # pragma: no cover - compiled
@@ -535,7 +543,7 @@ def _levenberg_marquardt(starts, ps, pt, fixed, y, basis, xyz_e, tensor, centre,
             reference_cost)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _model_normal_equations(pixels, basis, xyz_e, tensor, centre, scale, theta, edge,
                             union):  # pragma: no cover - compiled
     """:func:`_pixel_normal_equations` of the fitted ``pixels`` (:func:`_fit_pixels`) at
@@ -551,7 +559,7 @@ def _model_normal_equations(pixels, basis, xyz_e, tensor, centre, scale, theta, 
                                    np.ascontiguousarray(theta[:, 3:]), edge, union)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _step_tolerance(absolute, step_sigma, jtj, meat, n_views):  # pragma: no cover - compiled
     """``fmax(absolute, step_sigma * sigma)`` (k, 5) with sigma :func:`_view_robust_sigma`
     (a NaN sigma leaves ``absolute``)."""
@@ -565,7 +573,7 @@ def _step_tolerance(absolute, step_sigma, jtj, meat, n_views):  # pragma: no cov
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _view_robust_sigma(jtj, meat, n_views):  # pragma: no cover - compiled
     """(k, 5) standard errors of the parameters, robust to any correlation of the pixel
     errors within a view (views as independent clusters)::
@@ -606,7 +614,38 @@ def _masked_row_percentile(values, exclude, q, *, min_count):
     return np.where(count >= min_count, out, np.nan)
 
 
-@numba.njit(cache=True, nogil=True)
+_LOG2_E = 1.4426950408889634
+_LN2_HIGH = 0.6931471803691238       # ln 2 in two parts (fdlibm's): the high part's
+_LN2_LOW = 1.9082149292705877e-10    # products with the exponents below are exact
+_EXP_LIMIT = 708.0                   # exp(-708) is about 3e-308, just above the subnormals
+
+
+@numba.njit(**_KERNEL, fastmath={"contract"})
+def _exp_neg_squares(x, out, powers, m):  # pragma: no cover - compiled
+    """``out[:m] = exp(-x[:m]**2)`` in passes the compiler vectorises, within about one
+    unit in the last place of :func:`math.exp` (which numba calls one value at a time):
+    ``exp(-a) = 2^k exp(r)`` with ``k`` the nearest integer to ``-a / ln 2``, ``r = -a -
+    k ln 2`` (at most ``ln 2 / 2`` in size) in the Taylor series to ``r^13`` (truncation
+    below 1e-17), and ``2^k`` built from its exponent bits in ``powers`` (int64, at least
+    ``m``). ``a`` is capped at :data:`_EXP_LIMIT` (a NaN too): the result is then about
+    3e-308 instead of smaller or NaN, which no image model can tell from 0. Compiled
+    without reassociation, which would undo the two-part ``ln 2``."""
+    scale = powers.view(np.float64)
+    for p in range(m):
+        a = x[p] * x[p]
+        a = a if a < _EXP_LIMIT else _EXP_LIMIT
+        k = math.floor(0.5 - a * _LOG2_E)
+        r = (-a - k * _LN2_HIGH) - k * _LN2_LOW
+        out[p] = 1.0 + r * (1.0 + r * (1 / 2 + r * (1 / 6 + r * (1 / 24 + r * (1 / 120 + r * (
+            1 / 720 + r * (1 / 5040 + r * (1 / 40320 + r * (1 / 362880 + r * (
+                1 / 3628800 + r * (1 / 39916800 + r * (1 / 479001600
+                                                       + r / 6227020800))))))))))))
+        powers[p] = (np.int64(k) + 1023) << 52
+    for p in range(m):
+        out[p] *= scale[p]
+
+
+@numba.njit(**_KERNEL)
 def _half_erfc(x, gauss):  # pragma: no cover - compiled
     """``erfc(x) / 2`` given ``gauss = exp(-x**2)``, absolute error below 1e-7
     (Abramowitz and Stegun 7.1.26), without a second transcendental call."""
@@ -616,7 +655,7 @@ def _half_erfc(x, gauss):  # pragma: no cover - compiled
     return h if x >= 0.0 else 1.0 - h
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(**_KERNEL, inline="always")
 def _edge_argument(ds, dt, rho, radius, w_s, w_t):  # pragma: no cover - compiled
     """``x = (rho - r) / (sqrt 2 w)`` of a pixel at ``(ds, dt)`` (``rho`` its distance)
     from an image's centre, with the edge width ``w`` of the pixel's direction
@@ -635,7 +674,7 @@ def _edge_argument(ds, dt, rho, radius, w_s, w_t):  # pragma: no cover - compile
     return x, c * ds * (a - b * ws2), c * dt * (a - b * wt2), -rho * c
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
                  edge):  # pragma: no cover - compiled
     """The held neighbours' image ``fixed`` (K, n, n; computed on the ``fit`` pixels only,
@@ -681,7 +720,7 @@ def _patch_masks(origin, n, st_held, rc_held, st_free, r_free, margin,
     return fixed, near, fit
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _box(ci, cj, reach, n):  # pragma: no cover - compiled
     """Row and column ranges ``[i0, i1) x [j0, j1)`` of an ``n x n`` patch within
     ``reach`` of the point ``(ci, cj)`` (patch pixel coordinates); empty when none."""
@@ -714,14 +753,14 @@ _GL_WEIGHTS = np.array([0.0471753363865118, 0.1069393259953184, 0.16007832854334
                         0.1600783285433462, 0.1069393259953184, 0.0471753363865118])
 
 
-@numba.njit(cache=True, nogil=True, inline="always")
+@numba.njit(**_KERNEL, inline="always")
 def _normal_cdf(h):  # pragma: no cover - compiled
     """Standard normal ``Phi(h)`` (absolute error below 1e-7, :func:`_half_erfc`)."""
     x = -h / math.sqrt(2.0)
     return _half_erfc(x, math.exp(-x * x))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _bivariate_normal_cdf(h, k, r):  # pragma: no cover - compiled
     """``P(Z1 < h, Z2 < k)`` for standard normals of correlation ``r`` (|r| < 1).
 
@@ -753,7 +792,7 @@ def _bivariate_normal_cdf(h, k, r):  # pragma: no cover - compiled
     return base + total * half / (2.0 * math.pi)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _overlapping_edges(xs, delta, edge, r_grad):  # pragma: no cover - compiled
     """The darkness two overlapping images share at a pixel both their edges cross.
 
@@ -803,7 +842,7 @@ def _overlapping_edges(xs, delta, edge, r_grad):  # pragma: no cover - compiled
 
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(**_KERNEL)
 def _fit_pixels(origin, y, fixed, fit):  # pragma: no cover - compiled
     """The pixels ``fit`` (K, n, n) of patches with pixel ``[0, 0]`` at ``origin`` (K, 2),
     listed view by view in row-major order: ``(starts (K + 1,), s (N,), t (N,), fixed (N,),
@@ -828,7 +867,7 @@ def _fit_pixels(origin, y, fixed, fit):  # pragma: no cover - compiled
     return starts, ps, pt, fixed_out, y_out
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(**_KERNEL, fastmath=True)
 def _pixel_normal_equations(starts, ps, pt, fixed, y, st, jac, rc, edge,
                             union):  # pragma: no cover - compiled
     """Cost ``sum r**2``, ``J^T J``, ``J^T r`` and ``sum_v J_v^T r_v r_v^T J_v`` (the sum
@@ -862,11 +901,13 @@ def _pixel_normal_equations(starts, ps, pt, fixed, y, st, jac, rc, edge,
     cost = 0.0
     rows = np.empty((n_par, n_pix))
     res = np.empty(n_pix)
+    rest = np.empty(n_pix)              # the other images' product at each pixel
     xs = np.empty((k, n_pix))           # edge argument of each pixel and image
     dxs = np.empty((k, n_pix))          # and its derivatives along s and t
     dxt = np.empty((k, n_pix))
     dxr = np.empty((k, n_pix))          # and with respect to the radius
     gauss = np.empty((k, n_pix))
+    powers = np.empty(n_pix, dtype=np.int64)     # work space of _exp_neg_squares
     disc = np.empty((k, n_pix))
     f = np.empty((k, n_pix))            # each image's factor of the product
     x2 = np.empty(2)
@@ -886,8 +927,7 @@ def _pixel_normal_equations(starts, ps, pt, fixed, y, st, jac, rc, edge,
                 rho = math.sqrt(ds * ds + dt * dt)
                 xs[q, p], dxs[q, p], dxt[q, p], dxr[q, p] = _edge_argument(ds, dt, rho, radius,
                                                                            w_s, w_t)
-            for p in range(m):
-                gauss[q, p] = math.exp(-xs[q, p] * xs[q, p])
+            _exp_neg_squares(xs[q], gauss[q], powers, m)
             contrast = rc[q, 1]
             for p in range(m):
                 disc[q, p] = _half_erfc(xs[q, p], gauss[q, p])
@@ -903,11 +943,14 @@ def _pixel_normal_equations(starts, ps, pt, fixed, y, st, jac, rc, edge,
             j0, j1, j2 = jac[q, view, 0, 0], jac[q, view, 0, 1], jac[q, view, 0, 2]
             k0, k1, k2 = jac[q, view, 1, 0], jac[q, view, 1, 1], jac[q, view, 1, 2]
             contrast = rc[q, 1]
+            for p in range(m):                 # the held images and the other free ones
+                rest[p] = fixed[o + p]
+            for g in range(k):
+                if g != q:
+                    for p in range(m):
+                        rest[p] *= f[g, p]
             for p in range(m):
-                others = fixed[o + p]
-                for g in range(k):
-                    if g != q:
-                        others *= f[g, p]
+                others = rest[p]
                 slope = others * contrast * gauss[q, p] * norm      # df / dx
                 rows[5 * q, p] = -slope * (dxs[q, p] * j0 + dxt[q, p] * k0)
                 rows[5 * q + 1, p] = -slope * (dxs[q, p] * j1 + dxt[q, p] * k1)
@@ -939,7 +982,7 @@ def _pixel_normal_equations(starts, ps, pt, fixed, y, st, jac, rc, edge,
     return cost, jtj, jtr, meat
 
 
-@numba.njit(cache=True, nogil=True, fastmath=True)
+@numba.njit(**_KERNEL, fastmath=True)
 def _union_rows(o, m, ps, pt, fixed, y, st, jac, rc, edge, view, xs, dxs, dxt, dxr, gauss,
                 disc, rows, res, x2, delta, inside, r_grad):  # pragma: no cover - compiled
     """Residuals and Jacobian rows, in place, of those of view ``view``'s ``m`` pixels
