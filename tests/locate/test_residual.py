@@ -166,6 +166,16 @@ def test_dividing_out_in_one_pass_equals_the_transmission_then_the_division():
     assert not np.array_equal(got.data, divide_out_particles(lf, view_rc, pred, radius,
                                                               contrast).data)
     np.testing.assert_array_equal(lf.data, data)             # the input is not changed
+    # written into a given array: the same residual, in that array
+    out = np.full_like(data, 7.0)
+    into = divide_out_particles(lf, view_rc, pred, radius, contrast, axes=axes, out=out)
+    assert into.data is out
+    np.testing.assert_array_equal(out, got.data)
+    np.testing.assert_array_equal(lf.data, data)
+    for wrong in (out[:2], out.astype(np.float64), lf.data):
+        with pytest.raises(ValueError, match="out must be a separate array"):
+            divide_out_particles(lf, view_rc, pred, radius, contrast, out=wrong)
+    np.testing.assert_array_equal(lf.data, data)
 
 
 @pytest.fixture(scope="module")

@@ -231,7 +231,8 @@ def residual_light_field(lf: LightField, view_rc: np.ndarray, transmission: np.n
 def divide_out_particles(lf: LightField, view_rc: np.ndarray, pred: np.ndarray,
                          radius: np.ndarray, contrast: np.ndarray, *, floor: float = 0.5,
                          edge: float | np.ndarray = EDGE_PX,
-                         axes: np.ndarray | None = None) -> LightField:
+                         axes: np.ndarray | None = None,
+                         out: np.ndarray | None = None) -> LightField:
     """:func:`residual_light_field` of :func:`transmission_model`, in one pass over the
     particles' images only.
 
@@ -257,14 +258,29 @@ def divide_out_particles(lf: LightField, view_rc: np.ndarray, pred: np.ndarray,
         See :func:`transmission_model`.
     axes : (P, 3) float ndarray, optional
         See :func:`transmission_model`.
+    out : ndarray, optional
+        An array of ``lf.data``'s shape and dtype (not ``lf.data`` itself) that the
+        residual is written into, its contents replaced; a new array when None. A caller
+        that divides out again and again (the hidden-particle search's rounds) saves
+        the cost of mapping a new array of the light field's size each time (0.17 s on
+        hall2019, more than the copy itself).
 
     Returns
     -------
     LightField
-        A copy of ``lf`` with the modelled particles divided out.
+        A copy of ``lf`` with the modelled particles divided out (its data ``out`` when
+        given).
     """
     view_rc = np.ascontiguousarray(view_rc, dtype=np.int64).reshape(-1, 2)
-    data = lf.data.copy()
+    if out is None:
+        data = lf.data.copy()
+    elif out.shape != lf.data.shape or out.dtype != lf.data.dtype or out is lf.data:
+        raise ValueError(f"out must be a separate array of the light field's shape "
+                         f"{lf.data.shape} and dtype {lf.data.dtype}; got {out.shape} "
+                         f"{out.dtype}" + (" (the light field's own)" if out is lf.data else ""))
+    else:
+        np.copyto(out, lf.data)
+        data = out
     background, has_background = _view_backgrounds(data, view_rc)
     _divide_out(data, view_rc, np.ascontiguousarray(pred, dtype=np.float64),
                 _image_axes(radius, axes),
