@@ -213,16 +213,15 @@ class _ResidualSearch:
         k, centres, shapes = _elongated_silhouettes(self.ctx, self.state.owner,
                                                     np.flatnonzero(live), pred, radius)
         discs = np.c_[radius, radius, np.zeros_like(radius)]
-        data = self.ctx.lf.data
-        buffer = self.earlier.residual_data
-        if buffer is None or buffer.shape != data.shape or buffer.dtype != data.dtype:
-            buffer = self.earlier.residual_data = np.empty_like(data)
+        if self.earlier.residual_data is None:       # the frame's first round
+            self.earlier.residual_data = np.empty_like(self.ctx.lf.data)
         return divide_out_particles(self.ctx.lf, self.view_rc,
                                     np.concatenate([pred, centres]),
                                     np.r_[radius, shapes[:, 0]],
                                     np.r_[contrast, contrast[k]], floor=floor,
                                     edge=np.vstack([edge, edge[k]]),
-                                    axes=np.vstack([discs, shapes]), out=buffer)
+                                    axes=np.vstack([discs, shapes]),
+                                    out=self.earlier.residual_data)
 
     def turned_down_before(self, rows: np.ndarray) -> np.ndarray:
         """(len(rows),) bool: the candidates ``rows`` an earlier round fitted and turned
@@ -278,6 +277,13 @@ class _ResidualSearch:
         n_views = self.state2.table["n_views"].to_numpy(float)
         wanted = set(int(q) for q in candidates)
         return [q for q in np.argsort(-n_views, kind="stable") if q in wanted]
+
+    def rehold(self, jl: int, params: np.ndarray, fitted_pred: np.ndarray) -> None:
+        """The held image ``jl`` becomes ``params`` (5,), seen at ``fitted_pred`` (V, 2),
+        beside every later fit."""
+        self.held_pos[jl], self.held_rc[jl] = params[:3], params[3:]
+        self.held_pred[jl] = fitted_pred
+        self.held_spans.set_rows([jl], fitted_pred[None])
 
     def hold(self, params: np.ndarray, fitted_pred: np.ndarray) -> None:
         """Hold the images ``params`` (k, 5), seen at ``fitted_pred`` (k, V, 2), beside
@@ -368,9 +374,7 @@ class _ResidualSearch:
             return False
         fitted_pred = _predict_all(ctx.dlfc, again.params[:, :3], self.views_uv)
         self.joint[j] = again
-        self.held_pos[jl], self.held_rc[jl] = again.params[0, :3], again.params[0, 3:]
-        self.held_pred[jl] = fitted_pred[0]
-        self.held_spans.set_rows([jl], fitted_pred[[0]])
+        self.rehold(jl, again.params[0], fitted_pred[0])
         return True
 
     def fit_jointly(self, q) -> None:
@@ -419,9 +423,7 @@ class _ResidualSearch:
                 _note_companion(self.companions, j, self.positions2[q] - held_pos[jl])
             return
         self.joint[j] = fit
-        held_pos[jl], held_rc[jl] = fit.params[0, :3], fit.params[0, 3:]
-        held_pred[jl] = fitted_pred[0]
-        self.held_spans.set_rows([jl], fitted_pred[[0]])
+        self.rehold(jl, fit.params[0], fitted_pred[0])
         self.positions2[q] = fit.params[1, :3]
         self.fits[q] = _OneImage(fit, 1)
         self.new[q] = True
