@@ -14,7 +14,9 @@ prints, against the truth:
 - fragments: fragments of at least ``--min-diameter`` mm (volume-equivalent) visible in
   three or more frames (:func:`visible_frames`: the image centre inside the central view
   and the image not hidden inside others' in every view; whether or not the locator
-  found them), how many of those one track holds completely, the track's mean
+  found them), how many of those one track holds completely (every frame in which the
+  fragment was found: a located particle matched to it, or a track point matched to it
+  where pieces were merged into one body, :mod:`plenoptrack.pieces`), the track's mean
   speed and median equivalent diameter against the truth (speed; ``sqrt(4 A / pi)`` of
   the projected area ``A``), tracked with order 1, a window of 6 frames and
   ``--fragment-memory`` (3, as in the README's fragment example).
@@ -189,17 +191,22 @@ def fragments(data: Path, calib, work: Path, tolerance: float, min_diameter: flo
     info = pd.DataFrame({"diameter": first["diameter"].to_numpy(), "speed": speed, "eq_d": eq_d},
                         index=first.index)
     seen = located[located["_true"] >= 0].groupby("_true").size()
+    # frames in which a fragment was found: located, or as the body of merged pieces
+    # (plenoptrack.pieces), whose pieces lie too far from its centre to match alone
+    found = (pd.concat([located[["_true", "frame"]], tracks[["_true", "frame"]]])
+             .query("_true >= 0").drop_duplicates().groupby("_true").size())
     visible = visible_frames(truth, calib, decode(read_raw(data / "white.tif"), calib.grid))
     rows = []
     for pid, row in info.iterrows():
         n_seen = int(seen.get(pid, 0))
+        n_found = int(found.get(pid, 0))
         mine = tracks[tracks["_true"] == pid]
         ids = mine["particle"].value_counts()
         best = int(ids.index[0]) if len(ids) else -1
-        whole = len(ids) == 1 and ids.iloc[0] == n_seen
+        whole = len(ids) == 1 and ids.iloc[0] == n_found
         st = result.statistics.set_index("particle").loc[best] if best >= 0 else None
         rows.append({"particle": pid, "diameter": row["diameter"], "eq_d_true": row["eq_d"],
-                     "visible": int(visible.get(pid, 0)), "seen": n_seen,
+                     "visible": int(visible.get(pid, 0)), "seen": n_seen, "found": n_found,
                      "tracked_whole": bool(whole),
                      "points_in_best_track": int(ids.iloc[0]) if len(ids) else 0,
                      "speed_err": (st["speed"] / row["speed"] - 1) if st is not None else np.nan,
@@ -210,7 +217,11 @@ def fragments(data: Path, calib, work: Path, tolerance: float, min_diameter: flo
     return {"fragments": len(per),
             f"fragments >= {min_diameter} mm visible in >= 3 frames": len(big),
             "of those located in >= 3 frames": int((big["seen"] >= 3).sum()),
+            "of those found in >= 3 frames (located, or merged from pieces)":
+                int((big["found"] >= 3).sum()),
             "of those tracked whole": int(big["tracked_whole"].sum()),
+            "of those found in >= 3 frames and tracked whole":
+                int((big["tracked_whole"] & (big["found"] >= 3)).sum()),
             "speed error max |rel|": float(big["speed_err"].abs().max()),
             "speed error median |rel|": float(big["speed_err"].abs().median()),
             "eq. diameter error max |rel|": float(big["eq_d_err"].abs().max()),

@@ -98,6 +98,17 @@ def test_track_fixed_window(tables):
     assert record["settings"]["adapt_window"] is False
 
 
+def test_track_no_merge_pieces_is_recorded(tables, tracked):
+    assert "merged as pieces of one body" in tracked.stdout
+    out = tables / "t_pieces.parquet"
+    result = run("track", tables / "particles.parquet", "--out", out, "--no-merge-pieces")
+    assert result.exit_code == 0, result.output
+    table = pd.read_parquet(out)
+    assert table.attrs["plenoptrack"]["tracking"]["settings"]["merge_pieces"] is False
+    assert "pieces" not in table.columns
+    assert "pieces" in pd.read_parquet(tables / "tracks.parquet").columns
+
+
 def test_track_leaves_points_too_uncertain_to_link_on_their_own(tables, tracked):
     # the noisy table's sigmas are far below the search ranges: no point is left out,
     # until the ratio is small enough for the largest depth sigmas

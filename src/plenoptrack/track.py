@@ -9,12 +9,15 @@ The pipeline, each step a function that can be called alone:
    every track along its own latest velocity (ballistic motion). Linking runs twice by
    default: the second pass starts every new track with the velocity that the first
    pass measured nearby, so even the first frame pair is linked with a prediction.
-2. :func:`smooth_tracks` fits, at every point of a track, a weighted local polynomial in
+2. :func:`plenoptrack.pieces.merge_pieces` joins the tracks that are pieces of one body:
+   an irregular body the locator reported as two particles leaves two tracks that touch
+   and move together, while separate bodies move apart (:mod:`plenoptrack.pieces`).
+3. :func:`smooth_tracks` fits, at every point of a track, a weighted local polynomial in
    time (the ``window`` points nearest in time, degree ``order``) to each coordinate,
    each position weighted by ``1 / sigma^2``; points whose residual is far outside the
    track's scatter are rejected iteratively. The fit gives the smoothed position (the
    track-refined depth), velocity and acceleration with their standard uncertainties.
-3. :func:`track_statistics` reduces each track to one row: length, mean position, speed,
+4. :func:`track_statistics` reduces each track to one row: length, mean position, speed,
    velocity, size and shape.
 
 Units: positions mm; velocities mm per frame and accelerations mm per frame^2 (with a
@@ -44,6 +47,7 @@ from scipy.spatial import cKDTree
 from ._columns import ID_COLUMN, POS_COLUMNS, SIGMA_COLUMNS, T_COLUMN
 from .errors import InputFileError, NoParticlesWarning, SettingsError
 from .io import METADATA_KEY
+from .pieces import merge_pieces, piece_pairs
 
 __all__ = ["TrackSettings", "TrackVelocityPredict", "link_particles", "smooth_tracks",
            "track_statistics", "track_particles", "TrackResult", "SIGMA_COLUMNS",
@@ -113,6 +117,17 @@ class TrackSettings:
         MAD over all tracks) are rejected from the fits; 0 keeps every point.
     frame_interval_s : float or None
         Time between frames, s; with it, speeds are also given in m/s.
+    merge_pieces : bool
+        After linking, merge the tracks that are pieces of one body
+        (:mod:`plenoptrack.pieces`): they touch in most of the frames they share, at
+        least :data:`~plenoptrack.pieces.MIN_COMMON_FRAMES`, and their velocities agree.
+        Needs the points' sigmas.
+    piece_touch_sigma : float
+        Two points touch when their distance exceeds the sum of their half major axes by
+        at most this many standard uncertainties of the distance.
+    piece_velocity_p : float
+        Two tracks move together when the chi-square of their velocity difference has at
+        least this p-value.
     """
 
     search_range_mm: tuple[float, float] = (1.0, 3.0)
@@ -127,6 +142,9 @@ class TrackSettings:
     order: int = 2
     clip: float = 3.5
     frame_interval_s: float | None = None
+    merge_pieces: bool = True
+    piece_touch_sigma: float = 2.0
+    piece_velocity_p: float = 0.01
 
     def __post_init__(self) -> None:
         sr = tuple(float(v) for v in np.atleast_1d(self.search_range_mm))
@@ -153,6 +171,12 @@ class TrackSettings:
         if self.frame_interval_s is not None and not (
                 math.isfinite(self.frame_interval_s) and self.frame_interval_s > 0):
             raise SettingsError(f"frame_interval_s must be positive; got {self.frame_interval_s!r}")
+        if not (math.isfinite(self.piece_touch_sigma) and self.piece_touch_sigma >= 0):
+            raise SettingsError(f"piece_touch_sigma must be a finite number >= 0; "
+                                f"got {self.piece_touch_sigma!r}")
+        if not 0 < self.piece_velocity_p < 1:
+            raise SettingsError(f"piece_velocity_p must be in (0, 1); "
+                                f"got {self.piece_velocity_p!r}")
 
     @property
     def min_window(self) -> int:
@@ -1146,6 +1170,8 @@ class TrackResult:
     n_too_uncertain : int
         Rows of the particles table left out of linking as too uncertain
         (:func:`too_uncertain_to_link`).
+    n_pieces_merged : int
+        Tracks merged into another as pieces of one body (:mod:`plenoptrack.pieces`).
     """
 
     tracks: pd.DataFrame
@@ -1154,6 +1180,7 @@ class TrackResult:
     depth_scatter_ratio: float
     settings: TrackSettings
     n_too_uncertain: int = 0
+    n_pieces_merged: int = 0
 
     def summary(self) -> dict:
         """Numbers for a report: counts, lengths, speeds and the depth refinement."""
@@ -1161,6 +1188,7 @@ class TrackResult:
         out = {"particles in": self.n_input,
                "too uncertain to link (sigma > search range)": self.n_too_uncertain,
                "tracks": len(st),
+               "tracks merged as pieces of one body": self.n_pieces_merged,
                "points in tracks": len(self.tracks),
                "mean track length (frames)": float(st["n_frames"].mean()) if len(st) else 0.0,
                "outliers rejected": int(self.tracks["outlier"].sum()) if len(self.tracks) else 0,
@@ -1172,8 +1200,9 @@ class TrackResult:
 
 
 def track_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSettings()) -> TrackResult:
-    """Link, smooth and summarise: :func:`link_particles`, :func:`smooth_tracks`,
-    :func:`track_statistics`.
+    """Link, merge the pieces of one body, smooth and summarise: :func:`link_particles`,
+    :func:`plenoptrack.pieces.merge_pieces` (with ``settings.merge_pieces``),
+    :func:`smooth_tracks`, :func:`track_statistics`.
 
     Examples
     --------
@@ -1186,8 +1215,16 @@ def track_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSett
     (2, 0.5)
     """
     linked = link_particles(particles, settings)
+    n_merged = 0
+    if settings.merge_pieces:
+        pairs = piece_pairs(linked, touch_sigma=settings.piece_touch_sigma,
+                            velocity_p=settings.piece_velocity_p)
+        n_tracks = linked[ID_COLUMN].nunique()
+        linked = merge_pieces(linked, pairs)
+        n_merged = n_tracks - linked[ID_COLUMN].nunique()
     tracks = smooth_tracks(linked, settings)
     stats = track_statistics(tracks, frame_interval_s=settings.frame_interval_s)
     return TrackResult(tracks=tracks, statistics=stats, n_input=len(particles),
                        depth_scatter_ratio=depth_scatter_ratio(tracks), settings=settings,
-                       n_too_uncertain=int(too_uncertain_to_link(particles, settings).sum()))
+                       n_too_uncertain=int(too_uncertain_to_link(particles, settings).sum()),
+                       n_pieces_merged=n_merged)
