@@ -62,6 +62,30 @@ def test_depth_errors_match_particles_and_fit_slope_one():
     assert errs["error_mm"].std() == pytest.approx(0.1, rel=0.15)
 
 
+def test_depth_errors_prefer_the_measurement_on_the_particles_line():
+    measured, z0 = _synthetic()
+    one = measured[(measured["truth_id"] == 2) & (measured["position_mm"] == 10.0)]
+    # a ghost on particle 2's line of sight in every repeat of one position, nearer its
+    # lateral position than its own measurement, 8 mm off in depth; and a lone outlier
+    # (the particle's only measurement in its image) 2.5 mm off, inside the 3 mm depth
+    # half-axis
+    ghosts = one.assign(x=one["x"].mean(), y=one["y"].mean(), z=one["z"] - 8.0, truth_id=-2)
+    measured.loc[one.index, "x"] += 0.3
+    lone = ((measured["truth_id"] == 4) & (measured["position_mm"] == 4.0)
+            & (measured["repeat"] == 1))
+    measured.loc[lone, "z"] += 2.5
+    errs = depth_errors(pd.concat([measured, ghosts], ignore_index=True), match_mm=1.0)
+    assert (errs["truth_id"] != -2).all()                   # the ghosts lost to the particle
+    assert len(errs) == len(measured)
+    assert errs.groupby("particle")["truth_id"].nunique().max() == 1
+    outlier = errs[(errs["truth_id"] == 4) & (errs["position_mm"] == 4.0) & (errs["repeat"] == 1)]
+    assert outlier["error_mm"].iat[0] > 2.0                 # outliers stay in the statistics
+    # a measurement beyond the depth half-axis is no particle's
+    far = measured.copy()
+    far.loc[lone, "z"] += 1.0
+    assert len(depth_errors(far, match_mm=1.0)) == len(measured) - 1
+
+
 def test_depth_errors_drop_particles_seen_at_few_positions():
     measured, _ = _synthetic()
     lone = pd.DataFrame({"position_mm": [0.0, 2.0], "repeat": [0, 0], "x": [100.0, 100.0],
