@@ -145,6 +145,7 @@ def test_track_particles_merges_the_pieces_unless_told_not_to():
     assert merged.summary()["tracks merged as pieces of one body"] == 1
     body = merged.tracks[merged.tracks["pieces"] == 2]
     assert body["speed"].iloc[0] == pytest.approx(np.linalg.norm([1.0, 0.6, -0.3]), rel=0.05)
+    assert sorted(merged.statistics["pieces"]) == [1, 1, 2]
     assert len(link_particles(particles)) == len(particles)   # linking alone keeps every row
 
 

@@ -47,7 +47,7 @@ from scipy.spatial import cKDTree
 from ._columns import ID_COLUMN, POS_COLUMNS, SIGMA_COLUMNS, T_COLUMN
 from .errors import InputFileError, NoParticlesWarning, SettingsError
 from .io import METADATA_KEY
-from .pieces import merge_pieces, piece_pairs
+from .pieces import PIECES_COLUMN, merge_pieces, piece_pairs
 
 __all__ = ["TrackSettings", "TrackVelocityPredict", "link_particles", "smooth_tracks",
            "track_statistics", "track_particles", "TrackResult", "SIGMA_COLUMNS",
@@ -1110,7 +1110,9 @@ def track_statistics(tracks: pd.DataFrame, *, frame_interval_s: float | None = N
         ``acceleration`` (mean magnitude, mm per frame^2), ``n_outliers``; with the
         locator's size columns also ``diameter`` (median equivalent diameter, mm),
         ``major_axis``, ``minor_axis`` (median, mm), ``aspect`` (median major over minor)
-        and ``orientation`` (axial mean, rad).
+        and ``orientation`` (axial mean, rad); with a ``pieces`` column
+        (:func:`plenoptrack.pieces.merge_pieces`) also ``pieces``, the most pieces of one
+        body found in one frame (1 for a particle always found whole).
     """
     need = [ID_COLUMN, T_COLUMN, *SMOOTH_COLUMNS, *VELOCITY_COLUMNS, "speed"]
     missing = [c for c in need if c not in tracks.columns]
@@ -1140,6 +1142,8 @@ def track_statistics(tracks: pd.DataFrame, *, frame_interval_s: float | None = N
         with np.errstate(divide="ignore", invalid="ignore"):
             df["_aspect"] = df["major_axis"] / df["minor_axis"]
         stats["aspect"] = df.groupby(ID_COLUMN, sort=True)["_aspect"].median()
+    if PIECES_COLUMN in df.columns:
+        stats[PIECES_COLUMN] = g[PIECES_COLUMN].max()
     if "orientation" in df.columns:
         th = df["orientation"].to_numpy(float)
         df["_c2"], df["_s2"] = np.cos(2 * th), np.sin(2 * th)
