@@ -268,89 +268,119 @@ def union_diameter(centres_mm: np.ndarray, diameters_mm: np.ndarray, *,
     return float(np.sqrt(4.0 * inside.sum() * step * step / np.pi))
 
 
-def _merge_group(rows: pd.DataFrame, pieces: np.ndarray) -> pd.DataFrame:
-    """One track from the tracks ``pieces`` (ids) of one body (module notes)."""
-    piece_idx = np.searchsorted(pieces, rows[ID_COLUMN].to_numpy())
-    frames, frame_idx = np.unique(rows[T_COLUMN].to_numpy(), return_inverse=True)
-    diameter = (rows[DIAMETER_COLUMN].to_numpy(float) if DIAMETER_COLUMN in rows
-                else np.full(len(rows), np.nan))
-    median_d = pd.Series(diameter).groupby(piece_idx).median().reindex(
-        range(len(pieces))).to_numpy(float)
-    median_d = np.where(np.isfinite(median_d), median_d, 0.0)
-    area = median_d ** 2 if median_d.sum() > 0 else np.ones(len(pieces))
-    n_f = len(frames)
+def _piece_medians(values: np.ndarray, piece_idx: np.ndarray, n_pieces: int) -> np.ndarray:
+    """Median of ``values`` per piece (NaN where a piece has none)."""
+    return (pd.Series(values).groupby(piece_idx).median().reindex(range(n_pieces))
+            .to_numpy(float))
+
+
+def _body_track(rows: pd.DataFrame, piece_idx: np.ndarray, frame_idx: np.ndarray,
+                area: np.ndarray, n_frames: int) -> tuple[dict, np.ndarray]:
+    """The body's centre and its sigma per frame (``{"x": ..., "sigma_x": ..., ...}``,
+    :func:`_body_centre` per axis) and each piece's lateral offset from it, (P, 2) mm.
+
+    A frame without a weighted point takes the mean of its pieces' points moved by
+    their offsets, with no sigma."""
     merged = {}
-    offsets = np.zeros((len(pieces), 2))
-    for axis, sigma_column in zip(POS_COLUMNS, SIGMA_COLUMNS, strict=True):
+    offsets = np.zeros((len(area), 3))
+    for k, (axis, sigma_column) in enumerate(zip(POS_COLUMNS, SIGMA_COLUMNS, strict=True)):
         y = rows[axis].to_numpy(float)
         w = _weights(rows[sigma_column].to_numpy(float))
         w = np.where(np.isfinite(y), w, 0.0)
-        centre, sigma = _body_centre(frame_idx, piece_idx, y, w, area, n_f)
-        # offsets from the fitted frames; frames without a weighted point take the
-        # pieces' points moved by them, with no sigma
+        centre, sigma = _body_centre(frame_idx, piece_idx, y, w, area, n_frames)
         residual = y - centre[frame_idx]
         ok = np.isfinite(residual) & (w > 0)
-        offset = (pd.Series(residual[ok]).groupby(piece_idx[ok]).mean()
-                  .reindex(range(len(pieces))).fillna(0.0).to_numpy())
+        offsets[:, k] = (pd.Series(residual[ok]).groupby(piece_idx[ok]).mean()
+                         .reindex(range(len(area))).fillna(0.0).to_numpy())
         lone = ~np.isfinite(centre)
         if lone.any():
-            shifted = pd.Series(y - offset[piece_idx]).groupby(frame_idx).mean()
-            centre[lone] = shifted.reindex(range(n_f)).to_numpy()[lone]
-        merged[axis] = centre
-        merged[sigma_column] = sigma
-        if axis != POS_COLUMNS[2]:
-            offsets[:, POS_COLUMNS.index(axis)] = offset
-    # per frame: the row of its largest piece carries the columns not computed here
+            shifted = pd.Series(y - offsets[piece_idx, k]).groupby(frame_idx).mean()
+            centre[lone] = shifted.reindex(range(n_frames)).to_numpy()[lone]
+        merged[axis], merged[sigma_column] = centre, sigma
+    return merged, offsets[:, :2]
+
+
+def _body_size(rows: pd.DataFrame, piece_idx: np.ndarray, frame_idx: np.ndarray,
+               centre_xy: np.ndarray, offsets: np.ndarray, n_frames: int) -> dict:
+    """``diameter``, ``major_axis`` and ``minor_axis`` of the body per frame (those of
+    the columns ``rows`` has): the union of the pieces' discs, each at the body's centre
+    plus its offset (a missing piece with its median size); the longest extent of a
+    piece's major axis beyond the centre, doubled; the largest minor axis."""
+    n_pieces = len(offsets)
+    out = {}
+
+    def per_frame(column):
+        values = rows[column].to_numpy(float)
+        median = _piece_medians(values, piece_idx, n_pieces)
+        now = np.tile(median, (n_frames, 1))
+        now[frame_idx, piece_idx] = np.where(np.isfinite(values), values, median[piece_idx])
+        return now
+
+    if DIAMETER_COLUMN in rows:
+        diameters = per_frame(DIAMETER_COLUMN)
+        centres = centre_xy[:, None, :] + offsets[None, :, :]
+        out[DIAMETER_COLUMN] = [union_diameter(centres[k], diameters[k])
+                                for k in range(n_frames)]
+    if "major_axis" in rows:
+        spread = 2.0 * np.linalg.norm(offsets, axis=1)
+        with np.errstate(invalid="ignore"):
+            out["major_axis"] = np.nanmax(spread[None, :] + per_frame("major_axis"), axis=1)
+    if "minor_axis" in rows:
+        out["minor_axis"] = (pd.Series(rows["minor_axis"].to_numpy(float))
+                             .groupby(frame_idx).max().to_numpy())
+    return out
+
+
+def _body_quality(rows: pd.DataFrame, frame_idx: np.ndarray, weight: np.ndarray,
+                  n_frames: int) -> dict:
+    """Per frame: the quality columns of ``rows`` as the pieces' ``weight``-ed mean
+    (:data:`_WEIGHTED_MEAN_COLUMNS`), ``n_views`` the most, ``flags`` all bits, ``chi2``
+    and ``orientation`` NaN (no single fit or long axis describes the body)."""
+    out = {}
+    for column in _WEIGHTED_MEAN_COLUMNS:
+        if column in rows:
+            values = rows[column].to_numpy(float)
+            ok = np.isfinite(values)
+            num = np.bincount(frame_idx[ok], weights=(weight * values)[ok], minlength=n_frames)
+            den = np.bincount(frame_idx[ok], weights=weight[ok], minlength=n_frames)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                out[column] = np.where(den > 0, num / den, np.nan)
+    if "n_views" in rows:
+        out["n_views"] = rows.groupby(frame_idx)["n_views"].max().to_numpy()
+    if "flags" in rows:
+        combined = np.zeros(n_frames, dtype=np.int64)
+        np.bitwise_or.at(combined, frame_idx, rows["flags"].to_numpy(np.int64))
+        out["flags"] = combined.astype(rows["flags"].dtype)
+    for column in ("chi2", "orientation"):
+        if column in rows:
+            out[column] = np.nan
+    return out
+
+
+def _merge_group(rows: pd.DataFrame, pieces: np.ndarray) -> pd.DataFrame:
+    """One track from the tracks ``pieces`` (sorted ids) of one body (module notes)."""
+    piece_idx = np.searchsorted(pieces, rows[ID_COLUMN].to_numpy())
+    frames, frame_idx = np.unique(rows[T_COLUMN].to_numpy(), return_inverse=True)
+    n_f = len(frames)
+    diameter = (rows[DIAMETER_COLUMN].to_numpy(float) if DIAMETER_COLUMN in rows
+                else np.full(len(rows), np.nan))
+    median_d = np.nan_to_num(_piece_medians(diameter, piece_idx, len(pieces)))
+    area = median_d ** 2 if median_d.sum() > 0 else np.ones(len(pieces))
+    position, offsets = _body_track(rows, piece_idx, frame_idx, area, n_f)
     point_d = np.where(np.isfinite(diameter), diameter, median_d[piece_idx])
+    # per frame, the row of its largest piece carries the columns not computed here
     order = np.lexsort((-point_d, frame_idx))
     first = order[np.r_[True, frame_idx[order][1:] != frame_idx[order][:-1]]]
     out = rows.iloc[first].copy().reset_index(drop=True)
     out[ID_COLUMN] = pieces[0]
     out[T_COLUMN] = frames
-    for column, values in merged.items():
-        out[column] = values
-    present = np.zeros((n_f, len(pieces)), dtype=bool)
-    present[frame_idx, piece_idx] = True
-    d_now = np.tile(median_d, (n_f, 1))
-    d_now[frame_idx, piece_idx] = point_d
-    if DIAMETER_COLUMN in out:
-        # each piece's disc where the body's centre and the piece's offset put it
-        centres = np.stack([merged["x"][:, None] + offsets[None, :, 0],
-                            merged["y"][:, None] + offsets[None, :, 1]], axis=-1)
-        out[DIAMETER_COLUMN] = [union_diameter(centres[k], d_now[k]) for k in range(n_f)]
-    if "major_axis" in out:
-        major = rows["major_axis"].to_numpy(float)
-        median_major = pd.Series(major).groupby(piece_idx).median().reindex(
-            range(len(pieces))).to_numpy(float)
-        m_now = np.tile(median_major, (n_f, 1))
-        m_now[frame_idx, piece_idx] = np.where(np.isfinite(major), major,
-                                               median_major[piece_idx])
-        spread = 2.0 * np.linalg.norm(offsets, axis=1)
-        out["major_axis"] = np.nanmax(spread[None, :] + m_now, axis=1)
-    if "minor_axis" in out:
-        out["minor_axis"] = (pd.Series(rows["minor_axis"].to_numpy(float))
-                             .groupby(frame_idx).max().to_numpy())
-    if "orientation" in out:
-        out["orientation"] = np.nan
-    if "chi2" in out:
-        out["chi2"] = np.nan
     weight = point_d ** 2 if np.any(point_d > 0) else np.ones(len(rows))
-    for column in _WEIGHTED_MEAN_COLUMNS:
-        if column in out:
-            values = rows[column].to_numpy(float)
-            ok = np.isfinite(values)
-            num = np.bincount(frame_idx[ok], weights=(weight * values)[ok], minlength=n_f)
-            den = np.bincount(frame_idx[ok], weights=weight[ok], minlength=n_f)
-            with np.errstate(divide="ignore", invalid="ignore"):
-                out[column] = np.where(den > 0, num / den, np.nan)
-    if "n_views" in out:
-        out["n_views"] = rows.groupby(frame_idx)["n_views"].max().to_numpy()
-    if "flags" in out:
-        flags = rows["flags"].to_numpy(np.int64)
-        combined = np.zeros(n_f, dtype=np.int64)
-        np.bitwise_or.at(combined, frame_idx, flags)
-        out["flags"] = combined.astype(rows["flags"].dtype)
-    out[PIECES_COLUMN] = present.sum(axis=1).astype(np.int64)
+    centre_xy = np.c_[position["x"], position["y"]]
+    for column, values in {**position,
+                           **_body_size(rows, piece_idx, frame_idx, centre_xy, offsets, n_f),
+                           **_body_quality(rows, frame_idx, weight, n_f)}.items():
+        out[column] = values
+    out[PIECES_COLUMN] = np.bincount(frame_idx, minlength=n_f).astype(np.int64)
     return out
 
 
@@ -370,7 +400,11 @@ def merge_pieces(linked: pd.DataFrame, pairs: np.ndarray) -> pd.DataFrame:
         ``linked`` with each group's rows replaced by one row per frame (module notes),
         under the group's smallest track id, and a column ``pieces``; track ids
         renumbered from 0 in order of first appearance; sorted by ``particle`` then
-        ``frame``, index reset.
+        ``frame``, index reset. A merged row's ``major_axis`` is twice the longest reach
+        of a piece's major axis from the body's centre, its ``minor_axis`` the largest
+        of the pieces', ``confidence``, ``residual_px`` and ``travel_px`` the pieces'
+        area-weighted means, ``n_views`` the most, ``flags`` every piece's bits,
+        ``chi2`` and ``orientation`` NaN; other columns are the largest piece's.
     """
     table = linked.reset_index(drop=True)
     ids = table[ID_COLUMN].to_numpy(np.int64)
