@@ -158,3 +158,20 @@ def test_out_of_range_piece_settings_are_refused(field, value):
         TrackSettings(**{field: value})
     with pytest.raises(SettingsError):
         piece_pairs(_scene()[0], **{field.removeprefix("piece_"): value})
+
+
+def test_a_frame_whose_only_piece_has_no_sigma_keeps_the_body_centre_without_one():
+    linked, centre, _ = _scene(3)
+    linked = linked[~((linked["particle"] == 1) & (linked["frame"] == 4))]
+    only = (linked["particle"] == 0) & (linked["frame"] == 4)
+    linked.loc[only, "sigma_z"] = np.nan                    # a singular solve: no sigma
+    merged = merge_pieces(linked, np.array([[0, 1]]))
+    body = merged[merged["particle"] == 0].set_index("frame")
+    assert body.loc[4, "pieces"] == 1
+    assert math.isnan(body.loc[4, "sigma_z"]) and np.isfinite(body.loc[4, "sigma_x"])
+    # the lone point moved by its piece's offset (its mean residual in the other frames)
+    piece = linked[linked["particle"] == 0].set_index("frame")["z"]
+    offset = (piece.drop(index=4) - body["z"].drop(index=4)).mean()
+    assert body.loc[4, "z"] == pytest.approx(piece.loc[4] - offset, abs=1e-12)
+    assert offset == pytest.approx(0.8 * (1.0 - 1.6 ** 2 / (1.6 ** 2 + 1.0)), abs=0.1)
+    assert np.isfinite(body["z"]).all() and np.isfinite(body.drop(index=4)["sigma_z"]).all()
