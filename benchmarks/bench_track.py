@@ -8,7 +8,9 @@ points missed; the noise of ``tests/test_track.py``), linked and smoothed with t
 settings. Prints the seconds of each step (best of ``--repeats``) and, as the baseline
 measured in the same run, the smoother with the robust start's curvature taken over every
 three points of the widest window (the form before it took only each window's own
-points); the two smoothed tables must be identical.
+points); the two smoothed tables must be identical. The search for pieces of one body
+(:mod:`plenoptrack.pieces`: pairs, then the merge) is timed against the linking it
+follows.
 """
 
 from __future__ import annotations
@@ -22,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from plenoptrack import track
+from plenoptrack.pieces import merge_pieces, piece_pairs
 from plenoptrack.simulate.scenes import VortexRing, vortex_ring_scene
 from plenoptrack.track import TrackSettings, link_particles, smooth_tracks
 
@@ -62,6 +65,8 @@ def main() -> None:
     points = noisy(truth, seed=0)
     settings = TrackSettings()
     t_link, linked = _best(lambda: link_particles(points, settings), args.repeats)
+    t_pairs, pairs = _best(lambda: piece_pairs(linked), args.repeats)
+    t_merge, _ = _best(lambda: merge_pieces(linked, pairs), args.repeats)
     t_smooth, smoothed = _best(lambda: smooth_tracks(linked, settings), args.repeats)
     current = track._robust_half_curvature
     track._robust_half_curvature = _all_triples_half_curvature
@@ -73,6 +78,8 @@ def main() -> None:
     print(f"{len(points)} points ({args.particles} tracers x {args.frames} frames), "
           f"best of {args.repeats}:")
     print(f"  link    {t_link:7.2f} s")
+    print(f"  pieces  {t_pairs + t_merge:7.2f} s  ({len(pairs)} pairs merged; "
+          f"{(t_pairs + t_merge) / t_link:.3f} of the linking time)")
     print(f"  smooth  {t_smooth:7.2f} s  (baseline {t_base:.2f} s: {t_base / t_smooth:.2f}x; "
           f"identical output: {same})")
     if not same:
