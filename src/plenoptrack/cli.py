@@ -942,6 +942,7 @@ def track(
     no_predict: bool = typer.Option(False, "--no-predict", help="Link without the velocity predictor."),
     no_extend: bool = typer.Option(False, "--no-extend", help="Do not continue tracks at both ends along their own velocity, nor fill their gaps, after linking (a lone point or a track of one or two points that fits a track's prediction joins it)."),
     fixed_window: bool = typer.Option(False, "--fixed-window", help="Smooth every coordinate over --window points (by default each coordinate's window is chosen among --window -2, +0, +2 and +4 by its leave-one-out prediction error)."),
+    no_repair_swaps: bool = typer.Option(False, "--no-repair-swaps", help="Keep the tracks as linked: by default two tracks whose points in one frame lie within a search range of each other exchange their tails from that frame on when both then fit their own motion much better (chi-square about each track's fit, 100:1 likelihood)."),
     no_merge_pieces: bool = typer.Option(False, "--no-merge-pieces", help="Keep as separate tracks the pieces of one body: by default two tracks that touch in most of the frames they share (at least 3) and whose velocities agree within their uncertainty are merged into one track (an irregular particle the locator reported as two)."),
 ) -> None:
     """Link particles over frames into 3D tracks; velocities, accelerations, track-refined depth."""
@@ -957,7 +958,8 @@ def track(
                              window=window, order=order,
                              frame_interval_s=frame_interval, predict=not no_predict,
                              passes=1 if no_predict else 2, extend=not no_extend,
-                             adapt_window=not fixed_window, merge_pieces=not no_merge_pieces)
+                             adapt_window=not fixed_window, merge_pieces=not no_merge_pieces,
+                             repair_swaps=not no_repair_swaps)
     with _outputs({"--out": out_file, "--stats": stats_file},
                   {"PARTICLES": particles_file}) as (out_tmp, stats_tmp):
         t0 = time.perf_counter()

@@ -9,9 +9,12 @@ The pipeline, each step a function that can be called alone:
    every track along its own latest velocity (ballistic motion). Linking runs twice by
    default: the second pass starts every new track with the velocity that the first
    pass measured nearby, so even the first frame pair is linked with a prediction.
-2. :func:`plenoptrack.pieces.merge_pieces` joins the tracks that are pieces of one body:
-   an irregular body the locator reported as two particles leaves two tracks that touch
-   and move together, while separate bodies move apart (:mod:`plenoptrack.pieces`).
+2. :func:`plenoptrack.swaps.repair_swaps` exchanges the tails of two tracks that took
+   each other's particles, where both then fit their own motion better
+   (:mod:`plenoptrack.swaps`), and :func:`plenoptrack.pieces.merge_pieces` joins the
+   tracks that are pieces of one body: an irregular body the locator reported as two
+   particles leaves two tracks that touch and move together, while separate bodies move
+   apart (:mod:`plenoptrack.pieces`).
 3. :func:`smooth_tracks` fits, at every point of a track, a weighted local polynomial in
    time (the ``window`` points nearest in time, degree ``order``) to each coordinate,
    each position weighted by ``1 / sigma^2``; points whose residual is far outside the
@@ -48,6 +51,7 @@ from ._columns import ID_COLUMN, POS_COLUMNS, SIGMA_COLUMNS, T_COLUMN
 from .errors import InputFileError, NoParticlesWarning, SettingsError
 from .io import METADATA_KEY
 from .pieces import PIECES_COLUMN, merge_pieces, piece_pairs
+from .swaps import repair_swaps
 
 __all__ = ["TrackSettings", "TrackVelocityPredict", "link_particles", "smooth_tracks",
            "track_statistics", "track_particles", "TrackResult", "SIGMA_COLUMNS",
@@ -117,6 +121,11 @@ class TrackSettings:
         MAD over all tracks) are rejected from the fits; 0 keeps every point.
     frame_interval_s : float or None
         Time between frames, s; with it, speeds are also given in m/s.
+    repair_swaps : bool
+        After linking, exchange the tails of two tracks that took each other's particles
+        where both then fit their own motion better (:mod:`plenoptrack.swaps`: the
+        chi-square about each track's fit of degree ``order`` drops by more than
+        :data:`~plenoptrack.swaps.SWAP_MIN_GAIN`). Needs the points' sigmas.
     merge_pieces : bool
         After linking, merge the tracks that are pieces of one body
         (:mod:`plenoptrack.pieces`): they touch in most of the frames they share, at
@@ -142,6 +151,7 @@ class TrackSettings:
     order: int = 2
     clip: float = 3.5
     frame_interval_s: float | None = None
+    repair_swaps: bool = True
     merge_pieces: bool = True
     piece_touch_sigma: float = 2.0
     piece_velocity_p: float = 0.01
@@ -1176,6 +1186,8 @@ class TrackResult:
         (:func:`too_uncertain_to_link`).
     n_pieces_merged : int
         Tracks merged into another as pieces of one body (:mod:`plenoptrack.pieces`).
+    n_swaps_repaired : int
+        Pairs of tracks whose tails were exchanged (:mod:`plenoptrack.swaps`).
     """
 
     tracks: pd.DataFrame
@@ -1185,6 +1197,7 @@ class TrackResult:
     settings: TrackSettings
     n_too_uncertain: int = 0
     n_pieces_merged: int = 0
+    n_swaps_repaired: int = 0
 
     def summary(self) -> dict:
         """Numbers for a report: counts, lengths, speeds and the depth refinement."""
@@ -1193,6 +1206,7 @@ class TrackResult:
                "too uncertain to link (sigma > search range)": self.n_too_uncertain,
                "tracks": len(st),
                "tracks merged as pieces of one body": self.n_pieces_merged,
+               "track tails exchanged (swapped particles)": self.n_swaps_repaired,
                "points in tracks": len(self.tracks),
                "mean track length (frames)": float(st["n_frames"].mean()) if len(st) else 0.0,
                "outliers rejected": int(self.tracks["outlier"].sum()) if len(self.tracks) else 0,
@@ -1204,9 +1218,10 @@ class TrackResult:
 
 
 def track_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSettings()) -> TrackResult:
-    """Link, merge the pieces of one body, smooth and summarise: :func:`link_particles`,
-    :func:`plenoptrack.pieces.merge_pieces` (with ``settings.merge_pieces``),
-    :func:`smooth_tracks`, :func:`track_statistics`.
+    """Link, repair swapped tracks, merge the pieces of one body, smooth and summarise:
+    :func:`link_particles`, :func:`plenoptrack.swaps.repair_swaps` (with
+    ``settings.repair_swaps``), :func:`plenoptrack.pieces.merge_pieces` (with
+    ``settings.merge_pieces``), :func:`smooth_tracks`, :func:`track_statistics`.
 
     Examples
     --------
@@ -1219,6 +1234,10 @@ def track_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSett
     (2, 0.5)
     """
     linked = link_particles(particles, settings)
+    n_swaps = 0
+    if settings.repair_swaps:
+        linked, n_swaps = repair_swaps(linked, search_range_mm=settings.search_range_mm,
+                                       degree=settings.order, clip=settings.clip)
     n_merged = 0
     if settings.merge_pieces:
         pairs = piece_pairs(linked, touch_sigma=settings.piece_touch_sigma,
@@ -1231,4 +1250,4 @@ def track_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSett
     return TrackResult(tracks=tracks, statistics=stats, n_input=len(particles),
                        depth_scatter_ratio=depth_scatter_ratio(tracks), settings=settings,
                        n_too_uncertain=int(too_uncertain_to_link(particles, settings).sum()),
-                       n_pieces_merged=n_merged)
+                       n_pieces_merged=n_merged, n_swaps_repaired=n_swaps)
