@@ -8,9 +8,9 @@ points missed; the noise of ``tests/test_track.py``), linked and smoothed with t
 settings. Prints the seconds of each step (best of ``--repeats``) and, as the baseline
 measured in the same run, the smoother with the robust start's curvature taken over every
 three points of the widest window (the form before it took only each window's own
-points); the two smoothed tables must be identical. The search for pieces of one body
-(:mod:`plenoptrack.pieces`: pairs, then the merge) is timed against the linking it
-follows.
+points); the two smoothed tables must be identical. The search for swapped tracks
+(:mod:`plenoptrack.swaps`) and for pieces of one body (:mod:`plenoptrack.pieces`: pairs,
+then the merge) are timed against the linking they follow.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import numpy as np
 
 from plenoptrack import track
 from plenoptrack.pieces import merge_pieces, piece_pairs
+from plenoptrack.swaps import repair_swaps
 from plenoptrack.simulate.scenes import VortexRing, vortex_ring_scene
 from plenoptrack.track import TrackSettings, link_particles, smooth_tracks
 
@@ -65,6 +66,9 @@ def main() -> None:
     points = noisy(truth, seed=0)
     settings = TrackSettings()
     t_link, linked = _best(lambda: link_particles(points, settings), args.repeats)
+    t_swaps, (_, n_swaps) = _best(lambda: repair_swaps(
+        linked, search_range_mm=settings.search_range_mm, degree=settings.order,
+        window=settings.window, clip=settings.clip), args.repeats)
     t_pairs, pairs = _best(lambda: piece_pairs(linked), args.repeats)
     t_merge, _ = _best(lambda: merge_pieces(linked, pairs), args.repeats)
     t_smooth, smoothed = _best(lambda: smooth_tracks(linked, settings), args.repeats)
@@ -78,6 +82,8 @@ def main() -> None:
     print(f"{len(points)} points ({args.particles} tracers x {args.frames} frames), "
           f"best of {args.repeats}:")
     print(f"  link    {t_link:7.2f} s")
+    print(f"  swaps   {t_swaps:7.2f} s  ({n_swaps} exchanged; "
+          f"{t_swaps / t_link:.3f} of the linking time)")
     print(f"  pieces  {t_pairs + t_merge:7.2f} s  ({len(pairs)} pairs merged; "
           f"{(t_pairs + t_merge) / t_link:.3f} of the linking time)")
     print(f"  smooth  {t_smooth:7.2f} s  (baseline {t_base:.2f} s: {t_base / t_smooth:.2f}x; "

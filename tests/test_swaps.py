@@ -37,7 +37,8 @@ def test_swapped_tails_are_exchanged_back():
     late = swapped["frame"] >= 4
     swapped.loc[late & (swapped["truth"] == 0), "particle"] = 1
     swapped.loc[late & (swapped["truth"] == 1), "particle"] = 0
-    repaired, n = repair_swaps(swapped, search_range_mm=(1.0, 3.0), degree=1)
+    repaired, n = repair_swaps(swapped, search_range_mm=(1.0, 3.0), degree=1,
+                                 window=7)
     assert n == 1
     assert (repaired.groupby("particle")["truth"].nunique() == 1).all()
     assert swapped["particle"].tolist() != repaired["particle"].tolist()   # input kept
@@ -48,7 +49,8 @@ def test_swapped_tails_are_exchanged_back():
 def test_right_tracks_are_left_alone():
     for seed in range(10):
         true = _crossing(seed)
-        repaired, n = repair_swaps(true, search_range_mm=(1.0, 3.0), degree=1)
+        repaired, n = repair_swaps(true, search_range_mm=(1.0, 3.0), degree=1,
+                                 window=7)
         assert n == 0 and repaired["particle"].tolist() == true["particle"].tolist()
 
 
@@ -66,13 +68,15 @@ def test_a_track_too_short_to_fit_takes_no_points():
     assert track_chi2(kinked["frame"], kinked[["x", "y", "z"]].to_numpy(),
                       kinked[["sigma_x", "sigma_y", "sigma_z"]].to_numpy(), degree=2,
                       cap=np.inf) > SWAP_MIN_GAIN
-    _, n = repair_swaps(table, search_range_mm=(1.0, 3.0), degree=2, clip=0.0)
+    _, n = repair_swaps(table, search_range_mm=(1.0, 3.0), degree=2, window=7,
+                        clip=0.0)
     assert n == 0
 
 
 def test_without_sigmas_the_table_comes_back_as_it_is():
     table = _crossing().drop(columns="sigma_z")
-    repaired, n = repair_swaps(table, search_range_mm=(1.0, 3.0), degree=1)
+    repaired, n = repair_swaps(table, search_range_mm=(1.0, 3.0), degree=1,
+                                 window=7)
     assert n == 0 and repaired is table
 
 
@@ -99,3 +103,18 @@ def test_track_particles_repairs_unless_told_not_to():
     assert on.summary()["track tails exchanged (swapped particles)"] == on.n_swaps_repaired
     for result in (on, off):
         assert (result.tracks.groupby("particle")["truth"].nunique() == 1).all()
+
+
+def test_sigma_scale_is_the_scatter_the_sigmas_understate():
+    from plenoptrack.swaps import sigma_scale
+
+    rng = np.random.default_rng(4)
+    frames = np.arange(30)
+    tracks = {}
+    for k in range(40):
+        xyz = np.outer(frames, [1.0, 0.5, -0.2]) + rng.standard_normal((30, 3)) * SIGMA
+        tracks[k] = {"frames": frames, "xyz": xyz, "sigma": np.tile(SIGMA / 3, (30, 1))}
+    np.testing.assert_allclose(sigma_scale(tracks), 3.0, rtol=0.1)
+    for track in tracks.values():
+        track["sigma"] = np.tile(SIGMA * 2, (30, 1))      # larger than the scatter: kept
+    np.testing.assert_array_equal(sigma_scale(tracks), 1.0)

@@ -124,7 +124,8 @@ class TrackSettings:
     repair_swaps : bool
         After linking, exchange the tails of two tracks that took each other's particles
         where both then fit their own motion better (:mod:`plenoptrack.swaps`: the
-        chi-square about each track's fit of degree ``order`` drops by more than
+        chi-square about each track's fit of degree ``order`` over the ``window`` frames
+        around the exchange drops by more than
         :data:`~plenoptrack.swaps.SWAP_MIN_GAIN`). Needs the points' sigmas.
     merge_pieces : bool
         After linking, merge the tracks that are pieces of one body
@@ -1237,7 +1238,8 @@ def track_particles(particles: pd.DataFrame, settings: TrackSettings = TrackSett
     n_swaps = 0
     if settings.repair_swaps:
         linked, n_swaps = repair_swaps(linked, search_range_mm=settings.search_range_mm,
-                                       degree=settings.order, clip=settings.clip)
+                                       degree=settings.order, window=settings.window,
+                                       clip=settings.clip)
     n_merged = 0
     if settings.merge_pieces:
         pairs = piece_pairs(linked, touch_sigma=settings.piece_touch_sigma,
