@@ -7,10 +7,9 @@ track then goes on with the first track's particle: two tracks each made of two
 particles. Seen whole, each such track fits its own motion badly, and the two fit well
 with their tails exchanged.
 
-After linking, :func:`repair_swaps` tests every pair of tracks that both have points
-before a frame and whose points in that frame lie within one search range of each other
-(the ellipsoid of ``search_range_mm``: the pairs the linking could have confused). The
-test exchanges their tails from that frame on and compares the sum of the two tracks'
+After linking, :func:`repair_swaps` tests every pair of tracks whose points in one frame
+lie within one search range of each other (the ellipsoid of ``search_range_mm``: the
+pairs the linking could have confused). The test exchanges their tails from that frame on and compares the sum of the two tracks'
 chi-squares about their own polynomial fits (:func:`track_chi2`: degree ``order``,
 weights ``1 / sigma^2``, each point's term capped at ``clip^2`` so that one outlier
 cannot decide), over the ``window`` frames around the exchange: the smoother's local
