@@ -9,13 +9,14 @@ with their tails exchanged.
 
 After linking, :func:`repair_swaps` tests every pair of tracks whose points in one frame
 lie within one search range of each other (the ellipsoid of ``search_range_mm``: the
-pairs the linking could have confused). The test exchanges their tails from that frame on and compares the sum of the two tracks'
-chi-squares about their own polynomial fits (:func:`track_chi2`: degree ``order``,
-weights ``1 / sigma^2``, each point's term capped at ``clip^2`` so that one outlier
-cannot decide), over the ``window`` frames around the exchange: the smoother's local
-model. Over a long curved path no low polynomial fits, and cutting it anywhere would
-seem to help. The exchange that lowers the sum the most is made when it lowers it by
-more than :data:`SWAP_MIN_GAIN`, and the search is repeated until none does. Only tracks
+pairs the linking could have confused). The test exchanges their tails from that frame
+on and compares the sum of the two tracks' chi-squares about their own polynomial fits
+(:func:`track_chi2`: degree ``order``, weights ``1 / sigma^2``, each point's term capped
+at ``clip^2`` so that one outlier cannot decide), over the ``window`` frames around the
+exchange: the smoother's local model. Over a long curved path no low polynomial fits,
+and cutting it anywhere would seem to help. The exchange that lowers the sum the most is
+made when it lowers it by more than :data:`SWAP_MIN_GAIN`, and the search is repeated
+until none does. Only tracks
 with at least ``order + 2`` points in that span before and after the exchange take part:
 both assignments then hold the same points with the same degrees of freedom, and the gain
 in chi-square is twice the log of the likelihood ratio between them (a track too short to
